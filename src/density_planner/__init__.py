@@ -1,0 +1,61 @@
+"""density-planner: motion planning that minimises collision risk under initial-state uncertainty.
+
+The pipeline, in the order data flows through it::
+
+    systems -> control -> density -> environment -> risk -> cost -> planners -> evaluation -> cli / viz
+
+The names below are the stable public API; everything else is importable from its subpackage.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .control import (
+    CarTrackingController,
+    PiecewiseConstantInputs,
+    Reference,
+    TrackingController,
+    make_reference,
+)
+from .density import (
+    DensityPredictor,
+    DensityTrajectory,
+    ExactLiouville,
+    Gaussian,
+    GaussianMixture,
+    LiouvilleConfig,
+    UniformBox,
+    WeightedSamples,
+    paper_gaussian_mixture,
+    propagate_density,
+    simulate_closed_loop,
+)
+from .systems import CarConfig, KinematicCar, LinearSystem, System
+
+try:
+    __version__ = version("density-planner")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree without installation
+    __version__ = "0.0.0+unknown"
+
+__all__ = [
+    "__version__",
+    "System",
+    "KinematicCar",
+    "CarConfig",
+    "LinearSystem",
+    "TrackingController",
+    "CarTrackingController",
+    "PiecewiseConstantInputs",
+    "Reference",
+    "make_reference",
+    "DensityPredictor",
+    "DensityTrajectory",
+    "ExactLiouville",
+    "LiouvilleConfig",
+    "propagate_density",
+    "simulate_closed_loop",
+    "Gaussian",
+    "GaussianMixture",
+    "UniformBox",
+    "WeightedSamples",
+    "paper_gaussian_mixture",
+]

@@ -1,0 +1,112 @@
+"""Options and helpers shared by the CLI commands (parsing happens only here, never in the library)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = [
+    "add_out",
+    "add_seed",
+    "add_device",
+    "add_controller",
+    "add_config",
+    "resolve_device",
+    "resolve_dtype",
+    "load_params_file",
+    "out_dir",
+]
+
+
+def add_out(p: argparse.ArgumentParser, required: bool = True) -> None:
+    p.add_argument("--out", type=Path, required=required, metavar="DIR", help="output directory (created)")
+
+
+def add_seed(p: argparse.ArgumentParser, default: int = 0) -> None:
+    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default})")
+
+
+def add_device(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N or auto")
+    p.add_argument("--dtype", default="float32", choices=("float32", "float64"), help="floating point precision")
+
+
+def add_controller(p: argparse.ArgumentParser) -> None:
+    from ..control.registry import CONTROLLER_CHOICES, DEFAULT_CONTROLLER
+
+    p.add_argument(
+        "--controller",
+        default=None,
+        metavar="NAME|FILE",
+        help=f"tracking controller: {', '.join(CONTROLLER_CHOICES)} or a weights file (default {DEFAULT_CONTROLLER})",
+    )
+
+
+def add_config(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, default=None, metavar="FILE.toml", help="configuration file (TOML)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one configuration value, e.g. --set planner.n_candidates=50 (repeatable)",
+    )
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"invalid --device {name!r}; use cpu, cuda, cuda:N or auto") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda requested but no CUDA device is available (use --device cpu)")
+    return device
+
+
+def resolve_dtype(name: str) -> torch.dtype:
+    return {"float32": torch.float32, "float64": torch.float64}[name]
+
+
+def out_dir(path: Path) -> Path:
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {path} exists and is not a directory")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def load_params_file(path: Path) -> np.ndarray:
+    """Reference parameters from ``.json`` (a list, or an object with ``"params"``), ``.npy`` or ``.npz``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"parameter file not found: {path}")
+    try:
+        if path.suffix == ".json":
+            data = json.loads(path.read_text())
+            if isinstance(data, dict):
+                if "params" not in data:
+                    raise ValueError(f"{path}: JSON object has no 'params' entry")
+                data = data["params"]
+            arr = np.asarray(data, dtype=np.float64)
+        elif path.suffix == ".npy":
+            arr = np.load(path)
+        elif path.suffix == ".npz":
+            with np.load(path) as z:
+                if "params" not in z:
+                    raise ValueError(f"{path}: no 'params' array")
+                arr = z["params"]
+        else:
+            raise ValueError(f"{path}: unsupported parameter file type (use .json, .npy or .npz)")
+    except (json.JSONDecodeError, TypeError) as exc:
+        raise ValueError(f"{path}: cannot read reference parameters ({exc})") from exc
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim == 3 and arr.shape[0] == 1:
+        arr = arr[0]
+    return arr

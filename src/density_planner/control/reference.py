@@ -1,0 +1,204 @@
+"""Reference trajectories parameterised by piecewise-constant reference inputs (the planner's decision variables).
+
+Parameters ``p`` have shape ``(*batch, nu, n_segments)``: for the car ``(B, 2, 10)``, ten values of ``omega``
+and ten of ``a``, each held for one second. They define ``u_ref`` on the fine grid (0.01 s) and, by explicit
+Euler integration of the nominal model from a start state, ``x_ref`` (``original.md`` §2). Both are also
+available on the coarser planning grid (0.1 s). Everything is batched over the leading dimensions and
+differentiable w.r.t. ``p`` and the start state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..checks import check_positive, check_tensor
+from ..systems.base import System
+
+__all__ = ["PiecewiseConstantInputs", "Reference", "make_reference"]
+
+
+def _ratio(a: float, b: float, what: str) -> int:
+    r = a / b
+    n = round(r)
+    if n < 1 or abs(r - n) > 1e-6 * max(1.0, abs(r)):
+        raise ValueError(f"{what} ({a}) must be a positive integer multiple of {b}")
+    return n
+
+
+@dataclass(frozen=True)
+class PiecewiseConstantInputs:
+    """Input parameterisation: ``n_segments`` constant values per channel, each held ``segment_duration`` s."""
+
+    #: number of piecewise-constant segments per input channel
+    n_segments: int = 10
+    #: duration of one segment [s]
+    segment_duration: float = 1.0
+    #: fine integration step of the reference [s]
+    dt: float = 0.01
+    #: step of the planning grid on which costs are evaluated [s]
+    plan_dt: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n_segments, int) or self.n_segments < 1:
+            raise ValueError(f"n_segments must be a positive integer, got {self.n_segments!r}")
+        check_positive("segment_duration", self.segment_duration)
+        check_positive("dt", self.dt)
+        check_positive("plan_dt", self.plan_dt)
+        _ratio(self.segment_duration, self.dt, "segment_duration")
+        _ratio(self.plan_dt, self.dt, "plan_dt")
+
+    @property
+    def steps_per_segment(self) -> int:
+        return _ratio(self.segment_duration, self.dt, "segment_duration")
+
+    @property
+    def n_steps(self) -> int:
+        """Number of fine steps over the horizon."""
+        return self.n_segments * self.steps_per_segment
+
+    @property
+    def plan_stride(self) -> int:
+        """Fine steps per planning step."""
+        return _ratio(self.plan_dt, self.dt, "plan_dt")
+
+    @property
+    def horizon(self) -> float:
+        """Total duration [s]."""
+        return self.n_segments * self.segment_duration
+
+    @property
+    def n_plan(self) -> int:
+        """Number of planning-grid points including t = 0 (101 for 10 s at 0.1 s)."""
+        return self.n_steps // self.plan_stride + 1
+
+    def inputs(self, params: Tensor) -> Tensor:
+        """Fine-grid reference inputs ``(*batch, n_steps, nu)`` from ``params (*batch, nu, n_segments)``."""
+        return torch.repeat_interleave(params, self.steps_per_segment, dim=-1).transpose(-1, -2)
+
+
+@dataclass
+class Reference:
+    """A batch of reference trajectories on the fine grid with views on the planning grid.
+
+    Attributes:
+        params: ``(*batch, nu, n_segments)`` parameters.
+        x: ``(*batch, K + 1, nx)`` reference states at ``t = k dt``.
+        u: ``(*batch, K, nu)`` reference inputs, ``u[k]`` applied on ``[k dt, (k + 1) dt)``.
+        parameterization: the :class:`PiecewiseConstantInputs` that produced them.
+    """
+
+    params: Tensor
+    x: Tensor
+    u: Tensor
+    parameterization: PiecewiseConstantInputs
+
+    @property
+    def dt(self) -> float:
+        return self.parameterization.dt
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.x.shape[:-2]
+
+    @property
+    def n_steps(self) -> int:
+        return self.u.shape[-2]
+
+    @property
+    def t(self) -> Tensor:
+        """Fine time grid ``(K + 1,)``."""
+        return torch.arange(self.n_steps + 1, dtype=self.x.dtype, device=self.x.device) * self.dt
+
+    @property
+    def x_plan(self) -> Tensor:
+        """Reference states on the planning grid, ``(*batch, n_plan, nx)`` (101 points for 10 s at 0.1 s)."""
+        return self.x[..., :: self.parameterization.plan_stride, :]
+
+    @property
+    def u_plan(self) -> Tensor:
+        """Reference inputs sampled on the planning grid, ``(*batch, n_plan - 1, nu)``."""
+        return self.u[..., :: self.parameterization.plan_stride, :]
+
+    @property
+    def t_plan(self) -> Tensor:
+        stride = self.parameterization.plan_stride
+        return self.t[::stride]
+
+    @property
+    def start(self) -> Tensor:
+        return self.x[..., 0, :]
+
+    def detach(self) -> Reference:
+        return Reference(self.params.detach(), self.x.detach(), self.u.detach(), self.parameterization)
+
+    def select(self, index) -> Reference:
+        """Sub-batch ``reference.select(i)`` (indexing over the leading batch dimensions)."""
+        return Reference(self.params[index], self.x[index], self.u[index], self.parameterization)
+
+    def stage_values(self, step_dt: float, n_steps: int, stages: tuple[float, ...]) -> tuple[Tensor, Tensor]:
+        """Reference states and inputs at the stage times ``n * step_dt + c * step_dt`` of an integrator.
+
+        States are interpolated linearly between fine-grid points (the Euler polygon of the reference, which is
+        its exact continuous-time form); inputs are piecewise constant and taken as their left limit at a stage
+        time that lies on a switching instant, so that every stage of one step sees the same input segment.
+
+        Returns:
+            ``x_ref (n_steps, n_stages, *batch, nx)`` and ``u_ref (n_steps, n_stages, *batch, nu)``.
+        """
+        ratio = step_dt / self.dt
+        if n_steps * ratio > self.n_steps + 1e-6:
+            raise ValueError(
+                f"integration over {n_steps} steps of {step_dt} s exceeds the reference horizon "
+                f"{self.n_steps * self.dt} s"
+            )
+        device = self.x.device
+        steps = torch.arange(n_steps, dtype=torch.float64, device=device)
+        c = torch.tensor(stages, dtype=torch.float64, device=device)
+        pos = (steps[:, None] + c[None, :]) * ratio  # fine-grid position of each stage time
+        k_max = self.n_steps
+        lo = torch.clamp(torch.floor(pos + 1e-9), 0, k_max - 1).long()
+        frac = (pos - lo).clamp(0.0, 1.0).to(self.x.dtype)
+        eps = 1e-9
+        u_idx = torch.where(c[None, :] > 0, torch.ceil(pos - eps) - 1, torch.floor(pos + eps))
+        u_idx = torch.clamp(u_idx, 0, k_max - 1).long()
+        flat_lo, flat_u = lo.reshape(-1), u_idx.reshape(-1)
+        x_lo = self.x.index_select(-2, flat_lo)
+        x_hi = self.x.index_select(-2, flat_lo + 1)
+        w = frac.reshape(-1, 1)
+        x_stage = x_lo + w * (x_hi - x_lo)  # (*batch, S, nx)
+        u_stage = self.u.index_select(-2, flat_u)
+        x_stage = x_stage.movedim(-2, 0).reshape(n_steps, len(stages), *self.batch_shape, self.x.shape[-1])
+        u_stage = u_stage.movedim(-2, 0).reshape(n_steps, len(stages), *self.batch_shape, self.u.shape[-1])
+        return x_stage, u_stage
+
+
+def make_reference(
+    system: System,
+    start: Tensor,
+    params: Tensor,
+    parameterization: PiecewiseConstantInputs | None = None,
+) -> Reference:
+    """Reference trajectories of ``system`` from ``start (*batch, nx)`` for ``params (*batch, nu, n_segments)``.
+
+    The state follows explicit Euler on the fine grid of the nominal model (``system.rollout``, loop-free for the
+    car). Leading dimensions of ``start`` and ``params`` broadcast.
+    """
+    par = parameterization or PiecewiseConstantInputs()
+    params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
+    start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
+    u = par.inputs(params)
+    x = system.rollout(start, u, par.dt)
+    batch = x.shape[:-2]
+    return Reference(params.expand(*batch, *params.shape[-2:]), x, u.expand(*batch, *u.shape[-2:]), par)
+
+
+def horizon_steps(duration: float, dt: float) -> int:
+    """Number of steps of size ``dt`` in ``duration`` (must divide exactly)."""
+    n = duration / dt
+    if abs(n - round(n)) > 1e-6 * max(1.0, n):
+        raise ValueError(f"duration {duration} s is not a multiple of dt = {dt} s")
+    return int(round(n)) if math.isfinite(n) else 0

@@ -1,0 +1,121 @@
+"""System interface: continuous-time dynamics ``x' = f(x, u)`` on batch-first tensors.
+
+All methods take tensors with any leading batch shape, ``x: (*batch, nx)`` and ``u: (*batch, nu)``, on any
+device and floating dtype, and return tensors of the same dtype/device.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = ["System", "ControlAffineSystem"]
+
+
+class System(ABC):
+    """A controlled dynamical system ``x' = f(x, u)``.
+
+    Subclasses set :attr:`state_names`, :attr:`input_names` and the bounds, and implement :meth:`f`.
+    """
+
+    #: names of the state components, in order
+    state_names: tuple[str, ...] = ()
+    #: names of the input components, in order
+    input_names: tuple[str, ...] = ()
+
+    @property
+    def nx(self) -> int:
+        """State dimension."""
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        """Input dimension."""
+        return len(self.input_names)
+
+    # ------------------------------------------------------------------ bounds
+    @property
+    @abstractmethod
+    def state_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        """(lower, upper) validity box of the state, each of length ``nx`` (may contain +-inf)."""
+
+    @property
+    @abstractmethod
+    def input_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        """(lower, upper) bounds of the input, each of length ``nu``."""
+
+    def state_bounds_tensor(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        lo, hi = self.state_bounds
+        return (torch.as_tensor(lo, dtype=like.dtype, device=like.device),
+                torch.as_tensor(hi, dtype=like.dtype, device=like.device))
+
+    def input_bounds_tensor(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        lo, hi = self.input_bounds
+        return (torch.as_tensor(lo, dtype=like.dtype, device=like.device),
+                torch.as_tensor(hi, dtype=like.dtype, device=like.device))
+
+    def index(self, name: str) -> int:
+        """Index of the state component called ``name``."""
+        try:
+            return self.state_names.index(name)
+        except ValueError:
+            raise ValueError(f"unknown state name {name!r}; valid names: {', '.join(self.state_names)}") from None
+
+    # ---------------------------------------------------------------- dynamics
+    @abstractmethod
+    def f(self, x: Tensor, u: Tensor) -> Tensor:
+        """Time derivative ``x'`` for states ``x (*batch, nx)`` and inputs ``u (*batch, nu)``."""
+
+    def measure(self, x: Tensor) -> Tensor:
+        """State as seen by the controller (default: the true state)."""
+        return x
+
+    def measure_jvp(self, x: Tensor, dx: Tensor) -> Tensor:
+        """Directional derivative of :meth:`measure` at ``x`` along tangents ``dx (K, *batch, nx)``."""
+        if type(self).measure is System.measure:
+            return dx
+        out = [torch.func.jvp(self.measure, (x,), (d.expand_as(x),))[1] for d in dx.unbind(0)]
+        return torch.stack(out, 0)
+
+    def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
+        """Explicit-Euler open-loop rollout: ``x0 (*batch, nx)``, ``u (*batch, K, nu)`` -> ``(*batch, K+1, nx)``.
+
+        Generic version with a loop over the K steps; systems override it with a loop-free form where one exists.
+        """
+        xs = [x0]
+        x = x0
+        for k in range(u.shape[-2]):
+            x = x + dt * self.f(x, u[..., k, :])
+            xs.append(x)
+        return torch.stack(xs, dim=-2)
+
+
+class ControlAffineSystem(System):
+    """``x' = a(x) + B(x) u``. Provides :meth:`f`; subclasses implement :meth:`drift` and :meth:`input_matrix`."""
+
+    @abstractmethod
+    def drift(self, x: Tensor) -> Tensor:
+        """Drift ``a(x)``, shape ``(*batch, nx)``."""
+
+    @abstractmethod
+    def input_matrix(self, x: Tensor) -> Tensor:
+        """Input matrix ``B(x)``, shape ``(*batch, nx, nu)`` (or ``(nx, nu)`` when constant)."""
+
+    #: ``B`` as a constant nested list when it does not depend on ``x`` (enables the structured divergence)
+    constant_input_matrix: tuple[tuple[float, ...], ...] | None = None
+
+    def f(self, x: Tensor, u: Tensor) -> Tensor:
+        b = self.input_matrix(x)
+        return self.drift(x) + (b @ u.unsqueeze(-1)).squeeze(-1)
+
+    def drift_divergence(self, x: Tensor) -> Tensor:
+        """``tr(da/dx)`` by forward-mode autodiff; systems override it with a closed form."""
+        div = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
+        eye = torch.eye(self.nx, dtype=x.dtype, device=x.device)
+        for i in range(self.nx):
+            _, d = torch.func.jvp(self.drift, (x,), (eye[i].expand_as(x),))
+            div = div + d[..., i]
+        return div
