@@ -18,6 +18,7 @@ __all__ = [
     "check_choice",
     "check_finite_number",
     "default_dtype_device",
+    "broadcast_shape",
 ]
 
 
@@ -96,3 +97,20 @@ def default_dtype_device(*tensors: Any) -> tuple[torch.dtype, torch.device]:
         if isinstance(t, torch.Tensor):
             return (t.dtype if t.is_floating_point() else torch.get_default_dtype()), t.device
     return torch.get_default_dtype(), torch.device("cpu")
+
+
+def broadcast_shape(*shapes: Sequence[int]) -> tuple[int, ...]:
+    """Broadcast shape of ``shapes`` (numpy rules); ``ValueError`` if they do not broadcast.
+
+    Pure Python: ``torch.broadcast_shapes`` imports sympy on first use (half a second).
+    """
+    ndim = max((len(s) for s in shapes), default=0)
+    out = [1] * ndim
+    for s in shapes:
+        for i, d in enumerate(s, start=ndim - len(s)):
+            if d == 1 or d == out[i]:
+                continue
+            if out[i] != 1:
+                raise ValueError(f"shapes {[tuple(x) for x in shapes]} do not broadcast")
+            out[i] = d
+    return tuple(out)

@@ -18,7 +18,7 @@ from torch import Tensor
 from ..checks import check_positive, check_tensor
 from ..systems.base import System
 
-__all__ = ["PiecewiseConstantInputs", "Reference", "make_reference"]
+__all__ = ["PiecewiseConstantInputs", "Reference", "make_reference", "plan_grid_reference"]
 
 
 def _ratio(a: float, b: float, what: str) -> int:
@@ -194,6 +194,23 @@ def make_reference(
     x = system.rollout(start, u, par.dt)
     batch = x.shape[:-2]
     return Reference(params.expand(*batch, *params.shape[-2:]), x, u.expand(*batch, *u.shape[-2:]), par)
+
+
+def plan_grid_reference(
+    system: System,
+    start: Tensor,
+    params: Tensor,
+    parameterization: PiecewiseConstantInputs | None = None,
+) -> tuple[Tensor, Tensor]:
+    """``(x_plan (*batch, n_plan, nx), u_plan (*batch, n_plan - 1, nu))``: :func:`make_reference` on the planning
+    grid only (same values, cheaper; used where the fine grid is not needed, e.g. the planner's first stage)."""
+    par = parameterization or PiecewiseConstantInputs()
+    params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
+    start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
+    u = par.inputs(params)
+    x_plan = system.rollout_strided(start, u, par.dt, par.plan_stride)
+    u_plan = u[..., :: par.plan_stride, :]
+    return x_plan, u_plan.expand(*x_plan.shape[:-2], *u_plan.shape[-2:])
 
 
 def horizon_steps(duration: float, dt: float) -> int:

@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_positive, check_tensor
+from ..checks import broadcast_shape, check_choice, check_positive, check_tensor
 from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..systems.base import System
@@ -68,8 +68,8 @@ def _check_inputs(system: System, x0: Tensor, reference: Reference) -> Tensor:
         raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
     x0 = check_tensor("x0", x0, last_dims=(None, system.nx), dtype=reference.x.dtype, device=reference.x.device)
     try:
-        batch = torch.broadcast_shapes(x0.shape[:-2], reference.batch_shape)
-    except RuntimeError:
+        batch = broadcast_shape(x0.shape[:-2], reference.batch_shape)
+    except ValueError:
         raise ValueError(
             f"batch shape of x0 {tuple(x0.shape[:-2])} (samples are the second-to-last axis) does not broadcast "
             f"with the reference batch shape {tuple(reference.batch_shape)}"

@@ -92,6 +92,10 @@ class System(ABC):
             xs.append(x)
         return torch.stack(xs, dim=-2)
 
+    def rollout_strided(self, x0: Tensor, u: Tensor, dt: float, stride: int) -> Tensor:
+        """:meth:`rollout` returned only every ``stride``-th state: ``(*batch, K // stride + 1, nx)``."""
+        return self.rollout(x0, u, dt)[..., ::stride, :]
+
 
 class ControlAffineSystem(System):
     """``x' = a(x) + B(x) u``. Provides :meth:`f`; subclasses implement :meth:`drift` and :meth:`input_matrix`."""

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..checks import broadcast_shape
 from .base import ControlAffineSystem
 
 __all__ = ["KinematicCar", "CarConfig", "PX", "PY", "THETA", "V", "BIAS", "OMEGA", "ACC"]
@@ -124,13 +125,33 @@ class KinematicCar(ControlAffineSystem):
         With ``x_{k+1} = x_k + dt f(x_k, u_k)``: ``theta`` and ``v`` are exclusive cumulative sums of the inputs,
         and ``p_x, p_y`` exclusive cumulative sums of ``v_k cos(theta_k)``, ``v_k sin(theta_k)``.
         """
-        batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-2])
+        batch = broadcast_shape(x0.shape[:-1], u.shape[:-2])
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
         v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
         px = _exclusive_cumsum(dt * v[..., :-1] * torch.cos(theta[..., :-1]), x0[..., PX])
         py = _exclusive_cumsum(dt * v[..., :-1] * torch.sin(theta[..., :-1]), x0[..., PY])
+        bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
+        return torch.stack([px, py, theta, v, bias], dim=-1)
+
+
+    def rollout_strided(self, x0: Tensor, u: Tensor, dt: float, stride: int) -> Tensor:
+        """Every ``stride``-th state of :meth:`rollout`, computed with block sums (the planner's first stage needs
+        only the 0.1-s grid): the same Euler states, fewer operations."""
+        k = u.shape[-2]
+        if k % stride:
+            return super().rollout_strided(x0, u, dt, stride)
+        batch = broadcast_shape(x0.shape[:-1], u.shape[:-2])
+        x0 = x0.expand(*batch, x0.shape[-1])
+        u = u.expand(*batch, *u.shape[-2:])
+        theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
+        v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
+        vc = (dt * v[..., :-1] * torch.cos(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
+        vs = (dt * v[..., :-1] * torch.sin(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
+        px = _exclusive_cumsum(vc, x0[..., PX])
+        py = _exclusive_cumsum(vs, x0[..., PY])
+        theta, v = theta[..., ::stride], v[..., ::stride]
         bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
         return torch.stack([px, py, theta, v, bias], dim=-1)
 

@@ -1,0 +1,106 @@
+"""Benchmark: exact Liouville density for 500 samples x 10 s with the car (float32, CPU threads as available).
+
+Prints, for each integration scheme, the median wall time over repeats, the peak resident memory of a fresh
+process that runs only that propagation, and the error against a fine reference solution (RK4 at 0.005 s in
+float64): maximum position error [m] and maximum / median absolute log-density error.
+
+Targets (issue 2): <= 3 s for Euler at dt = 0.01 s, <= 1.5 s for the default integrator at equal or better
+accuracy, peak memory <= 500 MB.
+
+    python benchmarks/bench_liouville.py [--controller c3m|analytic] [--samples 500] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+from density_planner.control.reference import make_reference
+from density_planner.control.registry import load_controller
+from density_planner.density.distributions import paper_gaussian_mixture
+from density_planner.density.liouville import LiouvilleConfig, propagate_density
+from density_planner.systems.car import KinematicCar
+
+SCHEMES = [("euler", 0.01), ("rk4", 0.1), ("rk4", 0.05), ("euler", 0.005)]
+
+
+def setup(n: int, controller_name: str | None, dtype: torch.dtype):
+    car = KinematicCar()
+    controller = load_controller(controller_name).to(dtype)
+    g = torch.Generator().manual_seed(0)
+    start = torch.tensor([0.0, -28.0, 1.5, 3.0, 0.0], dtype=torch.float64)
+    params = torch.tensor(
+        [[0.3, 0.3, 0.0, -0.3, -0.3, 0.0, 0.2, 0.2, 0.0, 0.0], [0.8, 0.5, 0.3, 0.0, 0.0, 0.0, 0.0, -0.3, -0.5, -0.5]],
+        dtype=dtype,
+    )
+    dist = paper_gaussian_mixture(start, car.config.initial_error_max, g)
+    x0 = dist.sample(n, g, dtype=dtype)
+    reference = make_reference(car, start.to(dtype), params)
+    return car, controller, x0, dist.log_prob(x0), reference
+
+
+def run_once(args) -> dict:
+    """Child process: one propagation, report time and peak RSS."""
+    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
+    elapsed = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"time": elapsed, "peak_mb": peak, "base_mb": base}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--controller", default=None)
+    p.add_argument("--samples", type=int, default=500)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--child-integrator", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--child-dt", type=float, default=None, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child_integrator:
+        print(json.dumps(run_once(args)))
+        return
+
+    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32)
+    ctrl_name = type(controller).__name__
+    print(f"exact Liouville, {args.samples} samples x 10 s, float32, controller {ctrl_name}, "
+          f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    car64, ctrl64, x064, lr064, ref64 = setup(args.samples, args.controller, torch.float64)
+    with torch.no_grad():
+        fine = propagate_density(car64, ctrl64, x064, ref64, log_rho0=lr064, config=LiouvilleConfig("rk4", 0.005))
+    print(f"{'scheme':>14} {'median s':>9} {'min s':>7} {'peak MB':>8} {'max pos err m':>14} "
+          f"{'max |dlogrho|':>14} {'median |dlogrho|':>17}")
+    for integrator, dt in SCHEMES:
+        cfg = LiouvilleConfig(integrator=integrator, dt=dt)
+        times = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                out = propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
+            times.append(time.perf_counter() - t0)
+        child = subprocess.run(
+            [sys.executable, __file__, "--samples", str(args.samples), "--child-integrator", integrator,
+             "--child-dt", str(dt)] + (["--controller", args.controller] if args.controller else []),
+            capture_output=True, text=True, check=True,
+        )
+        mem = json.loads(child.stdout.strip().splitlines()[-1])
+        pos_err = float((out.x[..., :2].double() - fine.x[..., :2]).norm(dim=-1).max())
+        lr_err = (out.log_rho.double() - fine.log_rho).abs()
+        print(f"{integrator + ' ' + str(dt):>14} {statistics.median(times):9.3f} {min(times):7.3f} "
+              f"{mem['peak_mb']:8.0f} {pos_err:14.2e} {float(lr_err.max()):14.2e} {float(lr_err.median()):17.2e}")
+    print("peak MB = peak resident memory of a fresh process running one propagation (includes the torch runtime, "
+          f"~{mem['base_mb']:.0f} MB before propagating)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,154 @@
+"""The planner's cost ``J = alpha_G J_G + alpha_I J_I + alpha_B J_B + alpha_C J_C`` (paper Eq. (3)).
+
+:class:`CostConfig` holds the weights and factors (defaults from ``original.md`` §9); :func:`build_cost` makes the
+four terms for a scene; :class:`WeightedCost` evaluates the total and the per-term breakdown, optionally with a
+per-candidate mask of active terms (the staged weights of the planner's first stage).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from ..environment.scene import Scene
+from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, InputCost
+
+__all__ = ["CostWeights", "CostConfig", "CostBreakdown", "WeightedCost", "build_cost", "TERM_NAMES"]
+
+TERM_NAMES = ("goal", "input", "bounds", "collision")
+_PI = math.pi
+
+
+@dataclass(frozen=True)
+class CostWeights:
+    """Weights ``alpha`` of the cost terms (``original.md`` §9)."""
+
+    #: alpha_G, goal distance [1/m^2]
+    goal: float = 1e-2
+    #: alpha_I, reference input effort; 1e-6 = the original's alpha_I (1e-4) times its input factor (0.01)
+    input: float = 1e-6
+    #: alpha_B, state-bound violations: dominates when a trajectory leaves the box
+    bounds: float = 10.0
+    #: alpha_C, collision surrogate J_C
+    collision: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in TERM_NAMES:
+            v = getattr(self, name)
+            if not math.isfinite(v) or v < 0:
+                raise ValueError(f"cost weight {name} must be a finite number >= 0, got {v}")
+
+    def as_dict(self) -> dict[str, float]:
+        return {name: getattr(self, name) for name in TERM_NAMES}
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Cost terms and their factors."""
+
+    weights: CostWeights = field(default_factory=CostWeights)
+    #: step of the desired-position trick, in cells (paper's beta; the original used 100 cells = 10 m per unit
+    #: of per-cell gradient)
+    beta: float = 100.0
+    #: wider stencils [cells] used where the occupancy gradient vanishes inside an obstacle (``original.md`` §8)
+    plateau_scales: tuple[int, ...] = (5, 15, 25, 35, 45)
+    #: J_G is multiplied by this while J_G >= goal_close_threshold during optimisation (original: 10; 1 = paper)
+    goal_far_factor: float = 10.0
+    #: [m^2] threshold of the goal-far factor and of switching on the bounds term in stage 1 (original: 3)
+    goal_close_threshold: float = 3.0
+    #: heading and speed part of the planning box (X_MIN_MP / X_MAX_MP); x/y come from the scene
+    theta_min: float = -_PI + 0.2
+    theta_max: float = 3 * _PI - 0.2
+    v_min: float = 0.1
+    v_max: float = 9.9
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.beta) or self.beta < 0:
+            raise ValueError(f"beta must be >= 0, got {self.beta}")
+        if any(s < 1 for s in self.plateau_scales):
+            raise ValueError("plateau_scales must be positive cell counts")
+        if self.goal_far_factor < 1:
+            raise ValueError(f"goal_far_factor must be >= 1, got {self.goal_far_factor}")
+        if self.goal_close_threshold <= 0:
+            raise ValueError(f"goal_close_threshold must be > 0, got {self.goal_close_threshold}")
+        if not (self.theta_min < self.theta_max and self.v_min < self.v_max):
+            raise ValueError("theta_min < theta_max and v_min < v_max are required")
+
+
+@dataclass
+class CostBreakdown:
+    """Total weighted cost and the unweighted terms, each ``(*batch,)``."""
+
+    total: Tensor
+    terms: dict[str, Tensor]
+
+    def detach(self) -> CostBreakdown:
+        return CostBreakdown(self.total.detach(), {k: v.detach() for k, v in self.terms.items()})
+
+    def select(self, index) -> CostBreakdown:
+        return CostBreakdown(self.total[index], {k: v[index] for k, v in self.terms.items()})
+
+    def to_dict(self) -> dict[str, float]:
+        out = {k: float(v) for k, v in self.terms.items()}
+        out["total"] = float(self.total)
+        return out
+
+
+class WeightedCost:
+    """Weighted sum of named cost terms."""
+
+    def __init__(self, terms: Sequence[CostTerm], weights: Mapping[str, float]):
+        self.terms = {t.name: t for t in terms}
+        missing = set(self.terms) - set(weights)
+        if missing:
+            raise ValueError(f"no weight for cost term(s) {sorted(missing)}")
+        self.weights = {name: float(weights[name]) for name in self.terms}
+
+    def __call__(self, inputs: CostInputs, active: Mapping[str, Tensor] | None = None) -> CostBreakdown:
+        """Evaluate all terms; ``active[name]`` (bool ``(M,)`` over the first batch dimension) switches a term off
+        per candidate. Switched-off terms are not evaluated (their reported value is 0 there)."""
+        active = active or {}
+        values: dict[str, Tensor] = {}
+        total: Tensor | float = 0.0
+        for name, term in self.terms.items():
+            mask = active.get(name)
+            if mask is None or bool(mask.all()):
+                v = term(inputs)
+            elif not bool(mask.any()):
+                v = inputs.x.new_zeros(inputs.x.shape[:-3])
+            else:
+                v = inputs.x.new_zeros(inputs.x.shape[:-3]).index_put((mask,), term(inputs.select(mask)))
+            values[name] = v
+            total = total + self.weights[name] * v
+        return CostBreakdown(total=total, terms=values)
+
+
+def build_cost(
+    scene: Scene,
+    config: CostConfig | None = None,
+    *,
+    optimisation: bool = True,
+    device: torch.device | str | None = None,
+) -> WeightedCost:
+    """The four cost terms for ``scene``: goal, input, bounds (planning box) and collision.
+
+    With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``).
+    """
+    config = config or CostConfig()
+    xmin, xmax, ymin, ymax = scene.planning_box
+    inf = math.inf
+    bounds = BoundsCost(
+        (xmin, ymin, config.theta_min, config.v_min, -inf), (xmax, ymax, config.theta_max, config.v_max, inf)
+    )
+    goal = GoalCost(
+        scene.goal,
+        far_factor=config.goal_far_factor if optimisation else 1.0,
+        close_threshold=config.goal_close_threshold,
+    )
+    grid = scene.grid if device is None else scene.grid.to(device)
+    collision = CollisionCost(grid, beta=config.beta, plateau_scales=config.plateau_scales)
+    return WeightedCost([goal, InputCost(), bounds, collision], config.weights.as_dict())

@@ -1,0 +1,205 @@
+"""Cost terms of the density planner (paper §IV-C, Eqs. (4)-(7)); each is a small callable object.
+
+Every term takes a :class:`CostInputs` and returns one value per candidate, shape ``(*batch,)``, unweighted
+(the weights ``alpha`` are applied by :class:`~density_planner.cost.composite.WeightedCost`). Sums over samples
+use the per-time sample weights ``w_i(t_k)`` (normalised over the samples: ``sum_i w_i(t_k) = 1``), which are the
+densities ``rho(x_i(t_k), t_k)`` of the paper (a single trajectory has weight 1).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..environment.grid import OccupancyGrid
+
+__all__ = ["CostInputs", "CostTerm", "GoalCost", "InputCost", "BoundsCost", "CollisionCost", "desired_positions"]
+
+
+@dataclass
+class CostInputs:
+    """What the cost terms see.
+
+    Attributes:
+        x: ``(*batch, N, T, nx)`` sample states on the planning grid (``N = 1`` for a single trajectory).
+        weights: ``(*batch, N, T)`` sample weights, summing to one over ``N`` at every time.
+        u_ref: ``(*batch, T - 1, nu)`` reference inputs on the planning grid.
+        slices: ``(T,)`` occupancy-grid slice of each planning time.
+    """
+
+    x: Tensor
+    weights: Tensor
+    u_ref: Tensor
+    slices: Tensor
+
+    def select(self, index) -> CostInputs:
+        """Sub-batch along the first batch dimension (e.g. a boolean candidate mask)."""
+        return CostInputs(x=self.x[index], weights=self.weights[index], u_ref=self.u_ref[index], slices=self.slices)
+
+    @staticmethod
+    def single(x: Tensor, u_ref: Tensor, slices: Tensor | None = None) -> CostInputs:
+        """Inputs for single trajectories ``x (*batch, T, nx)`` with weight one (stage 1 of the planner)."""
+        x = x.unsqueeze(-3)
+        w = torch.ones(x.shape[:-1], dtype=x.dtype, device=x.device)
+        if slices is None:
+            slices = torch.arange(x.shape[-2], device=x.device)
+        return CostInputs(x=x, weights=w, u_ref=u_ref, slices=slices)
+
+
+class CostTerm:
+    """A cost term ``J(inputs) -> (*batch,)``."""
+
+    name: str = "term"
+
+    def __call__(self, inputs: CostInputs) -> Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class GoalCost(CostTerm):
+    """``J_G = sum_i w_i(t_N) ||x_i(t_N) - x_G||^2_{Q_G}`` with ``Q_G = diag(1, 1, 0, 0, 0)`` (paper Eq. (4)) [m^2].
+
+    ``far_factor`` multiplies ``J_G`` while it is at least ``close_threshold`` (the paper's code used 10 when
+    ``J_G >= 3 m^2`` during optimisation; not in the paper). Use ``far_factor = 1`` to report the plain cost.
+    """
+
+    name = "goal"
+
+    def __init__(self, goal: Sequence[float] | Tensor, *, far_factor: float = 1.0, close_threshold: float = 3.0):
+        self.goal = torch.as_tensor(goal, dtype=torch.float64)
+        if self.goal.shape != (2,):
+            raise ValueError(f"goal must be a position (x, y), got shape {tuple(self.goal.shape)}")
+        self.far_factor = float(far_factor)
+        self.close_threshold = float(close_threshold)
+
+    def __call__(self, inputs: CostInputs) -> Tensor:
+        goal = self.goal.to(inputs.x)
+        d2 = (inputs.x[..., -1, :2] - goal).pow(2).sum(-1)  # (*batch, N)
+        j = (inputs.weights[..., -1] * d2).sum(-1)
+        if self.far_factor != 1.0:
+            j = j * torch.where(j.detach() >= self.close_threshold, self.far_factor, 1.0)
+        return j
+
+
+class InputCost(CostTerm):
+    """``J_I = sum_{k=0}^{N-1} ||u_ref(t_k)||^2_{Q_I}``, ``Q_I = I`` (paper Eq. (5)), on the 0.1-s grid."""
+
+    name = "input"
+
+    def __call__(self, inputs: CostInputs) -> Tensor:
+        return inputs.u_ref.pow(2).sum(dim=(-1, -2))
+
+
+class BoundsCost(CostTerm):
+    """``J_B = sum_{i,k} w_i(t_k) (||x - x_min||^2_{Q_min} + ||x - x_max||^2_{Q_max})`` (paper Eq. (6)).
+
+    Only violated components count (``Q_min``/``Q_max`` select them). Infinite bounds never count.
+    """
+
+    name = "bounds"
+
+    def __init__(self, low: Sequence[float] | Tensor, high: Sequence[float] | Tensor):
+        self.low = torch.as_tensor(low, dtype=torch.float64)
+        self.high = torch.as_tensor(high, dtype=torch.float64)
+        if self.low.shape != self.high.shape or self.low.ndim != 1:
+            raise ValueError("bounds low and high must be vectors of the same length")
+        if bool((self.low > self.high).any()):
+            raise ValueError("bounds low must be <= high")
+
+    def violation(self, x: Tensor) -> Tensor:
+        """Squared violation per sample and time, ``(*batch, N, T)``."""
+        lo, hi = self.low.to(x), self.high.to(x)
+        below = torch.relu(lo - x)
+        above = torch.relu(x - hi)
+        below = torch.where(torch.isfinite(lo), below, torch.zeros_like(below))
+        above = torch.where(torch.isfinite(hi), above, torch.zeros_like(above))
+        return (below.pow(2) + above.pow(2)).sum(-1)
+
+    def __call__(self, inputs: CostInputs) -> Tensor:
+        return (inputs.weights * self.violation(inputs.x)).sum(dim=(-1, -2))
+
+
+def _gather(grid: OccupancyGrid, k: Tensor, i: Tensor, j: Tensor, fill: float) -> Tensor:
+    """``probs[k, i, j]`` with ``fill`` for indices outside the map (broadcasting long tensors)."""
+    _, nx, ny = grid.shape
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+    idx = (k * nx + i.clamp(0, nx - 1)) * ny + j.clamp(0, ny - 1)
+    values = grid.probs.reshape(-1)[idx]
+    return values.masked_fill_(~inside, fill)
+
+
+def _stencil_differences(grid: OccupancyGrid, k: Tensor, c: Tensor, scales: Tensor, fill: float) -> Tensor:
+    """``((P[i+s, j] - P[i-s, j]) / 2, (P[i, j+s] - P[i, j-s]) / 2)`` for every scale: ``(..., S, 2)``."""
+    unit = torch.tensor([[1, 0], [-1, 0], [0, 1], [0, -1]], device=c.device)
+    nb = c[..., None, None, :] + scales[:, None, None] * unit  # (..., S, 4, 2)
+    vals = _gather(grid, k[..., None, None], nb[..., 0], nb[..., 1], fill)  # (..., S, 4)
+    return torch.stack([vals[..., 0] - vals[..., 1], vals[..., 2] - vals[..., 3]], dim=-1) / 2
+
+
+@torch.no_grad()
+def desired_positions(
+    grid: OccupancyGrid,
+    xy: Tensor,
+    k: Tensor,
+    *,
+    beta: float,
+    plateau_scales: Sequence[int] = (),
+    fill: float = 1.0,
+) -> tuple[Tensor, Tensor]:
+    """The paper's desired positions (Eqs. (8)-(9)) and the occupancy of each sample's cell.
+
+    ``c_des = c - beta G(c, t_k)``: ``c`` is the nearest cell of ``xy (..., 2)``, ``G`` the central difference
+    ``(P[c + 1] - P[c - 1]) / 2`` per cell (the true gradient, :meth:`OccupancyGrid.gradient`). Where ``G = 0``
+    but ``P > 0`` (inside a plateau of an obstacle, where the gradient gives no direction) the difference
+    ``(P[c + s] - P[c - s]) / 2`` over the wider stencils ``s`` in ``plateau_scales`` is used, the first that is
+    non-zero (as the paper's code does), so that samples deep inside an obstacle are still pushed out. Cells
+    outside the map read ``fill``.
+
+    Returns:
+        ``(p_des (..., 2) [m], P_occ (...,) at the sample's cell)``, both without gradient.
+    """
+    c = torch.round(grid.world_to_cell(xy)).long()  # unclamped: cells outside the map read ``fill``
+    k = torch.as_tensor(k, device=xy.device).long().expand(c.shape[:-1])
+    p = _gather(grid, k, c[..., 0], c[..., 1], fill)
+    grad = _stencil_differences(grid, k, c, torch.ones(1, dtype=torch.long, device=c.device), fill)[..., 0, :]
+    # plateau cells (occupied, zero gradient): wider stencils, only where needed (usually few samples)
+    need = (grad == 0).all(-1) & (p > 0)
+    if plateau_scales and bool(need.any()):
+        scales = torch.tensor(plateau_scales, dtype=torch.long, device=c.device)
+        g = _stencil_differences(grid, k[need], c[need], scales, fill)  # (n, S, 2)
+        nonzero = (g != 0).any(-1)
+        first = nonzero.to(torch.uint8).argmax(-1)  # first non-zero scale (0 when none: zero push)
+        grad[need] = g[torch.arange(g.shape[0], device=c.device), first]
+    c_des = c.to(xy.dtype) - beta * grad.to(xy.dtype)
+    return grid.cell_to_world(c_des), p.to(xy.dtype)
+
+
+class CollisionCost(CostTerm):
+    """The paper's differentiable collision risk ``J_C`` (Eq. (10)) [m^2]::
+
+        J_C = sum_{i,k} w_i(t_k) P_occ(c_i, t_k) ||p_i(t_k) - p_des,i(t_k)||^2
+
+    with ``p_des`` from :func:`desired_positions` (step ``beta`` in cells). ``P_occ`` and ``p_des`` are constants;
+    gradients flow through the positions and the weights. It is the optimisation surrogate (reported as the
+    *collision cost*), not a probability.
+    """
+
+    name = "collision"
+
+    def __init__(self, grid: OccupancyGrid, *, beta: float = 100.0, plateau_scales: Sequence[int] = ()):
+        if not math.isfinite(beta) or beta < 0:
+            raise ValueError(f"beta must be a finite number >= 0, got {beta}")
+        self.grid = grid
+        self.beta = float(beta)
+        self.plateau_scales = tuple(int(s) for s in plateau_scales)
+
+    def __call__(self, inputs: CostInputs) -> Tensor:
+        pos = inputs.x[..., :2]
+        k = inputs.slices.to(pos.device).clamp(0, self.grid.n_slices - 1)
+        p_des, p_occ = desired_positions(self.grid, pos.detach(), k, beta=self.beta,
+                                         plateau_scales=self.plateau_scales)
+        d2 = (pos - p_des).pow(2).sum(-1)
+        return (inputs.weights * p_occ * d2).sum(dim=(-1, -2))

@@ -1,0 +1,316 @@
+"""The density planner: two-stage gradient optimisation of the reference parameters (paper §IV-D).
+
+Stage 1, *initialisation* (no density): ``M`` random parameter sets are rolled out from the mean start as
+reference trajectories (density one) and optimised together, batched over the candidates, with the staged
+weights of the paper: first only goal and input cost; per candidate, the bounds term is switched on once its
+goal cost falls below the threshold, and the collision term once it is also inside the planning box (each switch
+resets that candidate's Adam state). The candidate with the lowest full cost is kept.
+
+Stage 2, *local optimisation with density*: ``S`` initial states are drawn (by default uniformly on the support
+of the initial distribution and weighted by their density, as the paper's code does), their closed-loop
+trajectories and log-densities are predicted by a :class:`~density_planner.density.base.DensityPredictor`
+(exact Liouville or a learned network) and the density-weighted cost is minimised with all terms on.
+
+Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
+bounds after every step. Defaults are the paper's constants (``original.md`` §10).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from ..checks import check_choice
+from ..control.reference import Reference, make_reference, plan_grid_reference
+from ..cost.composite import CostBreakdown, CostConfig, build_cost
+from ..cost.terms import CostInputs
+from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
+from ..risk.collision import collision_probability
+from .base import Planner, PlanResult, PlanStatus
+from .optim import BatchedAdam
+from .problem import PlanningProblem
+
+__all__ = ["DensityPlannerConfig", "DensityPlanner", "sample_initial_states"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DensityPlannerConfig:
+    """Settings of the two-stage density planner (defaults: ``original.md`` §10)."""
+
+    #: M, candidate parameter sets optimised in stage 1
+    n_candidates: int = 100
+    #: standard deviation of the random initial parameters (clipped to the input bounds)
+    init_std: float = 0.5
+    #: cost evaluations in stage 1 (one fewer Adam updates)
+    epochs_init: int = 100
+    #: cost evaluations in stage 2
+    epochs_density: int = 100
+    #: S, initial samples in stage 2
+    n_samples: int = 500
+    #: Adam learning rate
+    lr: float = 1e-2
+    #: Adam moment decay rates
+    betas: tuple[float, float] = (0.9, 0.999)
+    #: maximum absolute change of a parameter per step (the paper's "gradient clipping")
+    update_clip: float = 0.02
+    #: "support": samples uniform on the support box of the initial law, weighted by its density (paper's code);
+    #: "distribution": samples drawn from the law itself
+    sample_proposal: Literal["support", "distribution"] = "support"
+    #: "density": weights are the densities at the samples (paper); "mass": probability mass per sample
+    weighting: Literal["density", "mass"] = "density"
+    #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
+    keep_best: bool = True
+    #: random seed of the initial parameters and samples
+    seed: int = 0
+    #: cost terms and weights
+    cost: CostConfig = field(default_factory=CostConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("n_candidates", "epochs_init", "epochs_density", "n_samples"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        for name in ("init_std", "lr", "update_clip"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
+        check_choice("weighting", self.weighting, ("density", "mass"))
+
+
+def sample_initial_states(
+    problem: PlanningProblem,
+    n: int,
+    generator: torch.Generator,
+    proposal: str = "support",
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``n`` initial states with their log-densities under the initial law and under the proposal.
+
+    Returns ``(x0 (n, nx), log_rho0 (n,), log_q0 (n,))``. With ``proposal="support"`` the states are uniform on
+    the support box of the initial distribution (falls back to the distribution itself when it has none).
+    """
+    dist = problem.initial_distribution
+    support = dist.support if proposal == "support" else None
+    if support is not None:
+        lo, hi = support
+        u = torch.rand(n, dist.dim, dtype=torch.float64, generator=generator)
+        x0 = (lo + u * (hi - lo)).to(dtype=dtype, device=device)
+        log_q0 = torch.full((n,), -float(torch.log(hi - lo).sum()), dtype=dtype, device=device)
+        log_rho0 = dist.log_prob(x0)
+    else:
+        x0 = dist.sample(n, generator, dtype=dtype, device=device)
+        log_rho0 = dist.log_prob(x0)
+        log_q0 = log_rho0.clone()
+    return x0, log_rho0, log_q0
+
+
+class DensityPlanner(Planner):
+    """Two-stage gradient density planner (paper §IV-D)."""
+
+    name = "density"
+
+    def __init__(
+        self,
+        predictor: DensityPredictor,
+        config: DensityPlannerConfig | None = None,
+        *,
+        exact_check: DensityPredictor | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+        progress: bool = False,
+    ):
+        """
+        Args:
+            predictor: density predictor used in stage 2 (exact Liouville or a learned network).
+            config: planner settings.
+            exact_check: if given (and different from ``predictor``), the final plan is re-evaluated with it and
+                both figures are reported (``extras["exact_check"]``).
+            progress: show a progress bar over the iterations.
+        """
+        self.predictor = predictor
+        self.config = config or DensityPlannerConfig()
+        self.exact_check = exact_check
+        self.dtype = dtype
+        self.device = torch.device(device)
+        self.progress = progress
+
+    # ----------------------------------------------------------------- helpers
+    def _bounds(self, problem: PlanningProblem) -> tuple[Tensor, Tensor]:
+        lo, hi = problem.system.input_bounds
+        kw = {"dtype": self.dtype, "device": self.device}
+        return torch.tensor(lo, **kw)[:, None], torch.tensor(hi, **kw)[:, None]
+
+    def _slices(self, problem: PlanningProblem) -> Tensor:
+        """Occupancy slice of every planning time."""
+        par = problem.parameterization
+        times = torch.arange(par.n_plan, dtype=torch.float64) * par.plan_dt
+        return problem.scene.grid.slice_index(times).to(self.device)
+
+    def _bar(self, total: int, desc: str):
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, desc=desc, disable=not self.progress, leave=False, unit="it")
+
+    @staticmethod
+    def _record(history: dict[str, list[float]], cost: CostBreakdown) -> None:
+        """Append the scalar cost values (batch of one) to ``history``."""
+        history.setdefault("total", []).append(float(cost.total.detach().reshape(())))
+        for k, v in cost.terms.items():
+            history.setdefault(k, []).append(float(v.detach().reshape(())))
+
+    # ------------------------------------------------------------------ stage 1
+    def initialise(self, problem: PlanningProblem, generator: torch.Generator) -> tuple[Tensor, dict, int]:
+        """Stage 1: returns the best parameters ``(nu, S)``, the cost history of the best candidate, iterations."""
+        cfg = self.config
+        system, par = problem.system, problem.parameterization
+        low, high = self._bounds(problem)
+        start = problem.reference_start(self.dtype, self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        slices = self._slices(problem)
+
+        p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
+                                        generator=generator)
+        params = torch.maximum(torch.minimum(p0.to(self.dtype).to(self.device), high), low)
+        opt = BatchedAdam(params, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high)
+        m = cfg.n_candidates
+        bounds_on = torch.zeros(m, dtype=torch.bool, device=self.device)
+        coll_on = torch.zeros(m, dtype=torch.bool, device=self.device)
+        totals = []
+        per_candidate: dict[str, list[Tensor]] = {}
+        with self._bar(cfg.epochs_init, "stage 1 (initialisation)") as bar:
+            for it in range(cfg.epochs_init):
+                p = params.detach().requires_grad_(True)
+                x_plan, u_plan = plan_grid_reference(system, start, p, par)
+                inputs = CostInputs.single(x_plan, u_plan, slices)
+                cost = objective(inputs, active={"bounds": bounds_on, "collision": coll_on})
+                totals.append(cost.total.detach())
+                for k, v in cost.terms.items():
+                    per_candidate.setdefault(k, []).append(v.detach())
+                bar.update()
+                if it == cfg.epochs_init - 1:
+                    break
+                (grad,) = torch.autograd.grad(cost.total.sum(), p)
+                newly_bounds = ~bounds_on & (cost.terms["goal"].detach() < cfg.cost.goal_close_threshold)
+                newly_coll = (bounds_on | newly_bounds) & ~coll_on & (cost.terms["bounds"].detach() == 0)
+                switched = newly_bounds | newly_coll
+                if bool(switched.any()):
+                    opt.reset(switched)
+                bounds_on |= newly_bounds
+                coll_on |= newly_coll
+                opt.step(grad)
+        # select with every term on (the objective the second stage continues with)
+        with torch.no_grad():
+            x_plan, u_plan = plan_grid_reference(system, start, params, par)
+            final = objective(CostInputs.single(x_plan, u_plan, slices))
+        total = torch.nan_to_num(final.total, nan=math.inf)
+        best = int(torch.argmin(total))
+        history = {"total": [float(t[best]) for t in totals]}
+        for k, vals in per_candidate.items():
+            history[k] = [float(v[best]) for v in vals]
+        history["candidates_with_collision_term"] = [float(coll_on.sum())]
+        log.info("stage 1: best candidate %d of %d, full cost %.4g", best, m, float(total[best]))
+        return params[best].detach().clone(), history, cfg.epochs_init
+
+    # ------------------------------------------------------------------ stage 2
+    def _predict(self, predictor: DensityPredictor, problem: PlanningProblem, params: Tensor, x0: Tensor,
+                 log_rho0: Tensor) -> tuple[Reference, DensityTrajectory]:
+        start = problem.reference_start(self.dtype, self.device)
+        ref = make_reference(problem.system, start, params.unsqueeze(0), problem.parameterization)
+        traj = predictor.predict(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
+        return ref, traj
+
+    def _inputs(self, ref: Reference, traj: DensityTrajectory, log_q0: Tensor, slices: Tensor) -> CostInputs:
+        w = sample_weights(traj.log_rho, traj.log_rho0, mode=self.config.weighting, log_q0=log_q0.unsqueeze(0))
+        return CostInputs(x=traj.x, weights=w, u_ref=ref.u_plan, slices=slices)
+
+    def refine(self, problem: PlanningProblem, params: Tensor, generator: torch.Generator):
+        """Stage 2: density-weighted local optimisation of ``params (nu, S)``."""
+        cfg = self.config
+        low, high = self._bounds(problem)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        slices = self._slices(problem)
+        x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
+                                                     dtype=self.dtype, device=self.device)
+        p = params.unsqueeze(0).clone()
+        opt = BatchedAdam(p, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high)
+        history: dict[str, list[float]] = {}
+        best = (math.inf, None, None, None)
+        with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
+            for it in range(cfg.epochs_density):
+                pv = p.detach()[0].requires_grad_(True)
+                ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0)
+                cost = objective(self._inputs(ref, traj, log_q0, slices))
+                self._record(history, cost.select(0))
+                total = float(cost.total.detach()[0])
+                if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
+                    best = (total, pv.detach().clone(), ref.detach(), traj.detach())
+                bar.update()
+                if it == cfg.epochs_density - 1:
+                    break
+                (grad,) = torch.autograd.grad(cost.total.sum(), pv)
+                opt.step(grad.unsqueeze(0))
+        return best, history, (x0, log_rho0, log_q0), slices
+
+    # -------------------------------------------------------------------- plan
+    def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
+                 slices: Tensor) -> tuple[dict[str, float], object]:
+        """Reported cost (no goal-far factor) and collision probability of a predicted sample cloud."""
+        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device)
+        with torch.no_grad():
+            cost = report_cost(self._inputs(ref, traj, log_q0, slices)).select(0).to_dict()
+            coll = collision_probability(problem.scene.grid.to(self.device), traj.positions[0], traj.log_rho[0],
+                                         slices)
+        return cost, coll
+
+    def plan(self, problem: PlanningProblem) -> PlanResult:
+        t_start = time.perf_counter()
+        gen = torch.Generator().manual_seed(self.config.seed)
+        params1, hist1, it1 = self.initialise(problem, gen)
+        t1 = time.perf_counter()
+        (best_cost, params, ref, traj), hist2, (x0, log_rho0, log_q0), slices = self.refine(problem, params1, gen)
+        t2 = time.perf_counter()
+        timings = {"stage1": t1 - t_start, "stage2": t2 - t1}
+        if params is None:
+            timings["total"] = t2 - t_start
+            return PlanResult(self.name, PlanStatus.FAILED, params=params1, cost_history={"stage1": hist1,
+                              "stage2": hist2}, timings=timings, message="stage 2 produced no finite cost")
+        timings["total"] = t2 - t_start
+        cost, coll = self.evaluate(problem, ref, traj, log_q0, slices)
+        extras: dict = {"predictor": getattr(self.predictor, "name", type(self.predictor).__name__)}
+        if self.exact_check is not None and self.exact_check is not self.predictor:
+            t3 = time.perf_counter()
+            with torch.no_grad():
+                ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0)
+            cost_e, coll_e = self.evaluate(problem, ref_e, traj_e, log_q0, slices)
+            extras["exact_check"] = {
+                "predictor": getattr(self.exact_check, "name", type(self.exact_check).__name__),
+                "cost": cost_e,
+                "collision_probability_max": float(coll_e.max),
+                "collision_probability_sum": float(coll_e.sum),
+                "time": time.perf_counter() - t3,
+            }
+        return PlanResult(
+            planner=self.name,
+            status=PlanStatus.SUCCESS,
+            params=params,
+            reference=ref.select(0),
+            states=ref.x_plan[0],
+            samples=DensityTrajectory(traj.t, traj.x[0], traj.log_rho[0], traj.log_rho0[0]),
+            cost=cost,
+            cost_history={"stage1": hist1, "stage2": hist2},
+            collision=coll,
+            timings=timings,
+            iterations={"stage1": it1, "stage2": self.config.epochs_density},
+            extras=extras,
+        )

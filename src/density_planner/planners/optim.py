@@ -1,0 +1,76 @@
+"""Adam over a batch of independent candidates, with per-candidate state resets, update clipping and projection.
+
+Used by the gradient planners: every candidate parameter set ``params[m]`` is optimised independently (its own
+step counter and moments), the *update* (not the gradient) is clipped to ``+-update_clip`` per entry (the paper's
+"gradient clipping", ``original.md`` §10), and the parameters are projected onto ``[low, high]`` after every
+step (the original intended this but never applied it).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["BatchedAdam"]
+
+
+class BatchedAdam:
+    """Adam on ``params (M, ...)`` updated in place; ``step(grad)`` and ``reset(mask)``."""
+
+    def __init__(
+        self,
+        params: Tensor,
+        *,
+        lr: float = 1e-2,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+        update_clip: float | None = 0.02,
+        low: float | Tensor | None = None,
+        high: float | Tensor | None = None,
+    ):
+        if lr <= 0:
+            raise ValueError(f"lr must be > 0, got {lr}")
+        if not (0 <= betas[0] < 1 and 0 <= betas[1] < 1):
+            raise ValueError(f"betas must lie in [0, 1), got {betas}")
+        if update_clip is not None and update_clip <= 0:
+            raise ValueError(f"update_clip must be > 0 or None, got {update_clip}")
+        self.params = params
+        self.lr, self.betas, self.eps, self.update_clip = lr, betas, eps, update_clip
+        # bounds broadcastable to params, e.g. (nu, 1) for per-channel input bounds
+        self.low = None if low is None else torch.as_tensor(low).to(params)
+        self.high = None if high is None else torch.as_tensor(high).to(params)
+        self.m = torch.zeros_like(params)
+        self.v = torch.zeros_like(params)
+        self.t = torch.zeros(params.shape[0], dtype=params.dtype, device=params.device)
+
+    def _bcast(self, x: Tensor) -> Tensor:
+        return x.reshape(-1, *([1] * (self.params.ndim - 1)))
+
+    def reset(self, mask: Tensor) -> None:
+        """Forget the moments and step count of the candidates where ``mask (M,)`` is True."""
+        keep = self._bcast(~mask).to(self.params.dtype)
+        self.m.mul_(keep)
+        self.v.mul_(keep)
+        self.t.mul_((~mask).to(self.t.dtype))
+
+    @torch.no_grad()
+    def step(self, grad: Tensor, mask: Tensor | None = None) -> None:
+        """One Adam step with gradient ``grad`` (same shape as params); ``mask (M,)`` limits it to some candidates."""
+        b1, b2 = self.betas
+        grad = torch.nan_to_num(grad, nan=0.0, posinf=1e15, neginf=-1e15).clamp(-1e15, 1e15)
+        active = torch.ones_like(self.t, dtype=torch.bool) if mask is None else mask
+        a = self._bcast(active).to(self.params.dtype)
+        self.t.add_(active.to(self.t.dtype))
+        self.m.copy_(a * (b1 * self.m + (1 - b1) * grad) + (1 - a) * self.m)
+        self.v.copy_(a * (b2 * self.v + (1 - b2) * grad * grad) + (1 - a) * self.v)
+        t = self._bcast(self.t.clamp_min(1))
+        m_hat = self.m / (1 - b1**t)
+        v_hat = self.v / (1 - b2**t)
+        update = self.lr * m_hat / (v_hat.sqrt() + self.eps)
+        if self.update_clip is not None:
+            update = update.clamp(-self.update_clip, self.update_clip)
+        self.params.sub_(a * update)
+        if self.low is not None:
+            torch.maximum(self.params, self.low, out=self.params)
+        if self.high is not None:
+            torch.minimum(self.params, self.high, out=self.params)
