@@ -35,6 +35,7 @@ from ..risk.collision import collision_probability
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
+from .registry import PlannerContext, register_planner
 
 __all__ = ["DensityPlannerConfig", "DensityPlanner", "sample_initial_states"]
 
@@ -314,3 +315,15 @@ class DensityPlanner(Planner):
             iterations={"stage1": it1, "stage2": self.config.epochs_density},
             extras=extras,
         )
+
+
+@register_planner("density", "two-stage gradient density planner (paper §IV-D)")
+def _make_density_planner(ctx: PlannerContext) -> DensityPlanner:
+    return DensityPlanner(
+        ctx.predictor(),
+        ctx.config.density_planner,
+        exact_check=ctx.exact(),
+        dtype=ctx.dtype,
+        device=ctx.device,
+        progress=ctx.progress,
+    )
