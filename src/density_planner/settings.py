@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from .density.liouville import LiouvilleConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
+from .planners.mpc import MPCConfig
 
 __all__ = ["RunConfig"]
 
@@ -35,3 +36,8 @@ class RunConfig:
     liouville: LiouvilleConfig = field(default_factory=LiouvilleConfig)
     #: [random_scene]: the artificial scene generator
     random_scene: RandomSceneConfig = field(default_factory=RandomSceneConfig)
+    #: [mpc]: standard MPC M0 (planner "mpc"); its tube_radius is ignored (always 0)
+    mpc: MPCConfig = field(default_factory=MPCConfig)
+    #: [tube_mpc]: tube MPC M1-M3 (planners "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0" fix their radius;
+    #: planner "tube_mpc" uses tube_radius); 10 IPOPT iterations per step as the paper's code
+    tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
