@@ -22,6 +22,7 @@ from .density.liouville import LiouvilleConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig
+from .planners.oracle import OracleConfig
 
 __all__ = ["RunConfig"]
 
@@ -41,3 +42,5 @@ class RunConfig:
     #: [tube_mpc]: tube MPC M1-M3 (planners "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0" fix their radius;
     #: planner "tube_mpc" uses tube_radius); 10 IPOPT iterations per step as the paper's code
     tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
+    #: [oracle]: the full-horizon NLP from the true initial state (planner "oracle")
+    oracle: OracleConfig = field(default_factory=OracleConfig)
