@@ -21,8 +21,10 @@ from dataclasses import dataclass, field
 from .density.liouville import LiouvilleConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
-from .planners.mpc import MPCConfig
+from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
+from .planners.sampling import SamplingConfig
+from .planners.search import SearchConfig
 
 __all__ = ["RunConfig"]
 
@@ -41,6 +43,10 @@ class RunConfig:
     mpc: MPCConfig = field(default_factory=MPCConfig)
     #: [tube_mpc]: tube MPC M1-M3 (planners "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0" fix their radius;
     #: planner "tube_mpc" uses tube_radius); 10 IPOPT iterations per step as the paper's code
-    tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
+    tube_mpc: TubeMPCConfig = field(default_factory=TubeMPCConfig)
     #: [oracle]: the full-horizon NLP from the true initial state (planner "oracle")
     oracle: OracleConfig = field(default_factory=OracleConfig)
+    #: [search]: the search-based optimiser of the ablation (planner "search")
+    search: SearchConfig = field(default_factory=SearchConfig)
+    #: [sampling]: the sampling-based optimiser of the ablation (planner "sampling")
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
