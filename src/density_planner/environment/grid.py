@@ -86,10 +86,11 @@ class OccupancyGrid:
             raise ValueError(f"OccupancyGrid.probs must have shape (T, NX, NY), got {tuple(probs.shape)}")
         if probs.shape[0] < 1 or probs.shape[1] < 2 or probs.shape[2] < 2:
             raise ValueError(f"OccupancyGrid.probs needs >= 1 slice and >= 2 cells per axis, got {tuple(probs.shape)}")
-        if not bool(torch.isfinite(probs).all()):
+        lo_t, hi_t = torch.aminmax(probs)  # one pass; NaN propagates into both
+        lo, hi = float(lo_t), float(hi_t)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             bad = int((~torch.isfinite(probs)).sum())
             raise ValueError(f"OccupancyGrid.probs contains {bad} NaN or infinite value(s)")
-        lo, hi = float(probs.min()), float(probs.max())
         if lo < -_RANGE_TOL or hi > 1 + _RANGE_TOL:
             raise ValueError(f"OccupancyGrid.probs must lie in [0, 1], got values in [{lo:.6g}, {hi:.6g}]")
         try:

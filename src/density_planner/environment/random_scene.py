@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from ..config import to_dict
+from ._rng import Stream
 from .grid import OccupancyGrid, lattice_size
 from .scene import Scene
 
@@ -184,30 +185,7 @@ class BoxObstacle:
     kind: str = "static"
 
 
-class _Stream:
-    """Uniform numbers and integers from the raw PCG64 output (identical on every machine and NumPy version)."""
-
-    def __init__(self, seed: int):
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-        self._bits = np.random.PCG64(int(seed))
-
-    def uniform(self, lo: float = 0.0, hi: float = 1.0) -> float:
-        raw = int(self._bits.random_raw())
-        return lo + (hi - lo) * ((raw >> 11) * 2.0**-53)
-
-    def integer(self, lo: int, hi: int) -> int:
-        """Uniform integer in ``[lo, hi]`` inclusive."""
-        n = hi - lo + 1
-        return lo + min(int(self.uniform() * n), n - 1)
-
-    def on_grid(self, lo: float, hi: float, step: float) -> float:
-        """Uniform value of ``lo + i * step`` within ``[lo, hi]``, rounded to 10 decimals."""
-        n = int(math.floor((hi - lo) / step + 1e-9))
-        return round(lo + step * self.integer(0, n), 10)
-
-
-def _draw_obstacles(rng: _Stream, cfg: RandomSceneConfig) -> list[BoxObstacle]:
+def _draw_obstacles(rng: Stream, cfg: RandomSceneConfig) -> list[BoxObstacle]:
     n_static = rng.integer(*cfg.n_static)
     n_dynamic = rng.integer(*cfg.n_dynamic)
     boxes = []
@@ -236,7 +214,7 @@ def _walls(cfg: RandomSceneConfig) -> list[BoxObstacle]:
 def random_obstacles(seed: int, config: RandomSceneConfig | None = None) -> list[BoxObstacle]:
     """The random boxes of scene ``seed`` (walls excluded), without rasterising them."""
     cfg = config or RandomSceneConfig()
-    return _draw_obstacles(_Stream(seed), cfg)
+    return _draw_obstacles(Stream(seed), cfg)
 
 
 def _index(v: float, lo: float, cell: float) -> int:
@@ -316,7 +294,7 @@ def _window_max(probs_k: np.ndarray, cx: float, cy: float, half: int) -> float:
 
 
 def _draw_start_goal(
-    rng: _Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
+    rng: Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
 ) -> tuple[tuple[float, ...], tuple[float, float], int]:
     x0, y0, cell = cfg.x_range[0], cfg.y_range[0], cfg.cell_size
     half = int(round(cfg.check_half_width / cell))
@@ -347,7 +325,7 @@ def _draw_start_goal(
 def random_scene(seed: int, config: RandomSceneConfig | None = None) -> Scene:
     """The random artificial scene number ``seed`` (deterministic on every machine); see the module docstring."""
     cfg = config or RandomSceneConfig()
-    rng = _Stream(seed)
+    rng = Stream(seed)
     boxes = _draw_obstacles(rng, cfg)
     probs = rasterise_boxes(
         _walls(cfg) + boxes, x_range=cfg.x_range, y_range=cfg.y_range, cell_size=cfg.cell_size, n_slices=cfg.n_slices
