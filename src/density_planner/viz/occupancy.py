@@ -40,7 +40,7 @@ def _extent(scene: Scene) -> tuple[float, float, float, float]:
 def _figsize(scene: Scene, width: float = 6.0) -> tuple[float, float]:
     xmin, xmax, ymin, ymax = scene.grid.bounds
     aspect = (ymax - ymin) / max(xmax - xmin, 1e-9)
-    height = float(np.clip(width * aspect, 3.0, 9.0))
+    height = float(np.clip(width * aspect, 3.0, 7.5))
     return (width if aspect <= 1.5 else max(height / aspect + 1.6, 4.0), height)
 
 
@@ -62,18 +62,25 @@ def _decorate(ax, scene: Scene) -> None:
 
 
 def plot_occupancy(scene: Scene, path: str | Path, *, title: str | None = None) -> Path:
-    """Time-max occupancy ``max_k P_occ`` of ``scene`` with start (and heading), goal and planning box; saved
-    atomically to ``path`` (format from the suffix)."""
+    """Occupancy of ``scene`` at t0 (left) and its maximum over all slices (right), with start (and heading),
+    goal and planning box; saved atomically to ``path`` (format from the suffix)."""
     grid = scene.grid
-    occ = grid.max_over_time().detach().cpu().float().numpy()
-    fig, ax = plt.subplots(figsize=_figsize(scene))
-    im = ax.imshow(occ.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0.0, vmax=1.0,
-                   interpolation="nearest")
-    _decorate(ax, scene)
-    fig.colorbar(im, ax=ax, label=r"$\max_t\, P_{occ}$", shrink=0.8)
-    ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
     T = grid.n_slices
-    ax.set_title(title or f"{scene.name}: occupancy, max over {T} slices ({grid.t0:g}-{grid.t0 + (T - 1) * grid.dt:g} s)")
+    panels = [
+        (grid.slice(0), f"t = {grid.t0:g} s", r"$P_{occ}$"),
+        (grid.max_over_time(), f"max over {T} slices ({grid.t0:g}-{grid.t0 + (T - 1) * grid.dt:g} s)",
+         r"$\max_t\, P_{occ}$"),
+    ]
+    w, h = _figsize(scene)
+    fig, axes = plt.subplots(1, 2, figsize=(2 * w, h))
+    for ax, (data, label, bar) in zip(axes, panels, strict=True):
+        im = ax.imshow(data.detach().cpu().float().numpy().T, origin="lower", extent=_extent(scene),
+                       cmap=OCCUPANCY_CMAP, vmin=0.0, vmax=1.0, interpolation="nearest")
+        _decorate(ax, scene)
+        ax.set_title(label)
+        fig.colorbar(im, ax=ax, label=bar, shrink=0.8)
+    axes[1].legend(loc="upper right", fontsize=7, framealpha=0.8)
+    fig.suptitle(title or scene.name)
     fig.tight_layout()
     return save_figure(fig, path)
 
