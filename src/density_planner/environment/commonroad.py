@@ -39,7 +39,7 @@ from .ind import map_lattice
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene, wrap_heading
 
-__all__ = ["CommonRoadSceneConfig", "load_commonroad_scene", "read_commonroad", "obstacle_class_id"]
+__all__ = ["CommonRoadSceneConfig", "load_commonroad_scene", "read_commonroad", "obstacle_class_id", "static_map"]
 
 logger = logging.getLogger(__name__)
 
@@ -235,6 +235,43 @@ def _static_obstacle_polygons(scenario: Any, shapely: Any) -> list[Any]:
     return polys
 
 
+def static_map(
+    scenario: Any,
+    origin: tuple[float, float],
+    cell_size: float,
+    size: tuple[int, int],
+    config: CommonRoadSceneConfig | None = None,
+    *,
+    drivable: Any = None,
+) -> tuple[np.ndarray, int]:
+    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet union and
+    inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
+    cfg = config or CommonRoadSceneConfig()
+    _, shapely = _require()
+    if drivable is None:
+        lanelets = _lanelet_polygons(scenario, shapely)
+        if not lanelets:
+            raise DataError("the scenario has no lanelets (no drivable area)")
+        drivable = shapely.union_all(lanelets)
+        if cfg.lanelet_buffer > 0:
+            drivable = drivable.buffer(cfg.lanelet_buffer)
+    nx, ny = size
+    xs = origin[0] + cell_size * np.arange(nx)
+    ys = origin[1] + cell_size * np.arange(ny)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    shapely.prepare(drivable)
+    static = (~shapely.contains_xy(drivable, gx, gy)).astype(np.float32)
+    n_static = 0
+    if cfg.include_static_obstacles:
+        polys = _static_obstacle_polygons(scenario, shapely)
+        n_static = len(polys)
+        if polys:
+            blocked = shapely.union_all(polys)
+            shapely.prepare(blocked)
+            static[shapely.contains_xy(blocked, gx, gy)] = 1.0
+    return static, n_static
+
+
 def _planning_problem(problem_set: Any, wanted: int) -> Any | None:
     problems = dict(getattr(problem_set, "planning_problem_dict", {}) or {})
     if not problems:
@@ -309,27 +346,13 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 max(start[1], goal[1]) + m)
         area = (max(area[0], lx0), min(area[1], lx1), max(area[2], ly0), min(area[3], ly1))
         # keep start and goal inside (the lanelet box may cut the margin only)
-        area = (min(area[0], start[0], goal[0]) , max(area[1], start[0], goal[0]),
+        area = (min(area[0], start[0], goal[0]), max(area[1], start[0], goal[0]),
                 min(area[2], start[1], goal[1]), max(area[3], start[1], goal[1]))
     else:
         area = (lx0, lx1, ly0, ly1)
     area, nx, ny = map_lattice(area, cfg.cell_size, cfg.n_slices, cfg.max_cells, f"CommonRoad scenario {path.name}")
     origin = (area[0], area[2])
-    xs = origin[0] + cfg.cell_size * np.arange(nx)
-    ys = origin[1] + cfg.cell_size * np.arange(ny)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    shapely.prepare(drivable)
-    free = shapely.contains_xy(drivable, gx, gy)
-    static = (~free).astype(np.float32)
-    n_static = 0
-    if cfg.include_static_obstacles:
-        polys = _static_obstacle_polygons(scenario, shapely)
-        n_static = len(polys)
-        if polys:
-            blocked = shapely.union_all(polys)
-            shapely.prepare(blocked)
-            static[shapely.contains_xy(blocked, gx, gy)] = 1.0
-    del gx, gy
+    static, n_static = static_map(scenario, origin, cfg.cell_size, (nx, ny), cfg, drivable=drivable)
     times = t0 + cfg.dt * np.arange(cfg.n_slices)
     tracks, info = _dynamic_tracks(scenario, times)
     probs = rasterise_road_users(
