@@ -43,6 +43,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -211,8 +212,10 @@ def _bad_value(path: Path, header: list[str], columns: tuple[str, ...]) -> DataE
 def _read_numeric(path: Path, columns: tuple[str, ...], header: list[str]) -> dict[str, np.ndarray]:
     cols = [header.index(c) for c in columns]
     try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=cols, dtype=np.float64, ndmin=2,
-                          encoding="utf-8-sig")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported by the caller
+            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=cols, dtype=np.float64, ndmin=2,
+                              encoding="utf-8-sig")
     except ValueError:
         raise _bad_value(path, header, columns) from None
     return {c: data[:, i] for i, c in enumerate(columns)}
