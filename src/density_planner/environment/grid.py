@@ -288,7 +288,9 @@ class OccupancyGrid:
         try:
             with np.load(path, allow_pickle=False) as z:
                 return cls.from_arrays(z, source=str(path))
-        except (OSError, EOFError) as exc:
+        except DataError:
+            raise
+        except (OSError, EOFError, ValueError) as exc:
             raise DataError(f"{path}: cannot read occupancy grid ({exc})") from exc
 
     def __repr__(self) -> str:

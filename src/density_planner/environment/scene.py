@@ -194,7 +194,9 @@ def load_scene(path: str | Path) -> Scene:
                 raise DataError(f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)")
             header = json.loads(str(z["scene_json"]))
             grid = OccupancyGrid.from_arrays(z, source=str(path))
-    except (OSError, EOFError, json.JSONDecodeError) as exc:
+    except DataError:
+        raise
+    except (OSError, EOFError, ValueError) as exc:  # incl. JSONDecodeError and 'not an npz'
         raise DataError(f"{path}: cannot read scene ({exc})") from exc
     try:
         return Scene(
