@@ -26,11 +26,30 @@ def two_tracks() -> list[dict]:
     fp = f[PED_FIRST:]
     tp = fp / 25.0
     return [
-        {"id": 1, "class": "car", "length": 4.5, "width": 1.8, "frames": f, "x": car_x(t), "y": np.full(f.size, CAR_Y),
-         "heading": np.zeros(f.size), "vx": np.full(f.size, CAR_SPEED), "vy": np.zeros(f.size)},
-        {"id": 2, "class": "pedestrian", "length": 0.0, "width": 0.0, "frames": fp, "x": np.full(fp.size, PED_X),
-         "y": PED_Y0 + PED_SPEED * (tp - tp[0]), "heading": np.full(fp.size, 90.0), "vx": np.zeros(fp.size),
-         "vy": np.full(fp.size, PED_SPEED)},
+        {
+            "id": 1,
+            "class": "car",
+            "length": 4.5,
+            "width": 1.8,
+            "frames": f,
+            "x": car_x(t),
+            "y": np.full(f.size, CAR_Y),
+            "heading": np.zeros(f.size),
+            "vx": np.full(f.size, CAR_SPEED),
+            "vy": np.zeros(f.size),
+        },
+        {
+            "id": 2,
+            "class": "pedestrian",
+            "length": 0.0,
+            "width": 0.0,
+            "frames": fp,
+            "x": np.full(fp.size, PED_X),
+            "y": PED_Y0 + PED_SPEED * (tp - tp[0]),
+            "heading": np.full(fp.size, 90.0),
+            "vx": np.zeros(fp.size),
+            "vy": np.full(fp.size, PED_SPEED),
+        },
     ]
 
 

@@ -1,4 +1,5 @@
-"""CommonRoad importer on the two shipped NGSIM scenarios (skipped without commonroad-io or the shared data)."""
+"""CommonRoad importer on the two shipped NGSIM scenarios (skipped without commonroad-io or the shared
+data)."""
 
 from __future__ import annotations
 
@@ -22,8 +23,10 @@ SCENARIOS = ["USA_US101-4_1_T-1.xml", "USA_Peach-4_8_T-1.xml"]
 def _centre_points(scenario):
     """Points on the lanelet centre lines (mean of left and right bound vertices), without the first and last
     ones (they lie on the lanelet's end edges, at a dead end on the map's border)."""
-    pts = [0.5 * (np.asarray(ll.left_vertices) + np.asarray(ll.right_vertices))[1:-1]
-           for ll in scenario.lanelet_network.lanelets]
+    pts = [
+        0.5 * (np.asarray(ll.left_vertices) + np.asarray(ll.right_vertices))[1:-1]
+        for ll in scenario.lanelet_network.lanelets
+    ]
     return np.concatenate(pts)
 
 
@@ -67,8 +70,12 @@ def test_lanelets_are_free_and_far_off_cells_occupied(commonroad_dir, name):
     # nearest cell centre of a centre-line point is within 0.18 m of it: inside any lane wider than 0.4 m
     assert static[i, j].max() == 0.0
     # cells more than 2 m from every lanelet are occupied
-    union = shapely.union_all([shapely.Polygon(np.vstack([ll.left_vertices, ll.right_vertices[::-1]])).buffer(0)
-                               for ll in scenario.lanelet_network.lanelets])
+    union = shapely.union_all(
+        [
+            shapely.Polygon(np.vstack([ll.left_vertices, ll.right_vertices[::-1]])).buffer(0)
+            for ll in scenario.lanelet_network.lanelets
+        ]
+    )
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     far = shapely.distance(union, shapely.points(gx.ravel(), gy.ravel())).reshape(gx.shape) > 2.0
     assert far.any() and static[far].min() == 1.0

@@ -1,4 +1,5 @@
-"""``density-planner env``: files written for each source, one-line errors without tracebacks, import hygiene."""
+"""``density-planner env``: files written for each source, one-line errors without tracebacks, import
+hygiene."""
 
 from __future__ import annotations
 
@@ -35,8 +36,23 @@ def test_set_and_config_file(tmp_path):
     cfg = tmp_path / "env.toml"
     cfg.write_text("n_slices = 11\n")
     out = tmp_path / "r"
-    assert main(["env", "--kind", "random", "--config", str(cfg), "--set", "n_dynamic=[0, 0]", "--no-gif",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "env",
+                "--kind",
+                "random",
+                "--config",
+                str(cfg),
+                "--set",
+                "n_dynamic=[0, 0]",
+                "--no-gif",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     scene = load_scene(out / "occupancy.npz")
     assert scene.grid.n_slices == 11
     assert all(o["kind"] != "dynamic" for o in scene.meta["obstacles"])
@@ -45,8 +61,27 @@ def test_set_and_config_file(tmp_path):
 
 def test_ind(ind_dir, tmp_path):
     out = tmp_path / "i"
-    assert main(["env", "--kind", "ind", "--data-dir", str(ind_dir), "--recording", "7", "--start-time", "2",
-                 "--seed", "1", "--no-gif", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "env",
+                "--kind",
+                "ind",
+                "--data-dir",
+                str(ind_dir),
+                "--recording",
+                "7",
+                "--start-time",
+                "2",
+                "--seed",
+                "1",
+                "--no-gif",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     scene = load_scene(out / "occupancy.npz")
     assert scene.grid.t0 == 2.0 and scene.meta["recording"] == 7 and scene.meta["config"]["seed"] == 1
 
@@ -54,8 +89,21 @@ def test_ind(ind_dir, tmp_path):
 def test_commonroad(commonroad_dir, tmp_path):
     pytest.importorskip("commonroad", reason="commonroad-io (extra 'commonroad') is not installed")
     out = tmp_path / "c"
-    assert main(["env", "--kind", "commonroad", "--file", str(commonroad_dir / "USA_Peach-4_8_T-1.xml"),
-                 "--no-gif", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "env",
+                "--kind",
+                "commonroad",
+                "--file",
+                str(commonroad_dir / "USA_Peach-4_8_T-1.xml"),
+                "--no-gif",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert load_scene(out / "occupancy.npz").name == "commonroad-USA_Peach-4_8_T-1"
 
 
@@ -75,7 +123,13 @@ def test_errors_are_one_line_without_traceback(tmp_path, capsys, args, match):
     (tmp_path / "bad.xml").write_text("<root/>")
     if "commonroad" in args and "--file" in args:
         pytest.importorskip("commonroad", reason="commonroad-io (extra 'commonroad') is not installed")
-    argv = ["env", *[a.replace("{tmp}", str(tmp_path)) for a in args], "--no-gif", "--out", str(tmp_path / "o")]
+    argv = [
+        "env",
+        *[a.replace("{tmp}", str(tmp_path)) for a in args],
+        "--no-gif",
+        "--out",
+        str(tmp_path / "o"),
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and err.startswith("density-planner: error:") and err.count("\n") == 1
@@ -83,7 +137,8 @@ def test_errors_are_one_line_without_traceback(tmp_path, capsys, args, match):
 
 
 def test_environment_does_not_import_matplotlib():
-    code = ("import sys, density_planner.environment as e; "
-            "e.random_scene(0); print('matplotlib' in sys.modules)")
+    code = (
+        "import sys, density_planner.environment as e; e.random_scene(0); print('matplotlib' in sys.modules)"
+    )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"

@@ -1,4 +1,5 @@
-"""Road-user footprints: peak, standard deviations, elongation along the heading, forward skew, clamped sum."""
+"""Road-user footprints: peak, standard deviations, elongation along the heading, forward skew, clamped
+sum."""
 
 from __future__ import annotations
 
@@ -19,8 +20,16 @@ ORIGIN = (-30.0, -30.0)
 def users(x, y, heading, speed, length=4.0, width=2.0, cls=0):
     n = len(x)
     arr = lambda v: np.asarray(v, dtype=np.float64).reshape(n, 1)  # noqa: E731
-    return RoadUserTracks(arr(x), arr(y), arr(heading), arr(speed), np.full(n, length, float),
-                          np.full(n, width, float), np.full(n, cls, np.int64), np.arange(n))
+    return RoadUserTracks(
+        arr(x),
+        arr(y),
+        arr(heading),
+        arr(speed),
+        np.full(n, length, float),
+        np.full(n, width, float),
+        np.full(n, cls, np.int64),
+        np.arange(n),
+    )
 
 
 def raster(tracks, config=EXACT, shape=SHAPE):
@@ -53,8 +62,12 @@ def test_gaussian_is_elongated_along_the_heading():
     x, y = np.meshgrid(xs, xs, indexing="ij")
     w = p / p.sum()
     mx, my = (w * x).sum(), (w * y).sum()
-    cov = np.array([[(w * (x - mx) ** 2).sum(), (w * (x - mx) * (y - my)).sum()],
-                    [(w * (x - mx) * (y - my)).sum(), (w * (y - my) ** 2).sum()]])
+    cov = np.array(
+        [
+            [(w * (x - mx) ** 2).sum(), (w * (x - mx) * (y - my)).sum()],
+            [(w * (x - mx) * (y - my)).sum(), (w * (y - my) ** 2).sum()],
+        ]
+    )
     vals, vecs = np.linalg.eigh(cov)
     major = vecs[:, 1]
     angle = math.degrees(math.atan2(major[1], major[0])) % 180
@@ -96,7 +109,8 @@ def test_coarse_lattice_matches_exact_evaluation():
     tr = users([1.23, -7.0, 12.0], [0.37, 5.0, -9.0], [0.3, 2.0, -1.0], [6.0, 0.0, 12.0])
     exact = raster(tr)
     fast = raster(tr, FootprintConfig())
-    # bilinear interpolation on 0.4-m cells: h^2 / (8 s^2) = 1 % of the peak for s = 1.5 m, plus the 1.1 % step of
+    # bilinear interpolation on 0.4-m cells: h^2 / (8 s^2) = 1 % of the peak for s = 1.5 m, plus the 1.1 %
+    # step of
     # the 3-sigma cutoff smeared over one coarse cell
     assert np.abs(exact - fast).max() < 0.025
 
@@ -107,15 +121,23 @@ def test_static_map_is_added_before_clamping():
     static = torch.zeros(SHAPE[1:])
     static[:10] = 1.0
     static[300, 300] = 0.5
-    p = rasterise_road_users(users([0.0], [0.0], [0.0], [0.0]), origin=ORIGIN, cell_size=H, shape=SHAPE,
-                             config=EXACT, static=static)[0]
+    p = rasterise_road_users(
+        users([0.0], [0.0], [0.0], [0.0]),
+        origin=ORIGIN,
+        cell_size=H,
+        shape=SHAPE,
+        config=EXACT,
+        static=static,
+    )[0]
     assert float(p[:10].min()) == 1.0 and float(p[300, 300]) == 1.0
 
 
 def test_resample_tracks_interpolates_exactly():
     src = np.arange(5) / 25.0  # 25 Hz
-    values = {"x": np.array([[0.0, 1.0, 2.0, 3.0, 4.0]]),
-              "h": np.array([[math.radians(170), math.radians(179), math.radians(-179), np.nan, 0.0]])}
+    values = {
+        "x": np.array([[0.0, 1.0, 2.0, 3.0, 4.0]]),
+        "h": np.array([[math.radians(170), math.radians(179), math.radians(-179), np.nan, 0.0]]),
+    }
     out = resample_tracks(values, src, np.array([0.0, 0.1, 0.06, 0.15, 0.2]), angles=("h",))
     assert out["x"][0, :4] == pytest.approx([0.0, 2.5, 1.5, 3.75])
     assert np.isnan(out["x"][0, 4])  # beyond the last sample (frame 5 of 0..4)

@@ -74,9 +74,13 @@ def test_pedestrian_appears_at_its_first_frame(ind_dir):
     grid = scene.grid
     at = lambda k: float(grid.lookup(torch.tensor([PED_X, PED_Y0], dtype=torch.float64), k))  # noqa: E731
     assert at(19) == 0.0  # t = 3.9 s
-    assert at(20) == pytest.approx(1.0, abs=1e-5)  # t = 4.0 s = frame 100: a small pedestrian on the fine grid
+    assert at(20) == pytest.approx(
+        1.0, abs=1e-5
+    )  # t = 4.0 s = frame 100: a small pedestrian on the fine grid
     users = {u["track_id"]: u for u in scene.meta["road_users"]}
-    assert users[1]["class"] == "car" and users[2]["class"] == "pedestrian" and users[2]["slices_present"] == 81
+    assert (
+        users[1]["class"] == "car" and users[2]["class"] == "pedestrian" and users[2]["slices_present"] == 81
+    )
     json.dumps(scene.meta)  # JSON-serialisable
 
 
@@ -84,9 +88,18 @@ def test_heading_is_read_in_degrees(tmp_path):
     f = np.arange(100)
     t = f / 25.0
     d = 4.0 * t / math.sqrt(2)
-    track = {"id": 5, "class": "truck_bus", "length": 8.0, "width": 2.5, "frames": f, "x": d, "y": d,
-             "heading": np.full(f.size, 45.0), "vx": np.full(f.size, 4 / math.sqrt(2)),
-             "vy": np.full(f.size, 4 / math.sqrt(2))}
+    track = {
+        "id": 5,
+        "class": "truck_bus",
+        "length": 8.0,
+        "width": 2.5,
+        "frames": f,
+        "x": d,
+        "y": d,
+        "heading": np.full(f.size, 45.0),
+        "vx": np.full(f.size, 4 / math.sqrt(2)),
+        "vy": np.full(f.size, 4 / math.sqrt(2)),
+    }
     write_ind_recording(tmp_path, 3, [track])
     scene = load_ind_scene(tmp_path, 3, IndSceneConfig(start_time=0.0, n_slices=11))
     grid = scene.grid
@@ -102,12 +115,18 @@ def test_start_and_goal_are_free_and_10_to_70_m_apart(ind_dir):
     gx, gy = scene.goal
     assert 10 <= math.hypot(gx - sx, gy - sy) <= 70 and 1 <= v <= 9 and bias == 0.0
     grid = scene.grid
-    near = lambda x, y: torch.tensor([[x + dx, y + dy] for dx in (-0.5, 0, 0.5) for dy in (-0.5, 0, 0.5)],  # noqa
-                                     dtype=torch.float64)
+
+    def near(x, y):
+        return torch.tensor(
+            [[x + dx, y + dy] for dx in (-0.5, 0, 0.5) for dy in (-0.5, 0, 0.5)], dtype=torch.float64
+        )
+
     assert float(grid.lookup(near(sx, sy), 0).max()) <= 0.1
     assert float(grid.lookup(near(gx, gy), 100).max()) <= 0.1
     b = scene.planning_box
-    assert b == pytest.approx((grid.bounds[0] + 0.1, grid.bounds[1] - 0.1, grid.bounds[2] + 0.1, grid.bounds[3] - 0.1))
+    assert b == pytest.approx(
+        (grid.bounds[0] + 0.1, grid.bounds[1] - 0.1, grid.bounds[2] + 0.1, grid.bounds[3] - 0.1)
+    )
     again = load_ind_scene(ind_dir, 7, IndSceneConfig(start_time=2.0, seed=4))
     assert again.start == scene.start and again.goal == scene.goal
 
@@ -131,13 +150,16 @@ def test_background_image_becomes_static_occupancy(tmp_path):
     Image.fromarray(img).save(tmp_path / "01_background.png")
     scene = load_ind_scene(tmp_path, 1, IndSceneConfig(start_time=2.0, area=(0.0, 60.0, -45.0, -5.0)))
     grid = scene.grid
-    block = torch.tensor([[15.0, -27.5], [10.15, -25.15], [19.85, -29.85]], dtype=torch.float64)  # >= half a cell inside
+    block = torch.tensor(
+        [[15.0, -27.5], [10.15, -25.15], [19.85, -29.85]], dtype=torch.float64
+    )  # >= half a cell inside
     for k in (0, 50, 100):
         assert grid.lookup(block, k).tolist() == [1.0, 1.0, 1.0]
     assert float(grid.lookup(torch.tensor([45.0, -40.0], dtype=torch.float64), 0)) == 0.0
     assert scene.meta["background"] is True
-    no_bg = load_ind_scene(tmp_path, 1, IndSceneConfig(start_time=2.0, area=(0.0, 60.0, -45.0, -5.0),
-                                                       use_background=False))
+    no_bg = load_ind_scene(
+        tmp_path, 1, IndSceneConfig(start_time=2.0, area=(0.0, 60.0, -45.0, -5.0), use_background=False)
+    )
     assert float(no_bg.grid.lookup(block[:1], 0)) < 1.0
 
 

@@ -98,7 +98,11 @@ def test_lookup_gradcheck_float64():
     grid = make_grid(torch.float64, seed=3)
     g = torch.Generator().manual_seed(1)
     # interior points away from cell centres (the bilinear interpolant has kinks on the lattice lines)
-    c = torch.rand(8, 2, generator=g, dtype=torch.float64) * 0.6 + 0.2 + torch.tensor([1.0, 1.0], dtype=torch.float64)
+    c = (
+        torch.rand(8, 2, generator=g, dtype=torch.float64) * 0.6
+        + 0.2
+        + torch.tensor([1.0, 1.0], dtype=torch.float64)
+    )
     xy = grid.cell_to_world(c).requires_grad_(True)
     k = torch.tensor([0, 1, 2, 0, 1, 2, 0, 1])
     assert torch.autograd.gradcheck(lambda p: grid.lookup(p, k), (xy,), eps=1e-6, atol=1e-8)

@@ -1,4 +1,5 @@
-"""Random artificial scenes (original.md §8): determinism, parameter ranges, profile, motion, start/goal rules."""
+"""Random artificial scenes (original.md §8): determinism, parameter ranges, profile, motion, start/goal
+rules."""
 
 from __future__ import annotations
 
@@ -45,8 +46,9 @@ def test_same_scene_on_every_machine():
     assert boxes[0] == BoxObstacle(4.0, 2.0, 0.6, 0.5, 0.7, 22, 0, 0, "static")
     assert boxes[-1] == BoxObstacle(-6.0, -3.0, 2.9, 3.7, 0.9, 29, -2, 1, "dynamic")
     scene = random_scene(20)
-    assert scene.start == pytest.approx((-1.109936936697947, 8.984706621712782, -1.6695780751722937,
-                                         7.50507990155933, 0.0), abs=1e-12)
+    assert scene.start == pytest.approx(
+        (-1.109936936697947, 8.984706621712782, -1.6695780751722937, 7.50507990155933, 0.0), abs=1e-12
+    )
     assert scene.goal == pytest.approx((-1.4232199776922192, -26.685868973097097), abs=1e-12)
     # float32 sums of the same numbers: identical up to summation order (1e-6 relative)
     assert float(random_scene(0).grid.probs.double().sum()) == pytest.approx(6178555.85, rel=1e-6)
@@ -85,7 +87,8 @@ def test_parameter_statistics_over_many_seeds():
     # uniform counts: mean 5.5 / 7.5, standard error 1.12 / sqrt(400) = 0.056 -> 0.25 is > 4 standard errors
     assert np.mean(counts_static) == pytest.approx(5.5, abs=0.25)
     assert np.mean(counts_dynamic) == pytest.approx(7.5, abs=0.25)
-    # velocity components uniform over 4 values: each about 25 % (about 6000 draws, +-4 % is > 6 standard errors)
+    # velocity components uniform over 4 values: each about 25 % (about 6000 draws, +-4 % is > 6 standard
+    # errors)
     total = sum(vels.values())
     assert all(abs(v / total - 0.25) < 0.04 for v in vels.values())
 
@@ -116,7 +119,9 @@ def test_square_profile_of_one_box():
 
 
 def test_moving_box_centroid_moves_by_velocity_times_time():
-    box = BoxObstacle(x=3.0, y=6.0, width=1.2, height=0.8, certainty=0.6, spread=4, vx=1, vy=-2, kind="dynamic")
+    box = BoxObstacle(
+        x=3.0, y=6.0, width=1.2, height=0.8, certainty=0.6, spread=4, vx=1, vy=-2, kind="dynamic"
+    )
     p = rasterise_boxes([box], n_slices=12, **SMALL)
     ii, jj = np.meshgrid(np.arange(p.shape[1]), np.arange(p.shape[2]), indexing="ij")
 
@@ -136,7 +141,7 @@ def test_zero_fill_when_shifting():
     box = BoxObstacle(x=9.5, y=5.0, width=0.5, height=0.5, certainty=1.0, spread=10, vx=-1, kind="dynamic")
     p = rasterise_boxes([box], n_slices=6, **SMALL)
     for k in range(1, 6):
-        assert np.all(p[k, 101 - k:, :] == 0.0)
+        assert np.all(p[k, 101 - k :, :] == 0.0)
         assert np.allclose(p[k, : 101 - k], p[0, k:])
 
 
@@ -166,7 +171,7 @@ def test_random_start_and_goal_pass_the_acceptance_tests(seed):
 
     def window_max(k, x, y):
         i, j = round((x + 12) / 0.1), round((y + 30) / 0.1)
-        return probs[k, max(i - 5, 0): i + 6, max(j - 5, 0): j + 6].max()
+        return probs[k, max(i - 5, 0) : i + 6, max(j - 5, 0) : j + 6].max()
 
     assert window_max(0, sx, sy) <= cfg.start_max_occupancy
     assert window_max(10, sx + v * math.cos(th), sy + v * math.sin(th)) <= cfg.lookahead_max_occupancy

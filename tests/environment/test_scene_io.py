@@ -8,15 +8,28 @@ import numpy as np
 import pytest
 import torch
 
-from density_planner.environment import OccupancyGrid, Scene, load_scene, random_scene, save_scene, validate_scene
+from density_planner.environment import (
+    OccupancyGrid,
+    Scene,
+    load_scene,
+    random_scene,
+    save_scene,
+    validate_scene,
+)
 from density_planner.errors import DataError
 
 
 def small_scene(**kw) -> Scene:
     probs = torch.zeros(3, 21, 31)
     probs[:, :3, :] = 1.0  # a wall at x <= 0.2 m
-    args = {"grid": OccupancyGrid(probs, (0.0, 0.0), 0.1), "start": (1.0, 1.0, 0.0, 2.0, 0.0), "goal": (1.5, 2.5),
-            "planning_box": (0.1, 1.9, 0.1, 2.9), "name": "small", "meta": {"k": [1, 2]}}
+    args = {
+        "grid": OccupancyGrid(probs, (0.0, 0.0), 0.1),
+        "start": (1.0, 1.0, 0.0, 2.0, 0.0),
+        "goal": (1.5, 2.5),
+        "planning_box": (0.1, 1.9, 0.1, 2.9),
+        "name": "small",
+        "meta": {"k": [1, 2]},
+    }
     args.update(kw)
     return Scene(**args)
 

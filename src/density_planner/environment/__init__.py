@@ -4,14 +4,22 @@
 * :func:`load_ind_scene` — recorded traffic in the inD CSV format;
 * :func:`load_commonroad_scene` — CommonRoad XML scenarios (needs the ``commonroad`` extra).
 
-Each returns a :class:`Scene` (an :class:`OccupancyGrid` plus start, goal and planning box). No module here imports
+Each returns a :class:`Scene` (an :class:`OccupancyGrid` plus start, goal and planning box). No module here
+imports
 matplotlib; pictures are drawn by :mod:`density_planner.viz.occupancy`.
 """
 
 from .commonroad import CommonRoadSceneConfig, load_commonroad_scene
 from .footprints import ROAD_USER_CLASSES, FootprintConfig, RoadUserTracks, rasterise_road_users
 from .grid import OccupancyGrid
-from .ind import IndSceneConfig, load_ind_scene, read_recording_meta, read_tracks, read_tracks_meta, write_ind_recording
+from .ind import (
+    IndSceneConfig,
+    load_ind_scene,
+    read_recording_meta,
+    read_tracks,
+    read_tracks_meta,
+    write_ind_recording,
+)
 from .random_scene import BoxObstacle, RandomSceneConfig, random_obstacles, random_scene, rasterise_boxes
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import START_OCCUPIED_THRESHOLD, Scene, load_scene, save_scene, validate_scene

@@ -1,20 +1,25 @@
 """CommonRoad scenarios (XML, read with commonroad-io, the optional ``commonroad`` extra) -> occupancy scene.
 
 * Static occupancy: 1 outside the drivable area, the union of all lanelet polygons (left bound followed by the
-  reversed right bound, grown by ``lanelet_buffer`` to close the numerical gaps between neighbouring lanelets),
+  reversed right bound, grown by ``lanelet_buffer`` to close the numerical gaps between neighbouring
+  lanelets),
   plus the shapes of static obstacles at their initial state; 0 on the lanelets. Rasterised with shapely's
   vectorised ``contains_xy`` at the cell centres.
 * Dynamic obstacles: their initial state and predicted trajectory (position, orientation, velocity) resampled
-  linearly from the scenario's time step to the 0.1-s slices, dimensions from their shape (rectangle: length and
+  linearly from the scenario's time step to the 0.1-s slices, dimensions from their shape (rectangle:
+  length and
   width; circle: the diameter; polygon: its bounding box), class from the obstacle type, footprints and
   clamped sum exactly as for inD (:mod:`.footprints`). Obstacles with set-based predictions contribute their
   initial state only (logged). A missing velocity counts as 0 m/s, a missing orientation as 0 rad.
 * Start and goal from the planning problem (the first one, or ``planning_problem_id``): start = (position,
-  orientation shifted into the car's heading box, velocity, bias 0); goal = the centroid of the union of the goal
-  state positions (or of the goal lanelets), moved to a point inside the region when the centroid falls outside.
+  orientation shifted into the car's heading box, velocity, bias 0); goal = the centroid of the union of
+  the goal
+  state positions (or of the goal lanelets), moved to a point inside the region when the centroid falls
+  outside.
   Without a planning problem (or without a goal position) the seeded sampler of :mod:`.sampling` is used.
 * Map area: ``area`` if given, else the bounding box of start and goal grown by ``area_margin`` and cut to the
-  lanelet network's bounding box; without a planning problem the whole lanelet network. The time axis starts at
+  lanelet network's bounding box; without a planning problem the whole lanelet network. The time axis
+  starts at
   the planning problem's initial time step (0 without one).
 """
 
@@ -33,13 +38,25 @@ import torch
 from density_planner.config import to_dict
 from density_planner.errors import DataError, OptionalDependencyError
 
-from .footprints import ROAD_USER_CLASSES, FootprintConfig, RoadUserTracks, rasterise_road_users, resample_tracks
+from .footprints import (
+    ROAD_USER_CLASSES,
+    FootprintConfig,
+    RoadUserTracks,
+    rasterise_road_users,
+    resample_tracks,
+)
 from .grid import OccupancyGrid
 from .ind import map_lattice
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene, wrap_heading
 
-__all__ = ["CommonRoadSceneConfig", "load_commonroad_scene", "read_commonroad", "obstacle_class_id", "static_map"]
+__all__ = [
+    "CommonRoadSceneConfig",
+    "load_commonroad_scene",
+    "read_commonroad",
+    "obstacle_class_id",
+    "static_map",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +111,9 @@ class CommonRoadSceneConfig:
         for name in ("dt", "cell_size"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CommonRoadSceneConfig.{name} must be > 0, got {getattr(self, name)}")
-        if self.area and (len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]):
+        if self.area and (
+            len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]
+        ):
             raise ValueError(
                 f"CommonRoadSceneConfig.area must be (xmin, xmax, ymin, ymax) with min < max, got {self.area}"
             )
@@ -114,7 +133,8 @@ def _require() -> tuple[Any, Any]:
 
 
 def read_commonroad(path: str | Path) -> tuple[Any, Any]:
-    """``(scenario, planning_problem_set)`` of a CommonRoad XML file; :class:`DataError` when it is not one."""
+    """``(scenario, planning_problem_set)`` of a CommonRoad XML file; :class:`DataError` when it is not
+    one."""
     reader_cls, _ = _require()
     path = Path(path)
     if not path.is_file():
@@ -124,7 +144,9 @@ def read_commonroad(path: str | Path) -> tuple[Any, Any]:
     except (ET.ParseError, OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path} is not a CommonRoad scenario (not valid XML: {exc})") from exc
     if root.tag != "commonRoad":
-        raise DataError(f"{path} is not a CommonRoad scenario (root element <{root.tag}>, expected <commonRoad>)")
+        raise DataError(
+            f"{path} is not a CommonRoad scenario (root element <{root.tag}>, expected <commonRoad>)"
+        )
     try:
         return reader_cls(str(path)).open()
     except Exception as exc:  # commonroad-io raises many kinds of errors on malformed content
@@ -183,7 +205,9 @@ def _dynamic_tracks(scenario: Any, times: np.ndarray) -> tuple[RoadUserTracks, l
         if trajectory is not None:
             states += list(trajectory.state_list)
         elif getattr(obs, "prediction", None) is not None:
-            logger.info("obstacle %s has a set-based prediction: only its initial state is used", obs.obstacle_id)
+            logger.info(
+                "obstacle %s has a set-based prediction: only its initial state is used", obs.obstacle_id
+            )
         entries = []
         for st in states:
             step = getattr(st, "time_step", None)
@@ -203,10 +227,17 @@ def _dynamic_tracks(scenario: Any, times: np.ndarray) -> tuple[RoadUserTracks, l
     dims = np.asarray([_shape_dims(o.obstacle_shape) for o in obstacles], dtype=np.float64).reshape(n, 2)
     cls = np.asarray([obstacle_class_id(o.obstacle_type) for o in obstacles], dtype=np.int64)
     ids = np.asarray([int(o.obstacle_id) for o in obstacles], dtype=np.int64)
-    tracks = RoadUserTracks(res["x"], res["y"], res["heading"], res["speed"], dims[:, 0], dims[:, 1], cls, ids)
+    tracks = RoadUserTracks(
+        res["x"], res["y"], res["heading"], res["speed"], dims[:, 0], dims[:, 1], cls, ids
+    )
     info = [
-        {"id": int(ids[i]), "type": str(getattr(obstacles[i].obstacle_type, "value", obstacles[i].obstacle_type)),
-         "class": ROAD_USER_CLASSES[int(cls[i])], "length": float(dims[i, 0]), "width": float(dims[i, 1])}
+        {
+            "id": int(ids[i]),
+            "type": str(getattr(obstacles[i].obstacle_type, "value", obstacles[i].obstacle_type)),
+            "class": ROAD_USER_CLASSES[int(cls[i])],
+            "length": float(dims[i, 0]),
+            "width": float(dims[i, 1]),
+        }
         for i in range(n)
     ]
     return tracks, info
@@ -227,8 +258,14 @@ def _static_obstacle_polygons(scenario: Any, shapely: Any) -> list[Any]:
             v = np.asarray(vertices, dtype=np.float64)
         else:
             length, width = _shape_dims(shape)
-            v = np.array([[-length / 2, -width / 2], [length / 2, -width / 2], [length / 2, width / 2],
-                          [-length / 2, width / 2]])
+            v = np.array(
+                [
+                    [-length / 2, -width / 2],
+                    [length / 2, -width / 2],
+                    [length / 2, width / 2],
+                    [-length / 2, width / 2],
+                ]
+            )
         c, s = math.cos(th), math.sin(th)
         pts = v @ np.array([[c, s], [-s, c]]) + np.array([x, y])
         polys.append(shapely.Polygon(pts))
@@ -244,7 +281,8 @@ def static_map(
     *,
     drivable: Any = None,
 ) -> tuple[np.ndarray, int]:
-    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet union and
+    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet
+    union and
     inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
@@ -342,21 +380,35 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         area = tuple(float(v) for v in cfg.area)
     elif start is not None and goal is not None:
         m = cfg.area_margin
-        area = (min(start[0], goal[0]) - m, max(start[0], goal[0]) + m, min(start[1], goal[1]) - m,
-                max(start[1], goal[1]) + m)
+        area = (
+            min(start[0], goal[0]) - m,
+            max(start[0], goal[0]) + m,
+            min(start[1], goal[1]) - m,
+            max(start[1], goal[1]) + m,
+        )
         area = (max(area[0], lx0), min(area[1], lx1), max(area[2], ly0), min(area[3], ly1))
         # keep start and goal inside (the lanelet box may cut the margin only)
-        area = (min(area[0], start[0], goal[0]), max(area[1], start[0], goal[0]),
-                min(area[2], start[1], goal[1]), max(area[3], start[1], goal[1]))
+        area = (
+            min(area[0], start[0], goal[0]),
+            max(area[1], start[0], goal[0]),
+            min(area[2], start[1], goal[1]),
+            max(area[3], start[1], goal[1]),
+        )
     else:
         area = (lx0, lx1, ly0, ly1)
-    area, nx, ny = map_lattice(area, cfg.cell_size, cfg.n_slices, cfg.max_cells, f"CommonRoad scenario {path.name}")
+    area, nx, ny = map_lattice(
+        area, cfg.cell_size, cfg.n_slices, cfg.max_cells, f"CommonRoad scenario {path.name}"
+    )
     origin = (area[0], area[2])
     static, n_static = static_map(scenario, origin, cfg.cell_size, (nx, ny), cfg, drivable=drivable)
     times = t0 + cfg.dt * np.arange(cfg.n_slices)
     tracks, info = _dynamic_tracks(scenario, times)
     probs = rasterise_road_users(
-        tracks, origin=origin, cell_size=cfg.cell_size, shape=(cfg.n_slices, nx, ny), config=cfg.footprint,
+        tracks,
+        origin=origin,
+        cell_size=cfg.cell_size,
+        shape=(cfg.n_slices, nx, ny),
+        config=cfg.footprint,
         static=torch.from_numpy(static),
     )
     grid = OccupancyGrid(probs, origin, cfg.cell_size, cfg.dt, t0)

@@ -1,4 +1,5 @@
-"""Gaussian occupancy of road users (paper §V, "Evaluation on a real-world dataset"), shared by inD and CommonRoad.
+"""Gaussian occupancy of road users (paper §V, "Evaluation on a real-world dataset"), shared by inD and
+CommonRoad.
 
 Each road user ``n`` at slice ``k`` (centre ``(x, y)``, heading ``theta``, signed speed along the heading
 ``v = velocity . (cos theta, sin theta)``, length ``L``, width ``W``) occupies, at a point with offsets
@@ -16,14 +17,16 @@ a split ("two-piece") Gaussian along the heading with
     s_w    = width_factor * W + across_margin     (width-based across the heading),
 
 so the mode stays at the road user's position, the peak is ``c`` (1, or the class certainty) and the
-distribution is skewed forward along the direction of motion, by ``skew`` = 0.5 s times the speed (a car at 10 m/s
+distribution is skewed forward along the direction of motion, by ``skew`` = 0.5 s times the speed (a car at
+10 m/s
 reaches 5 m further ahead per standard deviation than behind). Pedestrians and bicycles use small fixed
 ``(s_along, s_w)`` instead of their (often missing) length and width, with the same skew. The scene is
 ``P_occ = clamp(static + sum_n P_n, 0, 1)``.
 
 Evaluation is vectorised over all (road user, slice) pairs at once: each pair is evaluated on its own bounding
 window of cells (the rectangle ``[-cutoff s_back, cutoff s_front] x [-cutoff s_w, cutoff s_w]`` rotated by the
-heading), and the windows are summed into the grid with one ``index_add_`` per chunk. Footprints whose smallest
+heading), and the windows are summed into the grid with one ``index_add_`` per chunk. Footprints whose
+smallest
 standard deviation is at least ``coarse_min_std`` (vehicles) are evaluated on a coarser lattice of spacing
 ``coarse_cell`` and bilinearly interpolated to the grid, which keeps large maps at 0.1-m cells fast; the
 interpolation error is at most ``h^2 / (8 s^2)`` of the peak (about 1.3 % for h = 0.4 m, s = 1.25 m).
@@ -127,10 +130,14 @@ class RoadUserTracks:
         n, t = np.shape(self.x)
         for name in ("y", "heading", "speed"):
             if np.shape(getattr(self, name)) != (n, t):
-                raise ValueError(f"RoadUserTracks.{name} must have shape {(n, t)}, got {np.shape(getattr(self, name))}")
+                raise ValueError(
+                    f"RoadUserTracks.{name} must have shape {(n, t)}, got {np.shape(getattr(self, name))}"
+                )
         for name in ("length", "width", "cls", "ids"):
             if np.shape(getattr(self, name)) != (n,):
-                raise ValueError(f"RoadUserTracks.{name} must have shape {(n,)}, got {np.shape(getattr(self, name))}")
+                raise ValueError(
+                    f"RoadUserTracks.{name} must have shape {(n,)}, got {np.shape(getattr(self, name))}"
+                )
         if n and (np.min(self.cls) < 0 or np.max(self.cls) >= len(ROAD_USER_CLASSES)):
             raise ValueError(f"RoadUserTracks.cls must be class ids 0..{len(ROAD_USER_CLASSES) - 1}")
 
@@ -145,11 +152,17 @@ class RoadUserTracks:
 
 
 def resample_tracks(
-    values: dict[str, np.ndarray], src_times: np.ndarray, dst_times: np.ndarray, *, angles: tuple[str, ...] = ()
+    values: dict[str, np.ndarray],
+    src_times: np.ndarray,
+    dst_times: np.ndarray,
+    *,
+    angles: tuple[str, ...] = (),
 ) -> dict[str, np.ndarray]:
-    """Linear interpolation of per-user samples ``(N, F)`` at uniform ``src_times (F,)`` to ``dst_times (T,)``.
+    """Linear interpolation of per-user samples ``(N, F)`` at uniform ``src_times (F,)`` to ``dst_times
+    (T,)``.
 
-    A destination time is NaN for a user unless both neighbouring source samples are known (so users appear and
+    A destination time is NaN for a user unless both neighbouring source samples are known (so users appear
+    and
     disappear exactly at their first and last samples). Entries named in ``angles`` [rad] are interpolated
     along the shorter arc. Vectorised over users and times.
     """
@@ -182,7 +195,9 @@ def resample_tracks(
     return out
 
 
-def footprint_stds(tracks: RoadUserTracks, config: FootprintConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def footprint_stds(
+    tracks: RoadUserTracks, config: FootprintConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(s_front, s_back, s_across)`` [m], each ``(N, T)``, of every user and slice (NaN where absent)."""
     cls = tracks.cls
     s_along = config.length_factor * tracks.length + config.along_margin
@@ -207,7 +222,8 @@ def rasterise_road_users(
     config: FootprintConfig | None = None,
     static: Tensor | None = None,
 ) -> Tensor:
-    """``(T, NX, NY)`` float32 ``clamp(static + sum of footprints, 0, 1)`` on the grid described by the arguments.
+    """``(T, NX, NY)`` float32 ``clamp(static + sum of footprints, 0, 1)`` on the grid described by the
+    arguments.
 
     Args:
         tracks: road users resampled to the grid's slices (``T`` columns).
@@ -236,12 +252,16 @@ def rasterise_road_users(
         smallest = np.minimum(np.minimum(pairs["sf"], pairs["sb"]), pairs["sw"])
         coarse = (smallest >= cfg.coarse_min_std) if factor >= 2 else np.zeros(smallest.shape, dtype=bool)
         if coarse.any():
-            # vehicles: evaluate on the coarse lattice (same origin, spacing factor * cell), interpolate bilinearly
+            # vehicles: evaluate on the coarse lattice (same origin, spacing factor * cell), interpolate
+            # bilinearly
             ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
             low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
             _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
             up = F.interpolate(
-                low[None], size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1), mode="bilinear", align_corners=True
+                low[None],
+                size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
+                mode="bilinear",
+                align_corners=True,
             )[0]
             del low
             out = up if up.shape[1:] == (NX, NY) else up[:, :NX, :NY].contiguous()
@@ -255,14 +275,18 @@ def rasterise_road_users(
     return out.clamp_(0.0, 1.0)
 
 
-def _splat(pairs: dict[str, np.ndarray], origin: tuple[float, float], h: float, out: Tensor,
-           cfg: FootprintConfig) -> None:
-    """Add the footprints of ``pairs`` (one entry per user and slice) into ``out (T, NX, NY)`` of spacing ``h``.
+def _splat(
+    pairs: dict[str, np.ndarray], origin: tuple[float, float], h: float, out: Tensor, cfg: FootprintConfig
+) -> None:
+    """Add the footprints of ``pairs`` (one entry per user and slice) into ``out (T, NX, NY)`` of spacing
+    ``h``.
 
     Each footprint is evaluated only on the cells of its support rectangle ``[-cutoff s_behind,
-    cutoff s_ahead] x [-cutoff s_w, cutoff s_w]`` (rotated with the motion axis): the rectangle is cut into row
+    cutoff s_ahead] x [-cutoff s_w, cutoff s_w]`` (rotated with the motion axis): the rectangle is cut into
+    row
     segments (one per grid row x it crosses), the segments are sorted by length and evaluated in padded
-    ``(segments, length)`` blocks. Padding cells lie outside the rectangle, where the cutoff makes the value 0.
+    ``(segments, length)`` blocks. Padding cells lie outside the rectangle, where the cutoff makes the
+    value 0.
     Per cell: ``u = u / s_behind`` and ``w / s_w`` are affine in the column offset (one fused pass each), the
     split along the motion is ``min(u, u * s_behind / s_ahead)`` (the motion axis is flipped for reversing
     users so that ``s_ahead >= s_behind``), then ``c * exp(-(u^2 + w^2) / 2)`` thresholded at the cutoff.

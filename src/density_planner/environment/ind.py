@@ -4,11 +4,14 @@ Files of recording ``NN`` (two digits) in one folder, exactly as the inD data se
 
     NN_tracks.csv          one row per road user and frame: recordingId, trackId, frame, trackLifetime,
                            xCenter, yCenter [m], heading [deg], width, length [m], xVelocity, yVelocity [m/s],
-                           xAcceleration, yAcceleration, lonVelocity, latVelocity, lonAcceleration, latAcceleration
+                           xAcceleration, yAcceleration, lonVelocity, latVelocity, lonAcceleration,
+                           latAcceleration
     NN_tracksMeta.csv      one row per road user: recordingId, trackId, initialFrame, finalFrame, numFrames,
                            width, length [m], class (car, truck_bus, pedestrian, bicycle)
-    NN_recordingMeta.csv   one row: recordingId, locationId, frameRate [Hz] (25), speedLimit, weekday, startTime,
-                           duration [s], numTracks, numVehicles, numVRUs, latLocation, lonLocation, xUtmOrigin,
+    NN_recordingMeta.csv   one row: recordingId, locationId, frameRate [Hz] (25), speedLimit, weekday,
+    startTime,
+                           duration [s], numTracks, numVehicles, numVRUs, latLocation, lonLocation,
+                           xUtmOrigin,
                            yUtmOrigin, orthoPxToMeter [m per background pixel]
     NN_background.png      optional aerial image (static map, see below)
 
@@ -17,24 +20,32 @@ Only the columns this reader uses must be present (:data:`TRACKS_COLUMNS`, :data
 
 Scene construction (:func:`load_ind_scene`):
 
-1. time window ``[start_time, start_time + (n_slices - 1) dt]`` (default 10 s, 101 slices of 0.1 s); it must lie
+1. time window ``[start_time, start_time + (n_slices - 1) dt]`` (default 10 s, 101 slices of 0.1 s); it
+must lie
    inside the recording;
 2. every road user is resampled **exactly** to the slice times by linear interpolation between the two
-   neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is present at a
+   neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is
+   present at a
    slice only when both neighbouring frames exist;
 3. map area: ``area`` if given, else the bounding box of the users' positions in the window grown by
    ``area_margin``, snapped outward to whole cells;
 4. each user becomes the split-Gaussian footprint of :mod:`.footprints` (dimensions from ``tracksMeta``, class
-   certainty, signed speed along the heading from ``xVelocity``/``yVelocity``); ``P_occ = clamp(static + sum)``;
-5. optional static map from ``NN_background.png``: grey levels (0 black .. 1 white) below ``background_threshold``
+   certainty, signed speed along the heading from ``xVelocity``/``yVelocity``); ``P_occ = clamp(static +
+   sum)``;
+5. optional static map from ``NN_background.png``: grey levels (0 black .. 1 white) below
+``background_threshold``
    (default: Otsu's threshold of the image) are occupied ("dark = occupied"). Pixel size
-   ``orthoPxToMeter * background_scale`` m with ``background_scale = 12``, the scale-down factor the inD tools use
-   for their background images (an assumption: check it against your copy of the data set); pixel (col, row) is
-   at world ``(col, -row) * pixel size`` (image top-left at the origin, y up). Cells outside the image are free;
+   ``orthoPxToMeter * background_scale`` m with ``background_scale = 12``, the scale-down factor the inD
+   tools use
+   for their background images (an assumption: check it against your copy of the data set); pixel (col,
+   row) is
+   at world ``(col, -row) * pixel size`` (image top-left at the origin, y up). Cells outside the image are
+   free;
 6. start and goal from :func:`.sampling.sample_start_goal` (free cells 10-70 m apart, seeded).
 
 Memory: the grid holds ``T * NX * NY`` float32 values: 101 slices of a 100 m x 80 m area at 0.1 m are
-1001 x 801 cells = 324 MB (plus as much again for the cached gradient); use ``cell_size = 0.2`` (81 MB) for larger
+1001 x 801 cells = 324 MB (plus as much again for the cached gradient); use ``cell_size = 0.2`` (81 MB) for
+larger
 maps. ``max_cells`` guards against accidental huge grids.
 """
 
@@ -54,7 +65,13 @@ import torch
 from density_planner.config import to_dict
 from density_planner.errors import DataError
 
-from .footprints import ROAD_USER_CLASSES, FootprintConfig, RoadUserTracks, rasterise_road_users, resample_tracks
+from .footprints import (
+    ROAD_USER_CLASSES,
+    FootprintConfig,
+    RoadUserTracks,
+    rasterise_road_users,
+    resample_tracks,
+)
 from .grid import OccupancyGrid, lattice_size
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene
@@ -120,7 +137,8 @@ class IndSceneConfig:
     dt: float = 0.1
     #: cell edge [m]
     cell_size: float = 0.1
-    #: map area (xmin, xmax, ymin, ymax) [m] in the recording's frame; empty = bounding box of the users + margin
+    #: map area (xmin, xmax, ymin, ymax) [m] in the recording's frame; empty = bounding box of the users +
+    #: margin
     area: tuple[float, ...] = ()
     #: margin around the users' bounding box when ``area`` is empty [m]
     area_margin: float = 10.0
@@ -149,17 +167,24 @@ class IndSceneConfig:
         for name in ("dt", "cell_size", "background_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"IndSceneConfig.{name} must be > 0, got {getattr(self, name)}")
-        if self.area and (len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]):
-            raise ValueError(f"IndSceneConfig.area must be (xmin, xmax, ymin, ymax) with min < max, got {self.area}")
+        if self.area and (
+            len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]
+        ):
+            raise ValueError(
+                f"IndSceneConfig.area must be (xmin, xmax, ymin, ymax) with min < max, got {self.area}"
+            )
         if self.area_margin < 0:
             raise ValueError(f"IndSceneConfig.area_margin must be >= 0, got {self.area_margin}")
         if self.background_threshold > 1:
-            raise ValueError(f"IndSceneConfig.background_threshold must be <= 1, got {self.background_threshold}")
+            raise ValueError(
+                f"IndSceneConfig.background_threshold must be <= 1, got {self.background_threshold}"
+            )
         if self.seed < 0:
             raise ValueError(f"IndSceneConfig.seed must be >= 0, got {self.seed}")
 
 
-# ---------------------------------------------------------------------------------------------------- CSV reading
+# ---------------------------------------------------------------------------------------------------- CSV
+# reading
 def ind_paths(data_dir: str | Path, recording: int) -> dict[str, Path]:
     """Paths of the files of ``recording`` in ``data_dir`` (``tracks``, ``tracks_meta``, ``recording_meta``,
     ``background``); they need not exist."""
@@ -214,8 +239,9 @@ def _read_numeric(path: Path, columns: tuple[str, ...], header: list[str]) -> di
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported by the caller
-            data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=cols, dtype=np.float64, ndmin=2,
-                              encoding="utf-8-sig")
+            data = np.loadtxt(
+                path, delimiter=",", skiprows=1, usecols=cols, dtype=np.float64, ndmin=2, encoding="utf-8-sig"
+            )
     except ValueError:
         raise _bad_value(path, header, columns) from None
     return {c: data[:, i] for i, c in enumerate(columns)}
@@ -226,13 +252,16 @@ def _check_finite(path: Path, arrays: dict[str, np.ndarray], columns: tuple[str,
         bad = ~np.isfinite(arrays[c])
         if bad.any():
             row = int(np.argmax(bad))
-            raise DataError(f"{path}: column {c!r} has {int(bad.sum())} NaN/infinite value(s) (first on line {row + 2})")
+            raise DataError(
+                f"{path}: column {c!r} has {int(bad.sum())} NaN/infinite value(s) (first on line {row + 2})"
+            )
 
 
 def read_tracks(path: str | Path) -> dict[str, np.ndarray]:
     """The :data:`TRACKS_COLUMNS` of an ``NN_tracks.csv`` as float64 arrays (one entry per row).
 
-    Raises :class:`DataError` for a missing file or column, a non-numeric or NaN value (naming line and column),
+    Raises :class:`DataError` for a missing file or column, a non-numeric or NaN value (naming line and
+    column),
     or a file without rows.
     """
     path = Path(path)
@@ -245,7 +274,8 @@ def read_tracks(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def read_tracks_meta(path: str | Path) -> dict[str, np.ndarray]:
-    """``NN_tracksMeta.csv``: numeric :data:`TRACKS_META_COLUMNS` as float64 arrays and ``class`` as strings."""
+    """``NN_tracksMeta.csv``: numeric :data:`TRACKS_META_COLUMNS` as float64 arrays and ``class`` as
+    strings."""
     path = Path(path)
     header = _header(path, TRACKS_META_COLUMNS)
     numeric = tuple(c for c in TRACKS_META_COLUMNS if c != "class")
@@ -293,7 +323,8 @@ def tracks_in_window(
 ) -> dict[str, np.ndarray]:
     """Resample the rows of ``tracks`` to ``times`` [s]: arrays ``(N, T)`` per user (NaN where absent).
 
-    Returns ``ids (N,)`` and ``x, y, heading [rad], vx, vy``. Vectorised: the rows in the window are scattered into a
+    Returns ``ids (N,)`` and ``x, y, heading [rad], vx, vy``. Vectorised: the rows in the window are
+    scattered into a
     dense ``(N, frames)`` array and interpolated with :func:`.footprints.resample_tracks`.
     """
     f_lo = int(math.floor(times[0] * frame_rate + 1e-9))
@@ -303,22 +334,31 @@ def tracks_in_window(
     ids, user = np.unique(tracks["trackId"][rows], return_inverse=True)
     n_frames = f_hi - f_lo + 1
     dense = {}
-    for name, col, scale in (("x", "xCenter", 1.0), ("y", "yCenter", 1.0), ("heading", "heading", math.pi / 180),
-                             ("vx", "xVelocity", 1.0), ("vy", "yVelocity", 1.0)):
+    for name, col, scale in (
+        ("x", "xCenter", 1.0),
+        ("y", "yCenter", 1.0),
+        ("heading", "heading", math.pi / 180),
+        ("vx", "xVelocity", 1.0),
+        ("vy", "yVelocity", 1.0),
+    ):
         a = np.full((ids.size, n_frames), np.nan)
         a[user, frames[rows] - f_lo] = tracks[col][rows] * scale
         dense[name] = a
     src_times = (f_lo + np.arange(n_frames)) / frame_rate
-    out = resample_tracks(dense, src_times, times, angles=("heading",)) if ids.size else {
-        k: np.zeros((0, times.size)) for k in dense
-    }
+    out = (
+        resample_tracks(dense, src_times, times, angles=("heading",))
+        if ids.size
+        else {k: np.zeros((0, times.size)) for k in dense}
+    )
     out["ids"] = ids
     return out
 
 
-def read_background(path: Path, px_size: float, xs: np.ndarray, ys: np.ndarray, *, threshold: float,
-                    occupied: str) -> np.ndarray:
-    """``(NX, NY)`` float32 static occupancy (0/1) from a background image sampled at cell centres ``xs``, ``ys``."""
+def read_background(
+    path: Path, px_size: float, xs: np.ndarray, ys: np.ndarray, *, threshold: float, occupied: str
+) -> np.ndarray:
+    """``(NX, NY)`` float32 static occupancy (0/1) from a background image sampled at cell centres ``xs``,
+    ``ys``."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -335,12 +375,15 @@ def read_background(path: Path, px_size: float, xs: np.ndarray, ys: np.ndarray, 
     ok_r = (ri >= 0) & (ri < rows)
     out = occ[np.clip(ri, 0, rows - 1)[None, :], np.clip(ci, 0, cols - 1)[:, None]]
     out = out & ok_c[:, None] & ok_r[None, :]
-    logger.info("background %s: threshold %.3f, %.1f %% of the map occupied", path.name, thr, 100 * out.mean())
+    logger.info(
+        "background %s: threshold %.3f, %.1f %% of the map occupied", path.name, thr, 100 * out.mean()
+    )
     return out.astype(np.float32)
 
 
 def _otsu(grey: np.ndarray) -> float:
-    """Otsu's threshold of grey levels in [0, 1] (maximises the between-class variance of a 256-bin histogram)."""
+    """Otsu's threshold of grey levels in [0, 1] (maximises the between-class variance of a 256-bin
+    histogram)."""
     hist, edges = np.histogram(grey, bins=256, range=(0.0, 1.0))
     p = hist.astype(np.float64) / max(hist.sum(), 1)
     centres = (edges[:-1] + edges[1:]) / 2
@@ -372,7 +415,8 @@ def map_lattice(
     if total > max_cells:
         raise ValueError(
             f"{source}: a {area[1] - area[0]:.0f} m x {area[3] - area[2]:.0f} m map at {cell:g} m cells and "
-            f"{n_slices} slices has {total / 1e6:.0f} M cells ({4 * total / 2**30:.1f} GiB), more than max_cells="
+            f"{n_slices} slices has {total / 1e6:.0f} M cells ({4 * total / 2**30:.1f} GiB), more than "
+            "max_cells="
             f"{max_cells}; use a coarser cell_size or a smaller area"
         )
     return area, nx, ny
@@ -406,14 +450,22 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     lookup = {int(t): i for i, t in enumerate(meta_tracks["trackId"])}
     missing = [int(t) for t in ids if int(t) not in lookup]
     if missing:
-        raise DataError(f"{paths['tracks_meta']}: no entry for trackId(s) {missing[:10]} found in {paths['tracks'].name}")
+        raise DataError(
+            f"{paths['tracks_meta']}: no entry for trackId(s) {missing[:10]} found in {paths['tracks'].name}"
+        )
     rows = np.asarray([lookup[int(t)] for t in ids], dtype=np.int64)
     cls = np.asarray([class_id(str(c)) for c in meta_tracks["class"][rows]], dtype=np.int64)
     heading = win["heading"]
     speed = win["vx"] * np.cos(heading) + win["vy"] * np.sin(heading)
     users = RoadUserTracks(
-        x=win["x"], y=win["y"], heading=heading, speed=speed,
-        length=meta_tracks["length"][rows], width=meta_tracks["width"][rows], cls=cls, ids=ids.astype(np.int64),
+        x=win["x"],
+        y=win["y"],
+        heading=heading,
+        speed=speed,
+        length=meta_tracks["length"][rows],
+        width=meta_tracks["width"][rows],
+        cls=cls,
+        ids=ids.astype(np.int64),
     )
     present = users.present
     # map area
@@ -422,7 +474,8 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     else:
         if not present.any():
             raise DataError(
-                f"recording {recording}: no road user in the window [{cfg.start_time:g}, {t_end:g}] s; give an "
+                f"recording {recording}: no road user in the window [{cfg.start_time:g}, {t_end:g}] s; "
+                "give an "
                 "explicit area to build an empty map"
             )
         px, py = users.x[present], users.y[present]
@@ -435,16 +488,28 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     if cfg.use_background and paths["background"].is_file():
         px_m = rec.get("orthoPxToMeter")
         if not isinstance(px_m, float) or not px_m > 0:
-            raise DataError(f"{paths['recording_meta']}: column 'orthoPxToMeter' is needed for the background image")
+            raise DataError(
+                f"{paths['recording_meta']}: column 'orthoPxToMeter' is needed for the background image"
+            )
         xs = origin[0] + cfg.cell_size * np.arange(nx)
         ys = origin[1] + cfg.cell_size * np.arange(ny)
         static = torch.from_numpy(
-            read_background(paths["background"], px_m * cfg.background_scale, xs, ys,
-                            threshold=cfg.background_threshold, occupied=cfg.background_occupied)
+            read_background(
+                paths["background"],
+                px_m * cfg.background_scale,
+                xs,
+                ys,
+                threshold=cfg.background_threshold,
+                occupied=cfg.background_occupied,
+            )
         )
         used_background = True
     probs = rasterise_road_users(
-        users, origin=origin, cell_size=cfg.cell_size, shape=(cfg.n_slices, nx, ny), config=cfg.footprint,
+        users,
+        origin=origin,
+        cell_size=cfg.cell_size,
+        shape=(cfg.n_slices, nx, ny),
+        config=cfg.footprint,
         static=static,
     )
     grid = OccupancyGrid(probs, origin, cfg.cell_size, cfg.dt, cfg.start_time)
@@ -459,9 +524,13 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         "window_s": [cfg.start_time, t_end],
         "background": used_background,
         "road_users": [
-            {"track_id": int(users.ids[i]), "class": ROAD_USER_CLASSES[int(users.cls[i])],
-             "length": float(users.length[i]), "width": float(users.width[i]),
-             "slices_present": int(present[i].sum())}
+            {
+                "track_id": int(users.ids[i]),
+                "class": ROAD_USER_CLASSES[int(users.cls[i])],
+                "length": float(users.length[i]),
+                "width": float(users.width[i]),
+                "slices_present": int(present[i].sum()),
+            }
             for i in np.nonzero(n_present)[0]
         ],
         "config": to_dict(cfg),
@@ -471,14 +540,50 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
 
 # ---------------------------------------------------------------------------------------------------- writing
 _TRACKS_HEADER = (
-    "recordingId", "trackId", "frame", "trackLifetime", "xCenter", "yCenter", "heading", "width", "length",
-    "xVelocity", "yVelocity", "xAcceleration", "yAcceleration", "lonVelocity", "latVelocity", "lonAcceleration",
+    "recordingId",
+    "trackId",
+    "frame",
+    "trackLifetime",
+    "xCenter",
+    "yCenter",
+    "heading",
+    "width",
+    "length",
+    "xVelocity",
+    "yVelocity",
+    "xAcceleration",
+    "yAcceleration",
+    "lonVelocity",
+    "latVelocity",
+    "lonAcceleration",
     "latAcceleration",
 )
-_TRACKS_META_HEADER = ("recordingId", "trackId", "initialFrame", "finalFrame", "numFrames", "width", "length", "class")
+_TRACKS_META_HEADER = (
+    "recordingId",
+    "trackId",
+    "initialFrame",
+    "finalFrame",
+    "numFrames",
+    "width",
+    "length",
+    "class",
+)
 _RECORDING_META_HEADER = (
-    "recordingId", "locationId", "frameRate", "speedLimit", "weekday", "startTime", "duration", "numTracks",
-    "numVehicles", "numVRUs", "latLocation", "lonLocation", "xUtmOrigin", "yUtmOrigin", "orthoPxToMeter",
+    "recordingId",
+    "locationId",
+    "frameRate",
+    "speedLimit",
+    "weekday",
+    "startTime",
+    "duration",
+    "numTracks",
+    "numVehicles",
+    "numVRUs",
+    "latLocation",
+    "lonLocation",
+    "xUtmOrigin",
+    "yUtmOrigin",
+    "orthoPxToMeter",
 )
 
 
@@ -493,8 +598,10 @@ def write_ind_recording(
 ) -> dict[str, Path]:
     """Write road-user tracks as the three inD CSV files of ``recording`` (atomically); returns their paths.
 
-    Each entry of ``tracks`` is a dict with ``id`` (int), ``class`` (inD class name), ``length``, ``width`` [m]
-    and equally long arrays ``frames`` (consecutive ints), ``x``, ``y`` [m], ``heading`` [deg], ``vx``, ``vy`` [m/s].
+    Each entry of ``tracks`` is a dict with ``id`` (int), ``class`` (inD class name), ``length``, ``width``
+    [m]
+    and equally long arrays ``frames`` (consecutive ints), ``x``, ``y`` [m], ``heading`` [deg], ``vx``,
+    ``vy`` [m/s].
     All columns of the inD format are written (accelerations 0, lon/lat velocities from the heading).
     Used by the tests and benchmarks, since the real data set cannot be shipped.
     """

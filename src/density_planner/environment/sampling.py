@@ -4,15 +4,18 @@ The rules mirror the artificial scenes (``original.md`` §8), on free cells of a
 
 * the start is the centre of a cell inside the planning box whose +-``check_half_width`` square has
   max P_occ <= ``start_max_occupancy`` at t = 0;
-* the goal is the centre of a cell inside the planning box whose square has max P_occ <= ``goal_max_occupancy``
+* the goal is the centre of a cell inside the planning box whose square has max P_occ <=
+``goal_max_occupancy``
   in the last slice;
 * the start-goal distance lies in ``distance_range`` (10-70 m);
-* the start heading points at the goal, perturbed uniformly by up to +-``heading_jitter``; the speed is uniform in
+* the start heading points at the goal, perturbed uniformly by up to +-``heading_jitter``; the speed is
+uniform in
   ``speed_range``; the square around the look-ahead point ``start + v * lookahead_time * (cos, sin)`` has
   max P_occ <= ``lookahead_max_occupancy`` in the slice at ``lookahead_time``.
 
 Candidates are drawn in vectorised batches from a seeded stream (identical on every machine); after
-``max_attempts`` candidates without success a :class:`~density_planner.errors.DataError` says which test failed.
+``max_attempts`` candidates without success a :class:`~density_planner.errors.DataError` says which test
+failed.
 """
 
 from __future__ import annotations
@@ -60,10 +63,14 @@ class StartGoalConfig:
     def __post_init__(self) -> None:
         lo, hi = self.distance_range
         if not 0 <= lo <= hi:
-            raise ValueError(f"StartGoalConfig.distance_range must be (min, max) with 0 <= min <= max, got {(lo, hi)}")
+            raise ValueError(
+                f"StartGoalConfig.distance_range must be (min, max) with 0 <= min <= max, got {(lo, hi)}"
+            )
         lo, hi = self.speed_range
         if not 0 <= lo <= hi:
-            raise ValueError(f"StartGoalConfig.speed_range must be (min, max) with 0 <= min <= max, got {(lo, hi)}")
+            raise ValueError(
+                f"StartGoalConfig.speed_range must be (min, max) with 0 <= min <= max, got {(lo, hi)}"
+            )
         for name in ("check_half_width", "lookahead_time", "heading_jitter"):
             if getattr(self, name) < 0:
                 raise ValueError(f"StartGoalConfig.{name} must be >= 0, got {getattr(self, name)}")
@@ -85,7 +92,8 @@ def _window_max(slice_: torch.Tensor, half: int) -> np.ndarray:
 
 
 def free_mask(grid: OccupancyGrid, k: int, max_occupancy: float, half_width: float) -> np.ndarray:
-    """``(NX, NY)`` bool: cells whose +-``half_width`` [m] square has max P_occ <= ``max_occupancy`` in slice k."""
+    """``(NX, NY)`` bool: cells whose +-``half_width`` [m] square has max P_occ <= ``max_occupancy`` in
+    slice k."""
     half = int(round(half_width / grid.cell_size))
     return _window_max(grid.slice(k), half) <= max_occupancy
 
@@ -97,7 +105,8 @@ def sample_start_goal(
     seed: int,
     config: StartGoalConfig | None = None,
 ) -> tuple[tuple[float, float, float, float, float], tuple[float, float]]:
-    """Draw a start state ``(x, y, theta, v, 0)`` and goal ``(x, y)`` on free cells; see the module docstring."""
+    """Draw a start state ``(x, y, theta, v, 0)`` and goal ``(x, y)`` on free cells; see the module
+    docstring."""
     cfg = config or StartGoalConfig()
     rng = Stream(seed)
     xs, ys = grid.xs.numpy(), grid.ys.numpy()
@@ -112,12 +121,14 @@ def sample_start_goal(
     goal_cells = np.argwhere(goal_ok)
     if start_cells.size == 0:
         raise DataError(
-            f"no free start cell (P_occ <= {cfg.start_max_occupancy} within +-{cfg.check_half_width} m at t=0) "
+            f"no free start cell (P_occ <= {cfg.start_max_occupancy} within +-{cfg.check_half_width} m at "
+            "t=0) "
             f"inside the planning box {planning_box}"
         )
     if goal_cells.size == 0:
         raise DataError(
-            f"no free goal cell (P_occ <= {cfg.goal_max_occupancy} within +-{cfg.check_half_width} m in the last "
+            f"no free goal cell (P_occ <= {cfg.goal_max_occupancy} within +-{cfg.check_half_width} m in "
+            "the last "
             f"slice) inside the planning box {planning_box}"
         )
     x0, y0, h = grid.origin[0], grid.origin[1], grid.cell_size
@@ -151,5 +162,6 @@ def sample_start_goal(
         if n_dist == 0
         else f"the 1-s look-ahead point was occupied (P_occ > {cfg.lookahead_max_occupancy}) for all of them"
     )
-    raise DataError(f"start/goal sampler (seed {seed}): no valid pair in {cfg.max_attempts} attempts: {reason}")
-
+    raise DataError(
+        f"start/goal sampler (seed {seed}): no valid pair in {cfg.max_attempts} attempts: {reason}"
+    )
