@@ -3,12 +3,11 @@
 Metrics (median wall time over repetitions, after one warm-up):
 
 * ``random``: :func:`random_scene` for 5 seeds >= 20 (241 x 401 cells x 101 slices, with the start/goal
-search);
+  search);
 * ``ind``: :func:`load_ind_scene` on a synthetic inD recording written beforehand (not timed): 60 road users
   (36 cars, 4 trucks/buses, 8 bicycles, 12 pedestrians) moving through a 100 m x 80 m map during the 10-s
-  window,
-  0.1-m cells (1001 x 801 x 101 = 81 M cells), CSV reading, resampling, footprints, start/goal sampling
-  included;
+  window, 0.1-m cells (1001 x 801 x 101 = 81 M cells), CSV reading, resampling, footprints, start/goal
+  sampling included;
 * ``ind footprints only``: :func:`rasterise_road_users` on the same resampled users.
 
 Run: ``.venv/bin/python benchmarks/bench_env.py [--repeat N]``.

@@ -110,8 +110,7 @@ def test_coarse_lattice_matches_exact_evaluation():
     exact = raster(tr)
     fast = raster(tr, FootprintConfig())
     # bilinear interpolation on 0.4-m cells: h^2 / (8 s^2) = 1 % of the peak for s = 1.5 m, plus the 1.1 %
-    # step of
-    # the 3-sigma cutoff smeared over one coarse cell
+    # step of the 3-sigma cutoff smeared over one coarse cell
     assert np.abs(exact - fast).max() < 0.025
 
 

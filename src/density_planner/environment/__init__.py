@@ -5,8 +5,7 @@
 * :func:`load_commonroad_scene` — CommonRoad XML scenarios (needs the ``commonroad`` extra).
 
 Each returns a :class:`Scene` (an :class:`OccupancyGrid` plus start, goal and planning box). No module here
-imports
-matplotlib; pictures are drawn by :mod:`density_planner.viz.occupancy`.
+imports matplotlib; pictures are drawn by :mod:`density_planner.viz.occupancy`.
 """
 
 from .commonroad import CommonRoadSceneConfig, load_commonroad_scene

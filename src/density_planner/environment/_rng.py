@@ -1,9 +1,8 @@
 """Seeded random numbers that are identical on every machine and NumPy version.
 
-NumPy guarantees the raw 64-bit output of ``PCG64(seed)`` (seeded through ``SeedSequence``) to be stable,
-but not
-the algorithms of ``Generator.uniform`` / ``Generator.integers``. This stream derives its numbers from the raw
-output directly: ``u = (raw >> 11) * 2**-53`` (53-bit uniform in [0, 1)) and integers as ``lo + floor(u *
+NumPy guarantees the raw 64-bit output of ``PCG64(seed)`` (seeded through ``SeedSequence``) to be stable, but
+not the algorithms of ``Generator.uniform`` / ``Generator.integers``. This stream derives its numbers from the
+raw output directly: ``u = (raw >> 11) * 2**-53`` (53-bit uniform in [0, 1)) and integers as ``lo + floor(u *
 n)``.
 """
 

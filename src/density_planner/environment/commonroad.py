@@ -2,25 +2,21 @@
 
 * Static occupancy: 1 outside the drivable area, the union of all lanelet polygons (left bound followed by the
   reversed right bound, grown by ``lanelet_buffer`` to close the numerical gaps between neighbouring
-  lanelets),
-  plus the shapes of static obstacles at their initial state; 0 on the lanelets. Rasterised with shapely's
-  vectorised ``contains_xy`` at the cell centres.
+  lanelets), plus the shapes of static obstacles at their initial state; 0 on the lanelets. Rasterised with
+  shapely's vectorised ``contains_xy`` at the cell centres.
 * Dynamic obstacles: their initial state and predicted trajectory (position, orientation, velocity) resampled
-  linearly from the scenario's time step to the 0.1-s slices, dimensions from their shape (rectangle:
-  length and
-  width; circle: the diameter; polygon: its bounding box), class from the obstacle type, footprints and
+  linearly from the scenario's time step to the 0.1-s slices, dimensions from their shape (rectangle: length
+  and width; circle: the diameter; polygon: its bounding box), class from the obstacle type, footprints and
   clamped sum exactly as for inD (:mod:`.footprints`). Obstacles with set-based predictions contribute their
   initial state only (logged). A missing velocity counts as 0 m/s, a missing orientation as 0 rad.
 * Start and goal from the planning problem (the first one, or ``planning_problem_id``): start = (position,
-  orientation shifted into the car's heading box, velocity, bias 0); goal = the centroid of the union of
-  the goal
-  state positions (or of the goal lanelets), moved to a point inside the region when the centroid falls
-  outside.
-  Without a planning problem (or without a goal position) the seeded sampler of :mod:`.sampling` is used.
+  orientation shifted into the car's heading box, velocity, bias 0); goal = the centroid of the union of the
+  goal state positions (or of the goal lanelets), moved to a point inside the region when the centroid falls
+  outside. Without a planning problem (or without a goal position) the seeded sampler of :mod:`.sampling` is
+  used.
 * Map area: ``area`` if given, else the bounding box of start and goal grown by ``area_margin`` and cut to the
-  lanelet network's bounding box; without a planning problem the whole lanelet network. The time axis
-  starts at
-  the planning problem's initial time step (0 without one).
+  lanelet network's bounding box; without a planning problem the whole lanelet network. The time axis starts
+  at the planning problem's initial time step (0 without one).
 """
 
 from __future__ import annotations
@@ -281,9 +277,8 @@ def static_map(
     *,
     drivable: Any = None,
 ) -> tuple[np.ndarray, int]:
-    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet
-    union and
-    inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
+    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet union
+    and inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
     if drivable is None:

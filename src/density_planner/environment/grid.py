@@ -10,9 +10,8 @@ Conventions (the one place where world <-> cell transforms live):
 * Continuous cell coordinates ``c = (xy - origin) / cell_size`` (dimensionless, in cells): integer values are
   cell centres. ``cell_index`` rounds them to the nearest cell.
 * :meth:`OccupancyGrid.lookup` interpolates bilinearly between the four surrounding cell centres of one slice;
-  positions outside the lattice hull ``[xmin, xmax] x [ymin, ymax]`` get ``fill`` (default 1.0: "outside
-  the map
-  is occupied").
+  positions outside the lattice hull ``[xmin, xmax] x [ymin, ymax]`` get ``fill`` (default 1.0: "outside the
+  map is occupied").
 * :meth:`OccupancyGrid.gradient` is the central difference of ``probs`` in probability **per cell** (divide by
   ``cell_size`` for probability per metre), one-sided at the borders.
 """
@@ -179,12 +178,11 @@ class OccupancyGrid:
         return origin + c * self.cell_size
 
     def cell_index(self, xy: Tensor) -> tuple[Tensor, Tensor]:
-        """Nearest cell of positions ``(..., 2)``: ``(index (..., 2) long, clamped to the grid; inside
-        (...) bool)``.
+        """Nearest cell of positions ``(..., 2)``: ``(index (..., 2) long, clamped to the grid; inside (...)
+        bool)``.
 
         ``inside`` is True when the rounded index lies in the grid before clamping, i.e. the position is
-        within
-        half a cell of the lattice hull.
+        within half a cell of the lattice hull.
         """
         c = torch.round(self.world_to_cell(xy)).long()
         size = torch.tensor(self.shape[1:], device=c.device)
@@ -204,9 +202,8 @@ class OccupancyGrid:
 
         Bilinear in space between the four surrounding cell centres, differentiable w.r.t. ``xy`` (piecewise
         linear: the derivative jumps at cell centres). Positions outside the lattice hull get ``fill``
-        (default 1.0,
-        "outside the map is occupied"), with zero gradient. The result has ``xy``'s dtype and the broadcast
-        shape.
+        (default 1.0, "outside the map is occupied"), with zero gradient. The result has ``xy``'s dtype and
+        the broadcast shape.
         """
         xy = _as_float_tensor("xy", xy, self.device)
         if xy.shape[-1:] != (2,):

@@ -2,18 +2,16 @@
 
 Files of recording ``NN`` (two digits) in one folder, exactly as the inD data set ships them::
 
-    NN_tracks.csv          one row per road user and frame: recordingId, trackId, frame, trackLifetime,
-                           xCenter, yCenter [m], heading [deg], width, length [m], xVelocity, yVelocity [m/s],
-                           xAcceleration, yAcceleration, lonVelocity, latVelocity, lonAcceleration,
-                           latAcceleration
-    NN_tracksMeta.csv      one row per road user: recordingId, trackId, initialFrame, finalFrame, numFrames,
-                           width, length [m], class (car, truck_bus, pedestrian, bicycle)
-    NN_recordingMeta.csv   one row: recordingId, locationId, frameRate [Hz] (25), speedLimit, weekday,
-    startTime,
-                           duration [s], numTracks, numVehicles, numVRUs, latLocation, lonLocation,
-                           xUtmOrigin,
-                           yUtmOrigin, orthoPxToMeter [m per background pixel]
-    NN_background.png      optional aerial image (static map, see below)
+    NN_tracks.csv         one row per road user and frame: recordingId, trackId, frame, trackLifetime,
+                          xCenter, yCenter [m], heading [deg], width, length [m], xVelocity, yVelocity [m/s],
+                          xAcceleration, yAcceleration, lonVelocity, latVelocity, lonAcceleration,
+                          latAcceleration
+    NN_tracksMeta.csv     one row per road user: recordingId, trackId, initialFrame, finalFrame, numFrames,
+                          width, length [m], class (car, truck_bus, pedestrian, bicycle)
+    NN_recordingMeta.csv  one row: recordingId, locationId, frameRate [Hz] (25), speedLimit, weekday,
+                          startTime, duration [s], numTracks, numVehicles, numVRUs, latLocation,
+                          lonLocation, xUtmOrigin, yUtmOrigin, orthoPxToMeter [m per background pixel]
+    NN_background.png     optional aerial image (static map, see below)
 
 Only the columns this reader uses must be present (:data:`TRACKS_COLUMNS`, :data:`TRACKS_META_COLUMNS`,
 :data:`RECORDING_META_COLUMNS`); others are ignored. Frame ``f`` is at time ``f / frameRate`` s.
@@ -21,32 +19,26 @@ Only the columns this reader uses must be present (:data:`TRACKS_COLUMNS`, :data
 Scene construction (:func:`load_ind_scene`):
 
 1. time window ``[start_time, start_time + (n_slices - 1) dt]`` (default 10 s, 101 slices of 0.1 s); it
-must lie
-   inside the recording;
+   must lie inside the recording;
 2. every road user is resampled **exactly** to the slice times by linear interpolation between the two
-   neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is
-   present at a
-   slice only when both neighbouring frames exist;
+   neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is present
+   at a slice only when both neighbouring frames exist;
 3. map area: ``area`` if given, else the bounding box of the users' positions in the window grown by
    ``area_margin``, snapped outward to whole cells;
-4. each user becomes the split-Gaussian footprint of :mod:`.footprints` (dimensions from ``tracksMeta``, class
-   certainty, signed speed along the heading from ``xVelocity``/``yVelocity``); ``P_occ = clamp(static +
-   sum)``;
+4. each user becomes the split-Gaussian footprint of :mod:`.footprints` (dimensions from ``tracksMeta``,
+   class certainty, signed speed along the heading from ``xVelocity``/``yVelocity``);
+   ``P_occ = clamp(static + sum)``;
 5. optional static map from ``NN_background.png``: grey levels (0 black .. 1 white) below
-``background_threshold``
-   (default: Otsu's threshold of the image) are occupied ("dark = occupied"). Pixel size
-   ``orthoPxToMeter * background_scale`` m with ``background_scale = 12``, the scale-down factor the inD
-   tools use
-   for their background images (an assumption: check it against your copy of the data set); pixel (col,
-   row) is
-   at world ``(col, -row) * pixel size`` (image top-left at the origin, y up). Cells outside the image are
-   free;
+   ``background_threshold`` (default: Otsu's threshold of the image) are occupied ("dark = occupied").
+   Pixel size ``orthoPxToMeter * background_scale`` m with ``background_scale = 12``, the scale-down factor
+   the inD tools use for their background images (an assumption: check it against your copy of the data
+   set); pixel (col, row) is at world ``(col, -row) * pixel size`` (image top-left at the origin, y up).
+   Cells outside the image are free;
 6. start and goal from :func:`.sampling.sample_start_goal` (free cells 10-70 m apart, seeded).
 
 Memory: the grid holds ``T * NX * NY`` float32 values: 101 slices of a 100 m x 80 m area at 0.1 m are
-1001 x 801 cells = 324 MB (plus as much again for the cached gradient); use ``cell_size = 0.2`` (81 MB) for
-larger
-maps. ``max_cells`` guards against accidental huge grids.
+1001 x 801 cells = 324 MB (plus as much again for the cached gradient); use ``cell_size = 0.2`` (81 MB)
+for larger maps. ``max_cells`` guards against accidental huge grids.
 """
 
 from __future__ import annotations
@@ -261,8 +253,7 @@ def read_tracks(path: str | Path) -> dict[str, np.ndarray]:
     """The :data:`TRACKS_COLUMNS` of an ``NN_tracks.csv`` as float64 arrays (one entry per row).
 
     Raises :class:`DataError` for a missing file or column, a non-numeric or NaN value (naming line and
-    column),
-    or a file without rows.
+    column), or a file without rows.
     """
     path = Path(path)
     header = _header(path, TRACKS_COLUMNS)
@@ -323,9 +314,8 @@ def tracks_in_window(
 ) -> dict[str, np.ndarray]:
     """Resample the rows of ``tracks`` to ``times`` [s]: arrays ``(N, T)`` per user (NaN where absent).
 
-    Returns ``ids (N,)`` and ``x, y, heading [rad], vx, vy``. Vectorised: the rows in the window are
-    scattered into a
-    dense ``(N, frames)`` array and interpolated with :func:`.footprints.resample_tracks`.
+    Returns ``ids (N,)`` and ``x, y, heading [rad], vx, vy``. Vectorised: the rows in the window are scattered
+    into a dense ``(N, frames)`` array and interpolated with :func:`.footprints.resample_tracks`.
     """
     f_lo = int(math.floor(times[0] * frame_rate + 1e-9))
     f_hi = int(math.ceil(times[-1] * frame_rate - 1e-9))
@@ -599,11 +589,9 @@ def write_ind_recording(
     """Write road-user tracks as the three inD CSV files of ``recording`` (atomically); returns their paths.
 
     Each entry of ``tracks`` is a dict with ``id`` (int), ``class`` (inD class name), ``length``, ``width``
-    [m]
-    and equally long arrays ``frames`` (consecutive ints), ``x``, ``y`` [m], ``heading`` [deg], ``vx``,
-    ``vy`` [m/s].
-    All columns of the inD format are written (accelerations 0, lon/lat velocities from the heading).
-    Used by the tests and benchmarks, since the real data set cannot be shipped.
+    [m] and equally long arrays ``frames`` (consecutive ints), ``x``, ``y`` [m], ``heading`` [deg], ``vx``,
+    ``vy`` [m/s]. All columns of the inD format are written (accelerations 0, lon/lat velocities from the
+    heading). Used by the tests and benchmarks, since the real data set cannot be shipped.
     """
     from density_planner.io.atomic import atomic_write_text
 

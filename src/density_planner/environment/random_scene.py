@@ -6,8 +6,7 @@ A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 
 * two walls x in [-12, -7] and x in [7, 12] over the whole length, certainty 1, spread 30 cells;
 * 4-7 static and 6-9 moving boxes: width, height in {0.5, 0.6, ..., 3.9} m, lower-left corner
   x in {-7, ..., 6}, y in {-23, ..., 4} m (integers), certainty in {0.3, ..., 0.9}, spread in {1, ..., 29}
-  cells,
-  velocity components in {-2, -1, 0, 1} cells per slice (= m/s at 0.1 m and 0.1 s);
+  cells, velocity components in {-2, -1, 0, 1} cells per slice (= m/s at 0.1 m and 0.1 s);
 * the "square" occupancy profile of one box: ``c * max(0, s - d) / s``, with ``c`` the certainty, ``s`` the
   spread and ``d`` the Chebyshev distance in cells from the box (0 inside): a plateau ``c`` on the box and a
   linear ramp down to ``c / s`` at ``s - 1`` cells (the paper's code adds ``c / s`` on the box grown by
@@ -16,9 +15,8 @@ A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 
   from outside (zero fill), exactly like shifting the slice-0 array;
 * ``P_occ = clamp(sum over walls and boxes, 0, 1)``.
 
-A box covers the cells whose indices lie between ``index(x)`` and ``index(x + width)`` inclusive (same
-along y),
-with ``index(v) = floor((v - min) / cell + 0.5 + 0.001)`` (the code's rounding with its +0.001).
+A box covers the cells whose indices lie between ``index(x)`` and ``index(x + width)`` inclusive (same along
+y), with ``index(v) = floor((v - min) / cell + 0.5 + 0.001)`` (the code's rounding with its +0.001).
 
 Start and goal: seeds below 20 use the fixed start ``[0, -28, 1.5, 3, 0]`` and goal ``(0, 8)``. Other seeds
 draw a start uniformly in x in [-5, 5], y in [5, 10], theta in [-2.1, -0.5] rad, v in [1, 9] m/s and a goal in
@@ -30,11 +28,9 @@ the goal at t = 10 s is <= 0.1; after ``max_attempts`` rejected pairs a :class:`
 Randomness: one ``numpy.random.PCG64(seed)`` stream, whose raw 64-bit outputs NumPy guarantees to be identical
 on every machine and version; uniform numbers and integers are derived from them here (not through
 ``Generator`` methods, whose algorithms may change between NumPy versions). Draw order: number of static
-boxes,
-number of moving boxes, then per box (static first) width, height, x, y, certainty, spread (and vx, vy for
-moving
-boxes), then start/goal candidates. The paper's code used the global RNG, so the scenes differ from it for the
-same seed; the distribution is the same.
+boxes, number of moving boxes, then per box (static first) width, height, x, y, certainty, spread (and vx, vy
+for moving boxes), then start/goal candidates. The paper's code used the global RNG, so the scenes differ from
+it for the same seed; the distribution is the same.
 """
 
 from __future__ import annotations
@@ -270,9 +266,8 @@ def rasterise_boxes(
     """``(T, NX, NY)`` float32 ``clamp(sum of box profiles, 0, 1)``, moving boxes shifted per slice (zero
     fill).
 
-    Vectorised per box (its profile is built once on its support window); the only loops are over boxes
-    and, for
-    moving boxes, over slices (one slice-add each).
+    Vectorised per box (its profile is built once on its support window); the only loops are over boxes and,
+    for moving boxes, over slices (one slice-add each).
     """
     nx = lattice_size(*x_range, cell_size)
     ny = lattice_size(*y_range, cell_size)

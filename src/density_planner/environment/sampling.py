@@ -4,14 +4,13 @@ The rules mirror the artificial scenes (``original.md`` §8), on free cells of a
 
 * the start is the centre of a cell inside the planning box whose +-``check_half_width`` square has
   max P_occ <= ``start_max_occupancy`` at t = 0;
-* the goal is the centre of a cell inside the planning box whose square has max P_occ <=
-``goal_max_occupancy``
-  in the last slice;
+* the goal is the centre of a cell inside the planning box whose square has
+  max P_occ <= ``goal_max_occupancy`` in the last slice;
 * the start-goal distance lies in ``distance_range`` (10-70 m);
 * the start heading points at the goal, perturbed uniformly by up to +-``heading_jitter``; the speed is
-uniform in
-  ``speed_range``; the square around the look-ahead point ``start + v * lookahead_time * (cos, sin)`` has
-  max P_occ <= ``lookahead_max_occupancy`` in the slice at ``lookahead_time``.
+  uniform in ``speed_range``; the square around the look-ahead point
+  ``start + v * lookahead_time * (cos, sin)`` has max P_occ <= ``lookahead_max_occupancy`` in the slice at
+  ``lookahead_time``.
 
 Candidates are drawn in vectorised batches from a seeded stream (identical on every machine); after
 ``max_attempts`` candidates without success a :class:`~density_planner.errors.DataError` says which test
@@ -92,8 +91,8 @@ def _window_max(slice_: torch.Tensor, half: int) -> np.ndarray:
 
 
 def free_mask(grid: OccupancyGrid, k: int, max_occupancy: float, half_width: float) -> np.ndarray:
-    """``(NX, NY)`` bool: cells whose +-``half_width`` [m] square has max P_occ <= ``max_occupancy`` in
-    slice k."""
+    """``(NX, NY)`` bool: cells whose +-``half_width`` [m] square has max P_occ <= ``max_occupancy`` in slice
+    k."""
     half = int(round(half_width / grid.cell_size))
     return _window_max(grid.slice(k), half) <= max_occupancy
 

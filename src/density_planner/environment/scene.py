@@ -1,10 +1,9 @@
-"""A planning scene: the occupancy grid plus where the car starts, where it should go and the box it must
-stay in.
+"""A planning scene: the occupancy grid plus where the car starts, where it should go and the box it must stay
+in.
 
 Every environment source (random artificial scenes, inD recordings, CommonRoad scenarios) returns a
 :class:`Scene`; :func:`save_scene` / :func:`load_scene` store one as a single ``.npz`` (grid arrays + JSON
-header),
-so a later run can plan on exactly the same world.
+header), so a later run can plan on exactly the same world.
 """
 
 from __future__ import annotations
@@ -39,12 +38,9 @@ SCENE_FORMAT_VERSION = 1
 
 #: :func:`validate_scene` rejects a start whose P_occ at t = 0 exceeds this. It catches starts inside static
 #: obstacles or outside the drivable area (P_occ = 1) and on top of another road user; it is deliberately
-#: looser than
-#: the generators' own start rule (P_occ <= 0.1 around the start), because a recorded ego vehicle in dense
-#: traffic
-#: legitimately starts inside the wide Gaussian footprints of its neighbours (e.g. P_occ = 0.6-0.7 in both
-#: shipped
-#: CommonRoad scenarios).
+#: looser than the generators' own start rule (P_occ <= 0.1 around the start), because a recorded ego vehicle
+#: in dense traffic legitimately starts inside the wide Gaussian footprints of its neighbours (e.g. P_occ =
+#: 0.6-0.7 in both shipped CommonRoad scenarios).
 START_OCCUPIED_THRESHOLD = 0.9
 
 #: the car model keeps its heading unwrapped in [-pi + 0.2, 3 pi - 0.2] (``original.md`` §1)
@@ -127,8 +123,7 @@ def validate_scene(scene: Scene, *, start_threshold: float = START_OCCUPIED_THRE
     """Check that ``scene`` can be planned in; returns it unchanged or raises :class:`ValueError` saying why.
 
     Rejected: NaN/infinite or out-of-range occupancy (e.g. after an in-place edit), a start or goal outside
-    the
-    map, a planning box that does not overlap the map, a start whose P_occ at t = 0 exceeds
+    the map, a planning box that does not overlap the map, a start whose P_occ at t = 0 exceeds
     ``start_threshold``
     (default :data:`START_OCCUPIED_THRESHOLD` = 0.9), a negative start speed.
     """
