@@ -142,3 +142,14 @@ def test_environment_does_not_import_matplotlib():
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
+
+
+def test_missing_commonroad_extra_is_a_clear_error(tmp_path, capsys, monkeypatch):
+    # simulate an installation without the 'commonroad' extra
+    monkeypatch.setitem(sys.modules, "commonroad", None)
+    monkeypatch.setitem(sys.modules, "commonroad.common.file_reader", None)
+    (tmp_path / "s.xml").write_text("<commonRoad/>")
+    argv = ["env", "--kind", "commonroad", "--file", str(tmp_path / "s.xml"), "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "commonroad-io" in err and "density-planner[commonroad]" in err and "Traceback" not in err
