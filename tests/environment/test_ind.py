@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import CAR_SPEED, CAR_Y, PED_X, PED_Y0, car_x, two_tracks
+from env_testdata import CAR_SPEED, CAR_Y, PED_X, PED_Y0, car_x, two_tracks
 
 from density_planner.environment import (
     IndSceneConfig,
