@@ -19,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .density.liouville import LiouvilleConfig
+from .environment.commonroad import CommonRoadSceneConfig
+from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
 
@@ -35,3 +37,7 @@ class RunConfig:
     liouville: LiouvilleConfig = field(default_factory=LiouvilleConfig)
     #: [random_scene]: the artificial scene generator
     random_scene: RandomSceneConfig = field(default_factory=RandomSceneConfig)
+    #: [ind]: scenes from inD recordings
+    ind: IndSceneConfig = field(default_factory=IndSceneConfig)
+    #: [commonroad]: scenes from CommonRoad scenarios
+    commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
