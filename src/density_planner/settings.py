@@ -19,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .density.liouville import LiouvilleConfig
+from .environment.commonroad import CommonRoadSceneConfig
+from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig, TubeMPCConfig
@@ -50,3 +52,7 @@ class RunConfig:
     search: SearchConfig = field(default_factory=SearchConfig)
     #: [sampling]: the sampling-based optimiser of the ablation (planner "sampling")
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    #: [ind]: scenes from inD recordings
+    ind: IndSceneConfig = field(default_factory=IndSceneConfig)
+    #: [commonroad]: scenes from CommonRoad scenarios
+    commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)

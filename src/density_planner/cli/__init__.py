@@ -19,7 +19,7 @@ from ..errors import DensityPlannerError
 __all__ = ["main", "build_parser"]
 
 #: command modules, in the order they appear in ``--help``
-COMMAND_MODULES = ("density",)
+COMMAND_MODULES = ("env", "density", "plan")
 
 #: command groups with sub-commands: name -> help
 GROUPS = {
@@ -59,7 +59,9 @@ def group(sub: argparse._SubParsersAction, groups: dict, name: str) -> argparse.
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -1,4 +1,5 @@
-"""Time-varying occupancy grid ``P_occ(c_x, c_y, t_k)`` (paper §IV-B): pure tensors, no plotting, no I/O beyond npz.
+"""Time-varying occupancy grid ``P_occ(c_x, c_y, t_k)`` (paper §IV-B): pure tensors, no plotting, no I/O
+beyond npz.
 
 Conventions (the one place where world <-> cell transforms live):
 
@@ -9,8 +10,8 @@ Conventions (the one place where world <-> cell transforms live):
 * Continuous cell coordinates ``c = (xy - origin) / cell_size`` (dimensionless, in cells): integer values are
   cell centres. ``cell_index`` rounds them to the nearest cell.
 * :meth:`OccupancyGrid.lookup` interpolates bilinearly between the four surrounding cell centres of one slice;
-  positions outside the lattice hull ``[xmin, xmax] x [ymin, ymax]`` get ``fill`` (default 1.0: "outside the map
-  is occupied").
+  positions outside the lattice hull ``[xmin, xmax] x [ymin, ymax]`` get ``fill`` (default 1.0: "outside the
+  map is occupied").
 * :meth:`OccupancyGrid.gradient` is the central difference of ``probs`` in probability **per cell** (divide by
   ``cell_size`` for probability per metre), one-sided at the borders.
 """
@@ -26,8 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import DataError
-from ..io.atomic import atomic_save_npz
+from density_planner.errors import DataError
+from density_planner.io.atomic import atomic_save_npz
 
 __all__ = ["OccupancyGrid", "lattice_size", "GRID_FORMAT_VERSION"]
 
@@ -48,7 +49,9 @@ def lattice_size(lo: float, hi: float, cell_size: float) -> int:
         raise ValueError(f"invalid extent [{lo}, {hi}] with cell size {cell_size}")
     r = round(n)
     if abs(n - r) > 1e-6:
-        raise ValueError(f"extent [{lo}, {hi}] m is not a whole number of {cell_size}-m cells ({n:.6f} cells)")
+        raise ValueError(
+            f"extent [{lo}, {hi}] m is not a whole number of {cell_size}-m cells ({n:.6f} cells)"
+        )
     return int(r) + 1
 
 
@@ -57,7 +60,8 @@ class OccupancyGrid:
     """Occupancy probabilities over (time, x, y) with the geometry needed to query them.
 
     Attributes:
-        probs: ``(T, NX, NY)`` probabilities in [0, 1] (float32 unless given float64; numpy arrays are converted).
+        probs: ``(T, NX, NY)`` probabilities in [0, 1] (float32 unless given float64; numpy arrays are
+        converted).
             Treated as immutable: the cached gradient is not invalidated by in-place edits.
         origin: world position ``(x, y)`` [m] of the centre of cell ``(0, 0)``.
         cell_size: edge length of a (square) cell [m].
@@ -79,17 +83,22 @@ class OccupancyGrid:
                 raise ValueError(f"OccupancyGrid.probs must be numeric, got dtype {probs.dtype}")
             probs = torch.from_numpy(np.ascontiguousarray(probs))
         if not isinstance(probs, Tensor):
-            raise ValueError(f"OccupancyGrid.probs must be a tensor or numpy array, got {type(probs).__name__}")
+            raise ValueError(
+                f"OccupancyGrid.probs must be a tensor or numpy array, got {type(probs).__name__}"
+            )
         if probs.dtype not in (torch.float32, torch.float64):
             probs = probs.to(torch.float32)
         if probs.ndim != 3:
             raise ValueError(f"OccupancyGrid.probs must have shape (T, NX, NY), got {tuple(probs.shape)}")
         if probs.shape[0] < 1 or probs.shape[1] < 2 or probs.shape[2] < 2:
-            raise ValueError(f"OccupancyGrid.probs needs >= 1 slice and >= 2 cells per axis, got {tuple(probs.shape)}")
-        if not bool(torch.isfinite(probs).all()):
+            raise ValueError(
+                f"OccupancyGrid.probs needs >= 1 slice and >= 2 cells per axis, got {tuple(probs.shape)}"
+            )
+        lo_t, hi_t = torch.aminmax(probs)  # one pass; NaN propagates into both
+        lo, hi = float(lo_t), float(hi_t)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             bad = int((~torch.isfinite(probs)).sum())
             raise ValueError(f"OccupancyGrid.probs contains {bad} NaN or infinite value(s)")
-        lo, hi = float(probs.min()), float(probs.max())
         if lo < -_RANGE_TOL or hi > 1 + _RANGE_TOL:
             raise ValueError(f"OccupancyGrid.probs must lie in [0, 1], got values in [{lo:.6g}, {hi:.6g}]")
         try:
@@ -97,12 +106,19 @@ class OccupancyGrid:
             if len(self.origin) != 2:
                 raise TypeError
         except (TypeError, IndexError, ValueError):
-            raise ValueError(f"OccupancyGrid.origin must be two numbers (x, y), got {self.origin!r}") from None
+            raise ValueError(
+                f"OccupancyGrid.origin must be two numbers (x, y), got {self.origin!r}"
+            ) from None
         if not all(math.isfinite(v) for v in origin):
             raise ValueError(f"OccupancyGrid.origin must be finite, got {origin}")
         for name in ("cell_size", "dt"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or value <= 0
+            ):
                 raise ValueError(f"OccupancyGrid.{name} must be a finite number > 0, got {value!r}")
         if isinstance(self.t0, bool) or not isinstance(self.t0, (int, float)) or not math.isfinite(self.t0):
             raise ValueError(f"OccupancyGrid.t0 must be a finite number, got {self.t0!r}")
@@ -149,7 +165,8 @@ class OccupancyGrid:
         return self.origin[1] + self.cell_size * torch.arange(self.shape[2], dtype=torch.float64)
 
     def world_to_cell(self, xy: Tensor) -> Tensor:
-        """Continuous cell coordinates ``(xy - origin) / cell_size`` of positions ``(..., 2)`` [m] (same dtype)."""
+        """Continuous cell coordinates ``(xy - origin) / cell_size`` of positions ``(..., 2)`` [m] (same
+        dtype)."""
         xy = _as_float_tensor("xy", xy, self.device)
         origin = torch.tensor(self.origin, dtype=xy.dtype, device=xy.device)
         return (xy - origin) / self.cell_size
@@ -161,10 +178,11 @@ class OccupancyGrid:
         return origin + c * self.cell_size
 
     def cell_index(self, xy: Tensor) -> tuple[Tensor, Tensor]:
-        """Nearest cell of positions ``(..., 2)``: ``(index (..., 2) long, clamped to the grid; inside (...) bool)``.
+        """Nearest cell of positions ``(..., 2)``: ``(index (..., 2) long, clamped to the grid; inside (...)
+        bool)``.
 
-        ``inside`` is True when the rounded index lies in the grid before clamping, i.e. the position is within
-        half a cell of the lattice hull.
+        ``inside`` is True when the rounded index lies in the grid before clamping, i.e. the position is
+        within half a cell of the lattice hull.
         """
         c = torch.round(self.world_to_cell(xy)).long()
         size = torch.tensor(self.shape[1:], device=c.device)
@@ -179,11 +197,13 @@ class OccupancyGrid:
 
     # ------------------------------------------------------------------ queries
     def lookup(self, xy: Tensor, k: int | Tensor, *, fill: float = 1.0) -> Tensor:
-        """P_occ at positions ``xy (..., 2)`` [m] in slice(s) ``k`` (int or long tensor broadcastable to ``xy[..., 0]``).
+        """P_occ at positions ``xy (..., 2)`` [m] in slice(s) ``k`` (int or long tensor broadcastable to
+        ``xy[..., 0]``).
 
         Bilinear in space between the four surrounding cell centres, differentiable w.r.t. ``xy`` (piecewise
-        linear: the derivative jumps at cell centres). Positions outside the lattice hull get ``fill`` (default 1.0,
-        "outside the map is occupied"), with zero gradient. The result has ``xy``'s dtype and the broadcast shape.
+        linear: the derivative jumps at cell centres). Positions outside the lattice hull get ``fill``
+        (default 1.0, "outside the map is occupied"), with zero gradient. The result has ``xy``'s dtype and
+        the broadcast shape.
         """
         xy = _as_float_tensor("xy", xy, self.device)
         if xy.shape[-1:] != (2,):
@@ -193,11 +213,14 @@ class OccupancyGrid:
             raise ValueError(f"slice index k must be an integer (tensor), got dtype {k.dtype}")
         T, NX, NY = self.shape
         if k.numel() and (int(k.min()) < 0 or int(k.max()) >= T):
-            raise ValueError(f"slice index k must lie in [0, {T - 1}], got values in [{int(k.min())}, {int(k.max())}]")
+            raise ValueError(
+                f"slice index k must lie in [0, {T - 1}], got values in [{int(k.min())}, {int(k.max())}]"
+            )
         c = self.world_to_cell(xy)
         cx, cy = c[..., 0], c[..., 1]
         inside = (cx >= 0) & (cx <= NX - 1) & (cy >= 0) & (cy <= NY - 1)
-        # lower corner, kept one cell inside so that the upper neighbour exists (fraction 1 at the last centre)
+        # lower corner, kept one cell inside so that the upper neighbour exists (fraction 1 at the last
+        # centre)
         i0 = torch.floor(cx.detach()).clamp(0, NX - 2).long()
         j0 = torch.floor(cy.detach()).clamp(0, NY - 2).long()
         fx = (cx - i0.to(cx.dtype)).clamp(0.0, 1.0)
@@ -238,7 +261,8 @@ class OccupancyGrid:
         return self.probs[int(k)]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
-        """Copy on ``device`` and/or with ``dtype`` (float32 or float64); returns ``self`` when nothing changes."""
+        """Copy on ``device`` and/or with ``dtype`` (float32 or float64); returns ``self`` when nothing
+        changes."""
         probs = self.probs.to(device=device, dtype=dtype)
         if probs is self.probs:
             return self
@@ -287,7 +311,9 @@ class OccupancyGrid:
         try:
             with np.load(path, allow_pickle=False) as z:
                 return cls.from_arrays(z, source=str(path))
-        except (OSError, EOFError) as exc:
+        except DataError:
+            raise
+        except (OSError, EOFError, ValueError) as exc:
             raise DataError(f"{path}: cannot read occupancy grid ({exc})") from exc
 
     def __repr__(self) -> str:
@@ -301,9 +327,13 @@ class OccupancyGrid:
 
 def _as_float_tensor(name: str, value: Any, device: torch.device) -> Tensor:
     if not isinstance(value, Tensor):
-        value = torch.as_tensor(np.asarray(value, dtype=np.float64) if not isinstance(value, np.ndarray) else value)
+        value = torch.as_tensor(
+            np.asarray(value, dtype=np.float64) if not isinstance(value, np.ndarray) else value
+        )
     if not value.is_floating_point():
         value = value.to(torch.get_default_dtype())
     if value.device != device:
-        raise ValueError(f"{name} is on {value.device} but the occupancy grid is on {device}; use grid.to(device)")
+        raise ValueError(
+            f"{name} is on {value.device} but the occupancy grid is on {device}; use grid.to(device)"
+        )
     return value

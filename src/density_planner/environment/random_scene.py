@@ -5,8 +5,8 @@ A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 
 
 * two walls x in [-12, -7] and x in [7, 12] over the whole length, certainty 1, spread 30 cells;
 * 4-7 static and 6-9 moving boxes: width, height in {0.5, 0.6, ..., 3.9} m, lower-left corner
-  x in {-7, ..., 6}, y in {-23, ..., 4} m (integers), certainty in {0.3, ..., 0.9}, spread in {1, ..., 29} cells,
-  velocity components in {-2, -1, 0, 1} cells per slice (= m/s at 0.1 m and 0.1 s);
+  x in {-7, ..., 6}, y in {-23, ..., 4} m (integers), certainty in {0.3, ..., 0.9}, spread in {1, ..., 29}
+  cells, velocity components in {-2, -1, 0, 1} cells per slice (= m/s at 0.1 m and 0.1 s);
 * the "square" occupancy profile of one box: ``c * max(0, s - d) / s``, with ``c`` the certainty, ``s`` the
   spread and ``d`` the Chebyshev distance in cells from the box (0 inside): a plateau ``c`` on the box and a
   linear ramp down to ``c / s`` at ``s - 1`` cells (the paper's code adds ``c / s`` on the box grown by
@@ -15,8 +15,8 @@ A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 
   from outside (zero fill), exactly like shifting the slice-0 array;
 * ``P_occ = clamp(sum over walls and boxes, 0, 1)``.
 
-A box covers the cells whose indices lie between ``index(x)`` and ``index(x + width)`` inclusive (same along y),
-with ``index(v) = floor((v - min) / cell + 0.5 + 0.001)`` (the code's rounding with its +0.001).
+A box covers the cells whose indices lie between ``index(x)`` and ``index(x + width)`` inclusive (same along
+y), with ``index(v) = floor((v - min) / cell + 0.5 + 0.001)`` (the code's rounding with its +0.001).
 
 Start and goal: seeds below 20 use the fixed start ``[0, -28, 1.5, 3, 0]`` and goal ``(0, 8)``. Other seeds
 draw a start uniformly in x in [-5, 5], y in [5, 10], theta in [-2.1, -0.5] rad, v in [1, 9] m/s and a goal in
@@ -27,10 +27,10 @@ the goal at t = 10 s is <= 0.1; after ``max_attempts`` rejected pairs a :class:`
 
 Randomness: one ``numpy.random.PCG64(seed)`` stream, whose raw 64-bit outputs NumPy guarantees to be identical
 on every machine and version; uniform numbers and integers are derived from them here (not through
-``Generator`` methods, whose algorithms may change between NumPy versions). Draw order: number of static boxes,
-number of moving boxes, then per box (static first) width, height, x, y, certainty, spread (and vx, vy for moving
-boxes), then start/goal candidates. The paper's code used the global RNG, so the scenes differ from it for the
-same seed; the distribution is the same.
+``Generator`` methods, whose algorithms may change between NumPy versions). Draw order: number of static
+boxes, number of moving boxes, then per box (static first) width, height, x, y, certainty, spread (and vx, vy
+for moving boxes), then start/goal candidates. The paper's code used the global RNG, so the scenes differ from
+it for the same seed; the distribution is the same.
 """
 
 from __future__ import annotations
@@ -41,7 +41,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ..config import to_dict
+from density_planner.config import to_dict
+
+from ._rng import Stream
 from .grid import OccupancyGrid, lattice_size
 from .scene import Scene
 
@@ -118,11 +120,24 @@ class RandomSceneConfig:
     planning_box: tuple[float, float, float, float] = (-9.9, 9.9, -29.9, 9.9)
 
     def __post_init__(self) -> None:
-        for name in ("x_range", "y_range", "n_static", "n_dynamic", "size_range", "corner_x_range",
-                     "corner_y_range", "certainty_range", "spread_range", "velocity_range", "distance_range"):
+        for name in (
+            "x_range",
+            "y_range",
+            "n_static",
+            "n_dynamic",
+            "size_range",
+            "corner_x_range",
+            "corner_y_range",
+            "certainty_range",
+            "spread_range",
+            "velocity_range",
+            "distance_range",
+        ):
             lo, hi = getattr(self, name)
             if lo > hi:
-                raise ValueError(f"RandomSceneConfig.{name} must be (min, max) with min <= max, got {(lo, hi)}")
+                raise ValueError(
+                    f"RandomSceneConfig.{name} must be (min, max) with min <= max, got {(lo, hi)}"
+                )
         for name in ("cell_size", "dt", "size_step", "certainty_step", "check_half_width"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RandomSceneConfig.{name} must be > 0, got {getattr(self, name)}")
@@ -139,10 +154,12 @@ class RandomSceneConfig:
             if lo < 0 or hi > 1:
                 raise ValueError(f"RandomSceneConfig.{name} must lie in [0, 1], got {(lo, hi)}")
         if not 0 <= self.wall_certainty <= 1:
-            raise ValueError(f"RandomSceneConfig.wall_certainty must lie in [0, 1], got {self.wall_certainty}")
+            raise ValueError(
+                f"RandomSceneConfig.wall_certainty must lie in [0, 1], got {self.wall_certainty}"
+            )
         if self.max_attempts < 1:
             raise ValueError(f"RandomSceneConfig.max_attempts must be >= 1, got {self.max_attempts}")
-        if any(a > b for a, b in zip(self.start_box_min, self.start_box_max)):
+        if any(a > b for a, b in zip(self.start_box_min, self.start_box_max, strict=True)):
             raise ValueError("RandomSceneConfig.start_box_min must be <= start_box_max elementwise")
         g = self.goal_box
         if g[0] > g[1] or g[2] > g[3]:
@@ -184,30 +201,7 @@ class BoxObstacle:
     kind: str = "static"
 
 
-class _Stream:
-    """Uniform numbers and integers from the raw PCG64 output (identical on every machine and NumPy version)."""
-
-    def __init__(self, seed: int):
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-        self._bits = np.random.PCG64(int(seed))
-
-    def uniform(self, lo: float = 0.0, hi: float = 1.0) -> float:
-        raw = int(self._bits.random_raw())
-        return lo + (hi - lo) * ((raw >> 11) * 2.0**-53)
-
-    def integer(self, lo: int, hi: int) -> int:
-        """Uniform integer in ``[lo, hi]`` inclusive."""
-        n = hi - lo + 1
-        return lo + min(int(self.uniform() * n), n - 1)
-
-    def on_grid(self, lo: float, hi: float, step: float) -> float:
-        """Uniform value of ``lo + i * step`` within ``[lo, hi]``, rounded to 10 decimals."""
-        n = int(math.floor((hi - lo) / step + 1e-9))
-        return round(lo + step * self.integer(0, n), 10)
-
-
-def _draw_obstacles(rng: _Stream, cfg: RandomSceneConfig) -> list[BoxObstacle]:
+def _draw_obstacles(rng: Stream, cfg: RandomSceneConfig) -> list[BoxObstacle]:
     n_static = rng.integer(*cfg.n_static)
     n_dynamic = rng.integer(*cfg.n_dynamic)
     boxes = []
@@ -236,7 +230,7 @@ def _walls(cfg: RandomSceneConfig) -> list[BoxObstacle]:
 def random_obstacles(seed: int, config: RandomSceneConfig | None = None) -> list[BoxObstacle]:
     """The random boxes of scene ``seed`` (walls excluded), without rasterising them."""
     cfg = config or RandomSceneConfig()
-    return _draw_obstacles(_Stream(seed), cfg)
+    return _draw_obstacles(Stream(seed), cfg)
 
 
 def _index(v: float, lo: float, cell: float) -> int:
@@ -255,7 +249,8 @@ def _box_profile(i_lo: int, i_hi: int, j_lo: int, j_hi: int, c: float, s: int) -
 
 
 def _clip_window(start: int, size: int, n: int) -> tuple[int, int, int, int]:
-    """Intersection of ``[start, start + size)`` with ``[0, n)``: (grid from, grid to, window from, window to)."""
+    """Intersection of ``[start, start + size)`` with ``[0, n)``: (grid from, grid to, window from, window
+    to)."""
     a, b = max(start, 0), min(start + size, n)
     return a, b, a - start, b - start
 
@@ -268,10 +263,11 @@ def rasterise_boxes(
     cell_size: float,
     n_slices: int,
 ) -> np.ndarray:
-    """``(T, NX, NY)`` float32 ``clamp(sum of box profiles, 0, 1)``, moving boxes shifted per slice (zero fill).
+    """``(T, NX, NY)`` float32 ``clamp(sum of box profiles, 0, 1)``, moving boxes shifted per slice (zero
+    fill).
 
-    Vectorised per box (its profile is built once on its support window); the only loops are over boxes and, for
-    moving boxes, over slices (one slice-add each).
+    Vectorised per box (its profile is built once on its support window); the only loops are over boxes and,
+    for moving boxes, over slices (one slice-add each).
     """
     nx = lattice_size(*x_range, cell_size)
     ny = lattice_size(*y_range, cell_size)
@@ -305,7 +301,8 @@ def rasterise_boxes(
 
 
 def _window_max(probs_k: np.ndarray, cx: float, cy: float, half: int) -> float:
-    """Max of one slice over the cells within ``half`` cells of continuous cell coordinates (cx, cy); 1 outside."""
+    """Max of one slice over the cells within ``half`` cells of continuous cell coordinates (cx, cy); 1
+    outside."""
     nx, ny = probs_k.shape
     i, j = int(round(cx)), int(round(cy))
     a, b = max(i - half, 0), min(i + half + 1, nx)
@@ -316,7 +313,7 @@ def _window_max(probs_k: np.ndarray, cx: float, cy: float, half: int) -> float:
 
 
 def _draw_start_goal(
-    rng: _Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
+    rng: Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
 ) -> tuple[tuple[float, ...], tuple[float, float], int]:
     x0, y0, cell = cfg.x_range[0], cfg.y_range[0], cfg.cell_size
     half = int(round(cfg.check_half_width / cell))
@@ -339,18 +336,24 @@ def _draw_start_goal(
             continue
         return (sx, sy, th, v, 0.0), (gx, gy), attempt
     raise ValueError(
-        f"random scene seed {seed}: no start/goal pair passed the acceptance tests in {cfg.max_attempts} attempts "
+        f"random scene seed {seed}: no start/goal pair passed the acceptance tests in {cfg.max_attempts} "
+        "attempts "
         "(try another seed or raise max_attempts)"
     )
 
 
 def random_scene(seed: int, config: RandomSceneConfig | None = None) -> Scene:
-    """The random artificial scene number ``seed`` (deterministic on every machine); see the module docstring."""
+    """The random artificial scene number ``seed`` (deterministic on every machine); see the module
+    docstring."""
     cfg = config or RandomSceneConfig()
-    rng = _Stream(seed)
+    rng = Stream(seed)
     boxes = _draw_obstacles(rng, cfg)
     probs = rasterise_boxes(
-        _walls(cfg) + boxes, x_range=cfg.x_range, y_range=cfg.y_range, cell_size=cfg.cell_size, n_slices=cfg.n_slices
+        _walls(cfg) + boxes,
+        x_range=cfg.x_range,
+        y_range=cfg.y_range,
+        cell_size=cfg.cell_size,
+        n_slices=cfg.n_slices,
     )
     if seed < cfg.fixed_start_seeds:
         start, goal, attempts = tuple(cfg.fixed_start), tuple(cfg.fixed_goal), 0

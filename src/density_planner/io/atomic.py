@@ -16,6 +16,16 @@ from typing import IO, Any
 __all__ = ["atomic_write_bytes", "atomic_write_text", "atomic_write_json", "atomic_save_torch", "atomic_save_npz"]
 
 
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: permissions of written files: as ``open(path, "w")`` would create them (0666 minus the umask)
+_FILE_MODE = 0o666 & ~_current_umask()
+
+
 def _atomic(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -25,6 +35,7 @@ def _atomic(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:
             writer(fh)
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         try:

@@ -163,12 +163,16 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
             label = "total (weighted)" if name == "total" else f"J_{name[0].upper()} ({name})"
             if weights and name in weights:
                 label += f", alpha={weights[name]:g}"
-            ax.plot(np.arange(values.size), np.maximum(values, 1e-12), label=label, **style)
+            shown = np.where(values > 0, values, np.nan)  # zero (or switched-off) terms leave gaps on a log axis
+            if np.isnan(shown).all():
+                label += ": 0 throughout"
+            ax.plot(np.arange(values.size), shown, label=label, **style)
         ax.set_yscale("log")
         ax.set_xlabel("iteration")
         ax.set_title(stage, fontsize=9)
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-    fig.suptitle(title or "cost per term (unweighted) and weighted total", fontsize=10)
+    fig.suptitle((title or "cost per iteration") + " (terms unweighted; gaps: term zero or not yet switched on)",
+                 fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)

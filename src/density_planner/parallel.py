@@ -1,0 +1,141 @@
+"""One executor for every batch of independent jobs (data generation, benchmark sweeps).
+
+:func:`run_tasks` runs ``fn(task)`` for every task serially, in local worker processes (joblib) or on a Dask
+distributed cluster (``scheduler="tcp://host:8786"``, extra ``dask``), and yields ``TaskOutcome`` objects as
+tasks finish. Exceptions inside a task are captured in its outcome (with the traceback) instead of aborting the
+batch. Each worker limits its own torch threads (one by default), so ``workers`` processes share the cores
+without oversubscription.
+"""
+
+from __future__ import annotations
+
+import os
+import traceback
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["TaskOutcome", "run_tasks", "default_workers"]
+
+
+@dataclass
+class TaskOutcome:
+    """Result of one task: ``index`` into the task list, ``value`` or ``error`` (a formatted traceback)."""
+
+    index: int
+    value: Any = None
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def default_workers() -> int:
+    """Number of usable CPU cores."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class _Call:
+    """Picklable wrapper: limit threads, run ``fn(task)``, capture exceptions."""
+
+    def __init__(self, fn: Callable[[Any], Any], threads: int | None):
+        self.fn = fn
+        self.threads = threads
+
+    def __call__(self, index: int, task: Any) -> TaskOutcome:
+        if self.threads is not None:
+            import torch
+
+            if torch.get_num_threads() != self.threads:
+                torch.set_num_threads(self.threads)
+        try:
+            return TaskOutcome(index, value=self.fn(task))
+        except Exception:  # noqa: BLE001 - every failure is reported in the outcome
+            return TaskOutcome(index, error=traceback.format_exc())
+
+
+def run_tasks(
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any] | Iterable[Any],
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    threads_per_worker: int | None = 1,
+    progress: bool = False,
+    desc: str = "tasks",
+) -> Iterator[TaskOutcome]:
+    """Run ``fn`` on every task; yields :class:`TaskOutcome` in completion order.
+
+    Args:
+        fn: a picklable function (module-level) of one task.
+        workers: local processes (default: the number of cores; 1 runs in this process). Ignored with
+            ``scheduler``.
+        scheduler: address of a Dask distributed scheduler; the tasks run on its workers.
+        threads_per_worker: torch threads per worker process (``None`` leaves torch's default).
+        progress: show a progress bar over the tasks.
+    """
+    tasks = list(tasks)
+    call = _Call(fn, threads_per_worker)
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(tasks), desc=desc, disable=not progress, unit="task")
+    try:
+        for outcome in _dispatch(call, tasks, workers, scheduler):
+            bar.update()
+            yield outcome
+    finally:
+        bar.close()
+
+
+def _dispatch(call: _Call, tasks: list, workers: int | None, scheduler: str | None) -> Iterator[TaskOutcome]:
+    if scheduler:
+        yield from _dask(call, tasks, scheduler)
+        return
+    workers = default_workers() if workers is None else workers
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1 or len(tasks) <= 1:
+        if call.threads is not None:
+            import torch
+
+            previous = torch.get_num_threads()
+            try:
+                for i, task in enumerate(tasks):
+                    yield call(i, task)
+            finally:
+                torch.set_num_threads(previous)
+        else:
+            for i, task in enumerate(tasks):
+                yield call(i, task)
+        return
+    from joblib import Parallel, delayed
+
+    parallel = Parallel(n_jobs=min(workers, len(tasks)), return_as="generator_unordered")
+    yield from parallel(delayed(call)(i, task) for i, task in enumerate(tasks))
+
+
+def _dask(call: _Call, tasks: list, scheduler: str) -> Iterator[TaskOutcome]:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        from .errors import OptionalDependencyError
+
+        raise OptionalDependencyError("distributed", "dask", "running on a Dask cluster (--scheduler)") from None
+    try:
+        client = Client(scheduler, timeout="20s")
+    except OSError as exc:
+        raise ValueError(f"cannot connect to the Dask scheduler at {scheduler!r}: {exc}") from exc
+    try:
+        futures = client.map(call, range(len(tasks)), tasks, pure=False)
+        for future in as_completed(futures):
+            try:
+                yield future.result()
+            except Exception:  # noqa: BLE001 - a lost worker or a task that cannot be unpickled
+                index = futures.index(future)
+                yield TaskOutcome(index, error=traceback.format_exc())
+    finally:
+        client.close()

@@ -1,0 +1,146 @@
+"""Road-user footprints: peak, standard deviations, elongation along the heading, forward skew, clamped
+sum."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from density_planner.environment import FootprintConfig, RoadUserTracks, rasterise_road_users
+from density_planner.environment.footprints import footprint_stds, resample_tracks
+
+EXACT = FootprintConfig(coarse_cell=0.0)  # every footprint on the grid itself (no interpolation)
+H = 0.1
+SHAPE = (1, 601, 601)  # 60 m x 60 m, centre cell (300, 300) at the world origin
+ORIGIN = (-30.0, -30.0)
+
+
+def users(x, y, heading, speed, length=4.0, width=2.0, cls=0):
+    n = len(x)
+    arr = lambda v: np.asarray(v, dtype=np.float64).reshape(n, 1)  # noqa: E731
+    return RoadUserTracks(
+        arr(x),
+        arr(y),
+        arr(heading),
+        arr(speed),
+        np.full(n, length, float),
+        np.full(n, width, float),
+        np.full(n, cls, np.int64),
+        np.arange(n),
+    )
+
+
+def raster(tracks, config=EXACT, shape=SHAPE):
+    return rasterise_road_users(tracks, origin=ORIGIN, cell_size=H, shape=shape, config=config)[0].numpy()
+
+
+def test_standard_deviations_follow_the_paper():
+    tr = users([0.0], [0.0], [0.0], [10.0], length=4.5, width=1.8)
+    sf, sb, sw = footprint_stds(tr, FootprintConfig())
+    assert sb[0, 0] == pytest.approx(5.5)  # length + 1 m
+    assert sf[0, 0] == pytest.approx(5.5 + 0.5 * 10)  # skewed forward by 0.5 s x speed
+    assert sw[0, 0] == pytest.approx(0.5 * 1.8 + 0.5)
+
+
+def test_peak_and_one_sigma_values_along_and_across():
+    p = raster(users([0.0], [0.0], [0.0], [0.0]))
+    assert p[300, 300] == pytest.approx(1.0)
+    # along x: s = 4 + 1 = 5 m = 50 cells; across y: s = 0.5 * 2 + 0.5 = 1.5 m = 15 cells (float32: 1e-6)
+    assert p[350, 300] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    assert p[250, 300] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    assert p[300, 315] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    # cut off beyond 3 standard deviations
+    assert p[300, 346] == 0.0 and p[300, 344] > 0.0
+
+
+def test_gaussian_is_elongated_along_the_heading():
+    heading = math.radians(30.0)
+    p = raster(users([0.0], [0.0], [heading], [0.0])).astype(np.float64)
+    xs = ORIGIN[0] + H * np.arange(SHAPE[1])
+    x, y = np.meshgrid(xs, xs, indexing="ij")
+    w = p / p.sum()
+    mx, my = (w * x).sum(), (w * y).sum()
+    cov = np.array(
+        [
+            [(w * (x - mx) ** 2).sum(), (w * (x - mx) * (y - my)).sum()],
+            [(w * (x - mx) * (y - my)).sum(), (w * (y - my) ** 2).sum()],
+        ]
+    )
+    vals, vecs = np.linalg.eigh(cov)
+    major = vecs[:, 1]
+    angle = math.degrees(math.atan2(major[1], major[0])) % 180
+    # principal axis = heading (discretisation and truncation: well under 1 degree)
+    assert angle == pytest.approx(30.0, abs=1.0)
+    # truncation at the same Mahalanobis radius keeps the ratio of standard deviations: 5 / 1.5
+    assert math.sqrt(vals[1] / vals[0]) == pytest.approx(5.0 / 1.5, rel=0.03)
+    assert abs(mx) < 1e-6 and abs(my) < 1e-6
+
+
+def test_skewed_forward_along_the_motion():
+    p = raster(users([0.0], [0.0], [0.0], [8.0]))
+    # ahead s = 5 + 4 = 9 m, behind 5 m
+    assert p[390, 300] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    assert p[250, 300] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    assert p[340, 300] > p[260, 300]
+    # a user driving backwards is skewed the other way
+    q = raster(users([0.0], [0.0], [0.0], [-8.0]))
+    assert q[210, 300] == pytest.approx(math.exp(-0.5), abs=1e-6)
+    assert q[260, 300] > q[340, 300]
+
+
+def test_pedestrians_are_small_and_class_certainty_sets_the_peak():
+    cfg = FootprintConfig(coarse_cell=0.0, certainty=(1.0, 1.0, 0.6, 1.0))
+    p = raster(users([0.0], [0.0], [0.0], [0.0], length=10.0, width=5.0, cls=2), cfg)
+    assert p.max() == pytest.approx(0.6)
+    assert p[305, 300] == pytest.approx(0.6 * math.exp(-0.5), abs=1e-6)  # s = 0.5 m whatever the dimensions
+    assert p[316, 300] == 0.0
+
+
+def test_clamped_sum_and_absent_users():
+    tr = users([0.0, 0.0, np.nan], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0])
+    p = raster(tr)
+    assert p.max() == 1.0 and p.min() == 0.0
+    assert p[330, 300] == pytest.approx(1.0)  # 2 x exp(-0.5 * 0.36) > 1
+
+
+def test_coarse_lattice_matches_exact_evaluation():
+    tr = users([1.23, -7.0, 12.0], [0.37, 5.0, -9.0], [0.3, 2.0, -1.0], [6.0, 0.0, 12.0])
+    exact = raster(tr)
+    fast = raster(tr, FootprintConfig())
+    # bilinear interpolation on 0.4-m cells: h^2 / (8 s^2) = 1 % of the peak for s = 1.5 m, plus the 1.1 %
+    # step of the 3-sigma cutoff smeared over one coarse cell
+    assert np.abs(exact - fast).max() < 0.025
+
+
+def test_static_map_is_added_before_clamping():
+    import torch
+
+    static = torch.zeros(SHAPE[1:])
+    static[:10] = 1.0
+    static[300, 300] = 0.5
+    p = rasterise_road_users(
+        users([0.0], [0.0], [0.0], [0.0]),
+        origin=ORIGIN,
+        cell_size=H,
+        shape=SHAPE,
+        config=EXACT,
+        static=static,
+    )[0]
+    assert float(p[:10].min()) == 1.0 and float(p[300, 300]) == 1.0
+
+
+def test_resample_tracks_interpolates_exactly():
+    src = np.arange(5) / 25.0  # 25 Hz
+    values = {
+        "x": np.array([[0.0, 1.0, 2.0, 3.0, 4.0]]),
+        "h": np.array([[math.radians(170), math.radians(179), math.radians(-179), np.nan, 0.0]]),
+    }
+    out = resample_tracks(values, src, np.array([0.0, 0.1, 0.06, 0.15, 0.2]), angles=("h",))
+    assert out["x"][0, :4] == pytest.approx([0.0, 2.5, 1.5, 3.75])
+    assert np.isnan(out["x"][0, 4])  # beyond the last sample (frame 5 of 0..4)
+    # 179 deg -> -179 deg passes through 180 deg, not through 0
+    assert math.cos(out["h"][0, 2]) == pytest.approx(-1.0, abs=1e-12)
+    # a NaN neighbour makes the user absent
+    assert np.isnan(resample_tracks(values, src, np.array([0.13]), angles=("h",))["h"]).all()

@@ -1,0 +1,62 @@
+"""``density-planner plan``: outputs on a random scene, effective config round trip, one-line errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from density_planner.cli import main
+
+FAST = ["--set", "density_planner.n_candidates=8", "--set", "density_planner.epochs_init=20",
+        "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=20"]
+
+
+def test_plan_writes_outputs_and_config(tmp_path, capsys):
+    out = tmp_path / "p"
+    rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density", "exact",
+               *FAST, "-q", "--out", str(out)])
+    assert rc == 0
+    data = json.loads((out / "plan.json").read_text())
+    assert data["status"] == "success" and len(data["params"]) == 2 and len(data["params"][0]) == 10
+    assert set(data["cost"]) >= {"goal", "input", "bounds", "collision", "total"}
+    assert 0.0 <= data["collision_probability"]["max"] <= 1.0
+    assert data["config"]["density_planner"]["n_candidates"] == 8
+    assert data["versions"]["torch"] and data["scene"]["name"] == "random-1"
+    for name in ("plan.png", "plan.gif", "costs.png", "config.toml"):
+        assert (out / name).stat().st_size > 0
+    assert "success" in capsys.readouterr().out
+    # the effective configuration reproduces the run
+    out2 = tmp_path / "p2"
+    assert main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density", "exact",
+                 "--config", str(out / "config.toml"), "-q", "--no-gif", "--out", str(out2)]) == 0
+    data2 = json.loads((out2 / "plan.json").read_text())
+    assert data2["params"] == data["params"]
+
+
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        (["--env", "random", "--planner", "magic"], "unknown planner 'magic'"),
+        (["--env", "random", "--density", "magic"], "unknown density predictor 'magic'"),
+        (["--env", "random", "--set", "density_planner.n_candidatez=3"], "unknown key(s) ['n_candidatez']"),
+        (["--env", "random", "--set", "density_planner.n_candidates=0"], "n_candidates must be a positive"),
+        (["--env", "ind"], "needs --data-dir D and --recording N"),
+        (["--env", "file"], "needs --file"),
+        (["--env", "random", "--config", "missing.toml"], "config file not found"),
+        (["--env", "random", "--device", "cuda:7"], "cuda"),
+    ],
+)
+def test_plan_errors_are_one_line(tmp_path, capsys, monkeypatch, args, match):
+    monkeypatch.chdir(tmp_path)
+    rc = main(["plan", *args, "--controller", "analytic", "-q", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and match in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_plan_on_saved_scene_file(tmp_path):
+    assert main(["env", "--kind", "random", "--seed", "2", "--no-gif", "--out", str(tmp_path / "e")]) == 0
+    rc = main(["plan", "--env", "file", "--file", str(tmp_path / "e" / "occupancy.npz"), "--controller", "analytic",
+               "--density", "exact", *FAST, "-q", "--no-gif", "--out", str(tmp_path / "p")])
+    assert rc == 0
+    assert json.loads((tmp_path / "p" / "plan.json").read_text())["scene"]["name"] == "random-2"
