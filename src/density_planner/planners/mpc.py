@@ -20,8 +20,9 @@ are the measured state, the goal, the goal weight and, per stage ``k``, a square
 of time ``t_{h+k}`` around the measured position, read by a *parametric* linear interpolant
 (``casadi.interpolant(..., 'linear', grid, 1)``, values as an input). The window of stage ``k`` has a fixed size
 covering every position reachable in ``k`` stages (``k * 0.1 s * (v_max + a_max * 0.1 s)``) plus the tube radius,
-so the NLP structure is the same for every step and every map, the parameter vector stays small (~1.6e5 values
-for M0 instead of 101 x 241 x 401 for a full map) and large recorded maps cost no more than the artificial ones.
+so the NLP structure is the same for every step and every map, the parameter vector stays small (1.8e5 values
+for M0 at 0.1 m instead of 10 x 241 x 401 for full slices) and large recorded maps cost no
+more than the artificial ones.
 The reachable box is also imposed as (non-binding) variable bounds, so that intermediate IPOPT iterates never
 leave the windows. Cells of a window outside the map read 1 ("outside the map is occupied").
 Each step warm-starts IPOPT from the previous solution shifted by one stage (the first step: zero inputs and
