@@ -8,8 +8,16 @@ import time
 import numpy as np
 import torch
 
-from ._common import add_controller, add_device, add_out, add_seed, load_params_file, out_dir, resolve_device, \
-    resolve_dtype
+from ._common import (
+    add_controller,
+    add_device,
+    add_out,
+    add_seed,
+    load_params_file,
+    out_dir,
+    resolve_device,
+    resolve_dtype,
+)
 
 #: default start state [p_x, p_y, theta, v, theta_bias] (the fixed start of the artificial scenes)
 DEFAULT_START = (0.0, -28.0, 1.5, 3.0, 0.0)

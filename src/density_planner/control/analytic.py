@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..systems.car import ACC, OMEGA, PX, PY, THETA, V, CarConfig
+from ..systems.car import ACC, OMEGA, PX, PY, THETA, CarConfig, V
 from .base import TrackingController
 
 __all__ = ["CarTrackingGains", "CarTrackingController", "LinearFeedbackController"]

@@ -51,7 +51,7 @@ class DensityTrajectory:
         return DensityTrajectory(self.t, self.x.detach(), self.log_rho.detach(), self.log_rho0.detach())
 
     def weights(self, mode: WeightMode = "density", log_q0: Tensor | None = None) -> Tensor:
-        """Normalised sample weights ``(*batch, N, T)`` (sum 1 over samples at every time); see :func:`sample_weights`."""
+        """Normalised sample weights ``(*batch, N, T)`` (sum 1 over samples per time); see :func:`sample_weights`."""
         return sample_weights(self.log_rho, self.log_rho0, mode=mode, log_q0=log_q0)
 
 

@@ -1,0 +1,205 @@
+"""A planning scene: the occupancy grid plus where the car starts, where it should go and the box it must stay in.
+
+Every environment source (random artificial scenes, inD recordings, CommonRoad scenarios) returns a
+:class:`Scene`; :func:`save_scene` / :func:`load_scene` store one as a single ``.npz`` (grid arrays + JSON header),
+so a later run can plan on exactly the same world.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import DataError
+from ..io.atomic import atomic_save_npz
+from .grid import OccupancyGrid
+
+__all__ = [
+    "Scene",
+    "validate_scene",
+    "save_scene",
+    "load_scene",
+    "scene_summary",
+    "START_OCCUPIED_THRESHOLD",
+    "SCENE_FORMAT_VERSION",
+    "wrap_heading",
+]
+
+#: version of the scene ``.npz`` layout
+SCENE_FORMAT_VERSION = 1
+
+#: :func:`validate_scene` rejects a start whose cell has P_occ above this at t = 0 ("more likely occupied than free")
+START_OCCUPIED_THRESHOLD = 0.5
+
+#: the car model keeps its heading unwrapped in [-pi + 0.2, 3 pi - 0.2] (``original.md`` §1)
+_THETA_MIN = -math.pi + 0.2
+
+
+def wrap_heading(theta: float) -> float:
+    """Heading [rad] shifted by a multiple of 2 pi into ``[-pi + 0.2, pi + 0.2)``, inside the car's state box."""
+    return (theta - _THETA_MIN) % (2 * math.pi) + _THETA_MIN
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A world to plan in.
+
+    Attributes:
+        grid: occupancy probabilities over (time, x, y).
+        start: start state of the car ``(p_x [m], p_y [m], theta [rad], v [m/s], theta_bias [rad])``, bias 0.
+        goal: goal position ``(x, y)`` [m].
+        planning_box: ``(xmin, xmax, ymin, ymax)`` [m] the positions must stay in (the bounds cost J_B).
+        name: short identifier, e.g. ``"random-7"``, ``"ind-rec07-t120.0"``.
+        meta: JSON-serialisable description of the source (obstacles, road users, file names, configuration).
+    """
+
+    grid: OccupancyGrid
+    start: tuple[float, float, float, float, float]
+    goal: tuple[float, float]
+    planning_box: tuple[float, float, float, float]
+    name: str = "scene"
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.grid, OccupancyGrid):
+            raise ValueError(f"Scene.grid must be an OccupancyGrid, got {type(self.grid).__name__}")
+        object.__setattr__(self, "start", _floats("Scene.start", self.start, 5))
+        object.__setattr__(self, "goal", _floats("Scene.goal", self.goal, 2))
+        box = _floats("Scene.planning_box", self.planning_box, 4)
+        if not (box[0] < box[1] and box[2] < box[3]):
+            raise ValueError(f"Scene.planning_box must be (xmin, xmax, ymin, ymax) with min < max, got {box}")
+        object.__setattr__(self, "planning_box", box)
+        if not isinstance(self.meta, dict):
+            raise ValueError(f"Scene.meta must be a dict, got {type(self.meta).__name__}")
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The scene without its grid, as plain JSON data (the ``scene.json`` written by the CLI)."""
+        T, NX, NY = self.grid.shape
+        return {
+            "name": self.name,
+            "start": list(self.start),
+            "goal": list(self.goal),
+            "planning_box": list(self.planning_box),
+            "grid": {
+                "shape": [T, NX, NY],
+                "origin": list(self.grid.origin),
+                "cell_size": self.grid.cell_size,
+                "dt": self.grid.dt,
+                "t0": self.grid.t0,
+                "bounds": list(self.grid.bounds),
+            },
+            "meta": self.meta,
+        }
+
+
+def _floats(name: str, value: Any, n: int) -> tuple[float, ...]:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().tolist()
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {n} numbers, got {value!r}") from None
+    if len(out) != n:
+        raise ValueError(f"{name} must have {n} entries, got {len(out)}")
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{name} must be finite, got {out}")
+    return out
+
+
+def validate_scene(scene: Scene, *, start_threshold: float = START_OCCUPIED_THRESHOLD) -> Scene:
+    """Check that ``scene`` can be planned in; returns it unchanged or raises :class:`ValueError` saying why.
+
+    Rejected: NaN/infinite or out-of-range occupancy (e.g. after an in-place edit), a start or goal outside the
+    map, a planning box that does not overlap the map, a start whose P_occ at t = 0 exceeds ``start_threshold``
+    (default :data:`START_OCCUPIED_THRESHOLD` = 0.5), a negative start speed.
+    """
+    grid = scene.grid
+    probs = grid.probs
+    if not bool(torch.isfinite(probs).all()):
+        raise ValueError(f"scene {scene.name!r}: occupancy grid contains NaN or infinite values")
+    if float(probs.min()) < 0 or float(probs.max()) > 1:
+        raise ValueError(f"scene {scene.name!r}: occupancy probabilities outside [0, 1]")
+    xmin, xmax, ymin, ymax = grid.bounds
+
+    def inside(x: float, y: float) -> bool:
+        return xmin <= x <= xmax and ymin <= y <= ymax
+
+    bounds_text = f"x in [{xmin:g}, {xmax:g}], y in [{ymin:g}, {ymax:g}] m"
+    if not inside(*scene.goal):
+        raise ValueError(f"scene {scene.name!r}: goal {scene.goal} lies outside the map ({bounds_text})")
+    sx, sy = scene.start[0], scene.start[1]
+    if not inside(sx, sy):
+        raise ValueError(f"scene {scene.name!r}: start position ({sx:g}, {sy:g}) lies outside the map ({bounds_text})")
+    if scene.start[3] < 0:
+        raise ValueError(f"scene {scene.name!r}: start speed must be >= 0, got {scene.start[3]}")
+    bx0, bx1, by0, by1 = scene.planning_box
+    if bx1 < xmin or bx0 > xmax or by1 < ymin or by0 > ymax:
+        raise ValueError(f"scene {scene.name!r}: planning box {scene.planning_box} does not overlap the map")
+    p0 = float(grid.lookup(torch.tensor([sx, sy], dtype=torch.float64, device=grid.device), 0))
+    if p0 > start_threshold:
+        raise ValueError(
+            f"scene {scene.name!r}: start ({sx:g}, {sy:g}) is in an occupied cell at t=0 "
+            f"(P_occ = {p0:.3f} > {start_threshold})"
+        )
+    return scene
+
+
+def scene_summary(scene: Scene) -> str:
+    """One line describing the scene (used by the CLI)."""
+    T, NX, NY = scene.grid.shape
+    xmin, xmax, ymin, ymax = scene.grid.bounds
+    s, g = scene.start, scene.goal
+    return (
+        f"{scene.name}: {NX}x{NY} cells of {scene.grid.cell_size:g} m (x [{xmin:g}, {xmax:g}], y [{ymin:g}, {ymax:g}]), "
+        f"{T} slices of {scene.grid.dt:g} s; start ({s[0]:.2f}, {s[1]:.2f}, {s[2]:.2f} rad, {s[3]:.2f} m/s), "
+        f"goal ({g[0]:.2f}, {g[1]:.2f})"
+    )
+
+
+def save_scene(scene: Scene, path: str | Path) -> Path:
+    """Write ``scene`` (grid + start, goal, box, name, meta) to one compressed ``.npz`` atomically."""
+    header = {
+        "scene_format_version": SCENE_FORMAT_VERSION,
+        "name": scene.name,
+        "start": list(scene.start),
+        "goal": list(scene.goal),
+        "planning_box": list(scene.planning_box),
+        "meta": scene.meta,
+    }
+    try:
+        text = json.dumps(header, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"scene {scene.name!r}: meta is not JSON-serialisable ({exc})") from exc
+    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text))
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read a scene written by :func:`save_scene`; raises :class:`DataError` naming the file when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"scene file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "scene_json" not in z:
+                raise DataError(f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)")
+            header = json.loads(str(z["scene_json"]))
+            grid = OccupancyGrid.from_arrays(z, source=str(path))
+    except (OSError, EOFError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: cannot read scene ({exc})") from exc
+    try:
+        return Scene(
+            grid=grid,
+            start=header["start"],
+            goal=header["goal"],
+            planning_box=header["planning_box"],
+            name=str(header.get("name", path.stem)),
+            meta=dict(header.get("meta", {})),
+        )
+    except (KeyError, ValueError, TypeError) as exc:
+        raise DataError(f"{path}: invalid scene header ({exc})") from exc

@@ -1,0 +1,125 @@
+"""Figures of scenes: the time-max occupancy map with start and goal, and a GIF of the slices over time."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..environment.scene import Scene
+from ..io.atomic import _atomic
+from .style import OCCUPANCY_CMAP, plt, save_figure
+
+__all__ = ["plot_occupancy", "animate_occupancy"]
+
+#: longest side [cells] of the image drawn per GIF frame (larger grids are strided for display only)
+_GIF_MAX_CELLS = 400
+
+
+def _gif_palette():
+    """A fixed 256-colour palette: 240 greys plus the marker colours (an adaptive palette drops small markers)."""
+    from matplotlib.colors import to_rgb
+    from PIL import Image
+
+    colours = [(v, v, v) for v in np.linspace(0, 255, 240).round().astype(int)]
+    for name in ("tab:green", "tab:red", "tab:blue", "tab:orange", "tab:purple", "#a6d8a6", "#f4a6a6", "#a6c8ec"):
+        colours.append(tuple(int(round(255 * c)) for c in to_rgb(name)))
+    colours += [(0, 0, 0)] * (256 - len(colours))
+    pal = Image.new("P", (1, 1))
+    pal.putpalette([c for rgb in colours for c in rgb])
+    return pal
+
+
+def _extent(scene: Scene) -> tuple[float, float, float, float]:
+    xmin, xmax, ymin, ymax = scene.grid.bounds
+    h = scene.grid.cell_size / 2
+    return (xmin - h, xmax + h, ymin - h, ymax + h)
+
+
+def _figsize(scene: Scene, width: float = 6.0) -> tuple[float, float]:
+    xmin, xmax, ymin, ymax = scene.grid.bounds
+    aspect = (ymax - ymin) / max(xmax - xmin, 1e-9)
+    height = float(np.clip(width * aspect, 3.0, 9.0))
+    return (width if aspect <= 1.5 else max(height / aspect + 1.6, 4.0), height)
+
+
+def _decorate(ax, scene: Scene) -> None:
+    sx, sy, th, v = scene.start[:4]
+    gx, gy = scene.goal
+    bx0, bx1, by0, by1 = scene.planning_box
+    ax.plot([bx0, bx1, bx1, bx0, bx0], [by0, by0, by1, by1, by0], ls="--", lw=0.8, color="tab:blue",
+            label="planning box")
+    span = max(scene.grid.bounds[1] - scene.grid.bounds[0], scene.grid.bounds[3] - scene.grid.bounds[2])
+    arrow = 0.06 * span
+    ax.annotate("", xy=(sx + arrow * math.cos(th), sy + arrow * math.sin(th)), xytext=(sx, sy),
+                arrowprops={"arrowstyle": "->", "color": "tab:green", "lw": 1.5})
+    ax.plot(sx, sy, "o", color="tab:green", ms=7, mec="white", label=f"start ({v:.1f} m/s)")
+    ax.plot(gx, gy, "*", color="tab:red", ms=12, mec="white", label="goal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+
+
+def plot_occupancy(scene: Scene, path: str | Path, *, title: str | None = None) -> Path:
+    """Time-max occupancy ``max_k P_occ`` of ``scene`` with start (and heading), goal and planning box; saved
+    atomically to ``path`` (format from the suffix)."""
+    grid = scene.grid
+    occ = grid.max_over_time().detach().cpu().float().numpy()
+    fig, ax = plt.subplots(figsize=_figsize(scene))
+    im = ax.imshow(occ.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0.0, vmax=1.0,
+                   interpolation="nearest")
+    _decorate(ax, scene)
+    fig.colorbar(im, ax=ax, label=r"$\max_t\, P_{occ}$", shrink=0.8)
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+    T = grid.n_slices
+    ax.set_title(title or f"{scene.name}: occupancy, max over {T} slices ({grid.t0:g}-{grid.t0 + (T - 1) * grid.dt:g} s)")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def animate_occupancy(
+    scene: Scene,
+    path: str | Path,
+    *,
+    every: int = 2,
+    frame_ms: int = 100,
+    title: str | None = None,
+) -> Path:
+    """GIF of every ``every``-th slice of ``scene`` (start and goal marked), written atomically with Pillow.
+
+    Grids larger than 400 cells along a side are strided for display (the file stays small, about 1-3 MB).
+    """
+    from PIL import Image
+
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    grid = scene.grid
+    probs = grid.probs.detach().cpu().float().numpy()
+    stride = max(1, math.ceil(max(probs.shape[1:]) / _GIF_MAX_CELLS))
+    shown = probs[:, ::stride, ::stride]
+    fig, ax = plt.subplots(figsize=_figsize(scene, width=5.0), dpi=80)
+    im = ax.imshow(shown[0].T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0.0, vmax=1.0,
+                   interpolation="nearest")
+    _decorate(ax, scene)
+    fig.colorbar(im, ax=ax, label=r"$P_{occ}$", shrink=0.8)
+    label = title or scene.name
+    text = ax.set_title(label)
+    fig.tight_layout()
+    palette = _gif_palette()
+    frames = []
+    times = grid.times.numpy()
+    for k in range(0, grid.n_slices, every):
+        im.set_data(shown[k].T)
+        text.set_text(f"{label}: t = {times[k]:.1f} s")
+        fig.canvas.draw()
+        rgba = np.asarray(fig.canvas.buffer_rgba())
+        frames.append(Image.fromarray(rgba[..., :3].copy()).quantize(palette=palette, dither=Image.Dither.NONE))
+    plt.close(fig)
+    if not frames:  # pragma: no cover - n_slices >= 1 always gives a frame
+        raise ValueError("no frames to animate")
+    return _atomic(
+        Path(path),
+        lambda fh: frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=frame_ms,
+                                  loop=0, optimize=False),
+    )

@@ -1,0 +1,140 @@
+"""Initial distributions: moments of samples, normalisation of log_prob, truncation, errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from density_planner.density.distributions import (
+    Gaussian,
+    GaussianMixture,
+    UniformBox,
+    WeightedSamples,
+    paper_gaussian_mixture,
+)
+
+N = 200_000
+
+
+def _grid_integral(dist, lo, hi, n=601):
+    """Trapezoid integral of exp(log_prob) over the 2-D box [lo, hi]."""
+    xs = torch.linspace(lo[0], hi[0], n, dtype=torch.float64)
+    ys = torch.linspace(lo[1], hi[1], n, dtype=torch.float64)
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    p = torch.exp(dist.log_prob(torch.stack([gx, gy], -1)))
+    return float(torch.trapezoid(torch.trapezoid(p, ys, dim=1), xs))
+
+
+def _moment_check(samples, mean, cov):
+    n = samples.shape[0]
+    se = (torch.diagonal(cov).sqrt() / math.sqrt(n))
+    # sample mean within 5 standard errors per coordinate (false-failure probability ~1e-6)
+    assert ((samples.mean(0) - mean).abs() < 5 * se).all(), (samples.mean(0), mean)
+    emp = torch.cov(samples.T)
+    # covariance entries: relative/absolute 3 % at n = 2e5 (standard error ~ sqrt(2/n) ~ 0.3 %)
+    assert torch.allclose(emp, cov, rtol=0.03, atol=0.03 * float(torch.diagonal(cov).max())), (emp, cov)
+
+
+def test_gaussian_moments_and_normalisation(gen):
+    cov = torch.tensor([[1.0, 0.6], [0.6, 2.0]], dtype=torch.float64)
+    d = Gaussian([0.5, -1.0], cov)
+    s = d.sample(N, gen, dtype=torch.float64)
+    _moment_check(s, torch.tensor([0.5, -1.0], dtype=torch.float64), cov)
+    # trapezoid over +-8 sigma on a 601^2 grid: discretisation error < 1e-4
+    assert abs(_grid_integral(d, (-9.0, -12.0), (10.0, 10.0)) - 1.0) < 1e-3
+    # closed-form log density at the mean
+    expected = -math.log(2 * math.pi) - 0.5 * math.log(float(torch.linalg.det(cov)))
+    assert abs(float(d.log_prob(torch.tensor([0.5, -1.0]).double())) - expected) < 1e-12
+
+
+def test_uniform_box(gen):
+    d = UniformBox([-1.0, 0.0], [1.0, 4.0])
+    s = d.sample(N, gen, dtype=torch.float64)
+    assert (s >= d.low).all() and (s <= d.high).all()
+    _moment_check(s, torch.tensor([0.0, 2.0], dtype=torch.float64),
+                  torch.diag(torch.tensor([4 / 12, 16 / 12], dtype=torch.float64)))
+    assert abs(_grid_integral(d, (-1.0, 0.0), (1.0, 4.0)) - 1.0) < 1e-9
+    assert d.log_prob(torch.tensor([2.0, 1.0])) == -math.inf
+
+
+def test_gaussian_mixture_untruncated(gen):
+    w = torch.tensor([0.2, 0.8], dtype=torch.float64)
+    means = torch.tensor([[-2.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    var = torch.tensor([[0.5, 1.0], [1.0, 0.3]], dtype=torch.float64)
+    d = GaussianMixture(w, means, var)
+    s = d.sample(N, gen, dtype=torch.float64)
+    mean = (w[:, None] * means).sum(0)
+    second = (w[:, None, None] * (torch.diag_embed(var) + means[:, :, None] * means[:, None, :])).sum(0)
+    _moment_check(s, mean, second - mean[:, None] * mean[None, :])
+    assert abs(_grid_integral(d, (-8.0, -6.0), (7.0, 7.0)) - 1.0) < 1e-3
+
+
+def test_truncated_mixture_is_normalised_and_mean_is_exact(gen):
+    d = GaussianMixture([1.0, 2.0], [[0.0, 0.0], [0.8, -0.5]], [[1.0, 4.0], [0.3, 0.5]],
+                        low=[-1.0, -0.5], high=[1.0, 0.5])
+    s = d.sample(N, gen, dtype=torch.float64)
+    assert (s >= d.low).all() and (s <= d.high).all()
+    # the truncated density integrates to one on its box (trapezoid error of a smooth density on 601^2 points)
+    assert abs(_grid_integral(d, (-1.0, -0.5), (1.0, 0.5)) - 1.0) < 1e-4
+    se = s.std(0) / math.sqrt(N)
+    assert ((s.mean(0) - d.mean).abs() < 5 * se).all(), (s.mean(0), d.mean)
+    assert d.log_prob(torch.tensor([1.5, 0.0])) == -math.inf
+
+
+def test_weighted_samples_kde(gen):
+    pts = torch.tensor([[0.0, 0.0], [2.0, 1.0], [-1.0, 3.0]], dtype=torch.float64)
+    w = torch.tensor([0.5, 0.3, 0.2], dtype=torch.float64)
+    d = WeightedSamples(pts, w, bandwidth=0.4)
+    s = d.sample(N, gen, dtype=torch.float64)
+    mean = (w[:, None] * pts).sum(0)
+    cov = (w[:, None, None] * ((pts - mean)[:, :, None] * (pts - mean)[:, None, :])).sum(0) + 0.16 * torch.eye(2)
+    _moment_check(s, mean, cov.double())
+    assert abs(_grid_integral(d, (-4.0, -3.0), (5.0, 6.0)) - 1.0) < 1e-3
+    torch.testing.assert_close(d.mean, mean)
+
+
+def test_paper_mixture_on_xe0_box(gen):
+    center = torch.tensor([0.0, -28.0, 1.5, 3.0, 0.0], dtype=torch.float64)
+    hw = torch.tensor([1.0, 1.0, 0.5, 0.5, math.pi / 16], dtype=torch.float64)
+    d = paper_gaussian_mixture(center, hw, gen)
+    assert d.weights.numel() == 5
+    s = d.sample(5000, gen, dtype=torch.float64)
+    assert ((s - center).abs() <= hw + 1e-12).all()
+    assert torch.isfinite(d.log_prob(s)).all()
+    # deterministic given the seed
+    d2 = paper_gaussian_mixture(center, hw, torch.Generator().manual_seed(1234))
+    torch.testing.assert_close(d2.means, d.means)
+
+
+def test_samples_are_deterministic_per_seed():
+    d = Gaussian([0.0], [[1.0]])
+    a = d.sample(10, torch.Generator().manual_seed(5))
+    b = d.sample(10, torch.Generator().manual_seed(5))
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "factory,match",
+    [
+        (lambda: Gaussian([0.0, 0.0], [[1.0, 2.0], [2.0, 1.0]]), "positive definite"),
+        (lambda: Gaussian([0.0, float("nan")], [[1.0, 0.0], [0.0, 1.0]]), "mean"),
+        (lambda: UniformBox([0.0, 1.0], [1.0, 1.0]), "high > low"),
+        (lambda: GaussianMixture([1.0], [[0.0, 0.0], [1.0, 1.0]], [[1.0, 1.0], [1.0, 1.0]]), "weights"),
+        (lambda: GaussianMixture([-1.0, 2.0], [[0.0], [1.0]], [[1.0], [1.0]]), "non-negative"),
+        (lambda: GaussianMixture([1.0], [[0.0]], [[1.0]], low=[40.0], high=[41.0]), "no probability mass"),
+        (lambda: WeightedSamples(torch.zeros(0, 2)), "at least one"),
+    ],
+)
+def test_bad_distribution_parameters(factory, match):
+    with pytest.raises(ValueError, match=match):
+        factory()
+
+
+def test_bad_sample_count_and_shape():
+    d = UniformBox([0.0], [1.0])
+    with pytest.raises(ValueError, match="number of samples"):
+        d.sample(0)
+    with pytest.raises(ValueError, match="x must have trailing shape"):
+        d.log_prob(torch.zeros(3, 2))
