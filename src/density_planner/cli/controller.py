@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--export", type=Path, default=None, metavar="FILE.pt",
                    help="also write the final weights to FILE.pt + FILE.json (e.g. the package's shipped weights)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--check-samples", type=int, default=100_000,
+                   help="fresh samples for the final contraction check (default 1e5)")
+    p.add_argument("--check-references", type=int, default=1000,
+                   help="random references for the final tracking check (default 1000)")
     p.set_defaults(func=run_train)
 
     validate = group(sub, groups, "validate")
@@ -76,6 +80,10 @@ def _command(args: argparse.Namespace) -> str:
         parts += ["--set", item]
     if args.export is not None:
         parts += ["--export", str(args.export)]
+    if args.check_samples != 100_000:
+        parts += ["--check-samples", str(args.check_samples)]
+    if args.check_references != 1000:
+        parts += ["--check-references", str(args.check_references)]
     return shlex.join(parts)
 
 
@@ -125,16 +133,21 @@ def run_train(args: argparse.Namespace) -> int:
         config = update(config, {"epochs": args.epochs})
     if args.device is not None:
         config = update(config, {"device": str(resolve_device(args.device))})
+    if args.check_samples < 1 or args.check_references < 1:
+        raise ValueError("--check-samples and --check-references must be >= 1")
     out = out_dir(args.out)
     t0 = time.perf_counter()
-    result = train_c3m(config, out, progress=not args.quiet, resume=not args.no_resume)
+    result = train_c3m(config, out, progress=not args.quiet, resume=not args.no_resume,
+                       diagnostics_samples=args.check_samples)
     train_wall = time.perf_counter() - t0
-    tracking = _tracking({"c3m": result.model.controller, "analytic": CarTrackingController()}, 1000, 0)
+    tracking = _tracking({"c3m": result.model.controller, "analytic": CarTrackingController()},
+                         args.check_references, 0)
     summary = tracking.summary()
     diagnostics = {
         "contraction": result.diagnostics,
         "tracking": summary,
-        "tracking_setup": {"n_references": 1000, "seed": 0, "initial_error_box": "XE0", "integrator": "rk4 0.1 s"},
+        "tracking_setup": {"n_references": args.check_references, "seed": 0, "initial_error_box": "XE0",
+                           "integrator": "rk4 0.1 s"},
         "targets": _targets(result.diagnostics, summary, "c3m"),
         "train_wall_time_s": result.wall_time,
         "command_wall_time_s": time.perf_counter() - t0,

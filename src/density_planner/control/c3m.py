@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..errors import CheckpointError
-from ..systems.car import PX, PY, THETA, V, CarConfig
+from ..systems.car import PX, PY, THETA, CarConfig, V
 from .base import TrackingController
 
 __all__ = [
@@ -89,6 +89,9 @@ class C3MArchitecture:
     #: through these, and theta is unwrapped over two periods), or "raw" as theta mapped from ``theta_range``
     #: to [-1, 1] (the paper's controller)
     angle_encoding: Literal["sincos", "raw"] = "sincos"
+    #: if > 0, the speed also enters as ``tanh(v / speed_feature_scale)`` [m/s]: a smooth sign of v that lets the
+    #: networks switch steeply near v = 0, where the lateral gains must grow like 1/v and change sign (reversing)
+    speed_feature_scale: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("hidden", "n_hidden", "rank", "metric_hidden", "metric_n_hidden"):
@@ -101,6 +104,8 @@ class C3MArchitecture:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
                 raise ValueError(f"C3MArchitecture.{name} must be (low, high) with low < high, got {(lo, hi)!r}")
+        if not (math.isfinite(self.speed_feature_scale) and self.speed_feature_scale >= 0):
+            raise ValueError(f"C3MArchitecture.speed_feature_scale must be >= 0, got {self.speed_feature_scale!r}")
         if self.angle_encoding not in ("sincos", "raw"):
             raise ValueError(f"C3MArchitecture.angle_encoding must be 'sincos' or 'raw', got {self.angle_encoding!r}")
 
@@ -120,8 +125,8 @@ class C3MArchitecture:
 
     @property
     def n_state_features(self) -> int:
-        """Network inputs per (theta, v) pair: 3 for "sincos", 2 for "raw"."""
-        return 3 if self.angle_encoding == "sincos" else 2
+        """Network inputs per (theta, v) pair: 3 for "sincos", 2 for "raw", one more with the speed feature."""
+        return (3 if self.angle_encoding == "sincos" else 2) + (1 if self.speed_feature_scale > 0 else 0)
 
 
 class TanhMLP(nn.Module):
@@ -164,19 +169,26 @@ class _StateFeatures:
     def __init__(self, arch: C3MArchitecture):
         (self.t0, self.v0), (self.ts, self.vs) = arch.normalisation()
         self.sincos = arch.angle_encoding == "sincos"
+        self.vf = float(arch.speed_feature_scale)
 
     def __call__(self, theta: Tensor, v: Tensor) -> list[Tensor]:
         vn = (v - self.v0) / self.vs
-        if self.sincos:
-            return [torch.cos(theta), torch.sin(theta), vn]
-        return [(theta - self.t0) / self.ts, vn]
+        out = [torch.cos(theta), torch.sin(theta), vn] if self.sincos else [(theta - self.t0) / self.ts, vn]
+        if self.vf > 0:
+            out.append(torch.tanh(v / self.vf))
+        return out
 
-    def tangents(self, theta: Tensor, d_theta: Tensor, d_v: Tensor) -> list[Tensor]:
-        """Tangents of the features along ``(d_theta, d_v)``; ``theta`` is needed for the sincos encoding."""
+    def tangents(self, theta: Tensor, v: Tensor, d_theta: Tensor, d_v: Tensor) -> list[Tensor]:
+        """Tangents of the features along ``(d_theta, d_v)`` at ``(theta, v)``."""
         dvn = d_v / self.vs
         if self.sincos:
-            return [-torch.sin(theta) * d_theta, torch.cos(theta) * d_theta, dvn]
-        return [d_theta / self.ts, dvn]
+            out = [-torch.sin(theta) * d_theta, torch.cos(theta) * d_theta, dvn]
+        else:
+            out = [d_theta / self.ts, dvn]
+        if self.vf > 0:
+            sv = torch.tanh(v / self.vf)
+            out.append((1.0 - sv * sv) / self.vf * d_v)
+        return out
 
 
 class C3MController(TrackingController):
@@ -202,15 +214,15 @@ class C3MController(TrackingController):
     # ------------------------------------------------------------------ helpers
     def _inputs(self, x_hat: Tensor, x_ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Network input ``z (*batch, n_in)`` from ``(theta_hat, v_hat, theta_ref, v_ref)``, the error
-        ``e (*batch, 4)`` and the (broadcast) measured heading ``theta_hat (*batch,)``."""
+        ``e (*batch, 4)`` and the (broadcast) measured state ``x_hat[:4] (*batch, 4)``."""
         x_hat4, x_ref4 = torch.broadcast_tensors(x_hat[..., :N_ERR], x_ref[..., :N_ERR])
         feats = self._features(x_hat4[..., THETA], x_hat4[..., V]) + self._features(x_ref4[..., THETA],
                                                                                      x_ref4[..., V])
-        return torch.stack(feats, dim=-1), x_hat4 - x_ref4, x_hat4[..., THETA]
+        return torch.stack(feats, dim=-1), x_hat4 - x_ref4, x_hat4
 
-    def _z_tangents(self, theta_hat: Tensor, d_theta: Tensor, d_v: Tensor) -> Tensor:
+    def _z_tangents(self, x_hat4: Tensor, d_theta: Tensor, d_v: Tensor) -> Tensor:
         """Tangents of ``z`` along measured-state tangents ``(d_theta, d_v)`` (the reference is fixed)."""
-        dm = self._features.tangents(theta_hat, d_theta, d_v)
+        dm = self._features.tangents(x_hat4[..., THETA], x_hat4[..., V], d_theta, d_v)
         dm = torch.broadcast_tensors(*dm)
         return torch.stack(list(dm) + [torch.zeros_like(dm[0])] * len(dm), dim=-1)
 
@@ -238,8 +250,8 @@ class C3MController(TrackingController):
 
         where ``dW1, dW2`` come from the tangent pass through the MLPs along ``dz = (d theta_hat, d v_hat, 0, 0)``.
         """
-        z, e, theta_hat = self._inputs(x_hat, x_ref)
-        dz = self._z_tangents(theta_hat, dx_hat[..., THETA], dx_hat[..., V])
+        z, e, x_hat4 = self._inputs(x_hat, x_ref)
+        dz = self._z_tangents(x_hat4, dx_hat[..., THETA], dx_hat[..., V])
         de = dx_hat[..., :N_ERR]
         o1, d1 = self.w1.forward_with_tangents(z, dz)
         o2, d2 = self.w2.forward_with_tangents(z, dz)
@@ -260,11 +272,11 @@ class C3MController(TrackingController):
         heading and speed columns also from the dependence of ``W1, W2`` on ``z`` (two tangent passes).
         Differentiable w.r.t. the parameters (used by training).
         """
-        z, e, theta_hat = self._inputs(x_hat, x_ref)
+        z, e, x_hat4 = self._inputs(x_hat, x_ref)
         shape = (2, *([1] * (z.ndim - 1)))
         d_theta = torch.tensor([1.0, 0.0], dtype=z.dtype, device=z.device).reshape(shape)
         d_v = torch.tensor([0.0, 1.0], dtype=z.dtype, device=z.device).reshape(shape)
-        dz = self._z_tangents(theta_hat, d_theta, d_v)  # tangent 0 along theta_hat, tangent 1 along v_hat
+        dz = self._z_tangents(x_hat4, d_theta, d_v)  # tangent 0 along theta_hat, tangent 1 along v_hat
         o1, d1 = self.w1.forward_with_tangents(z, dz)
         o2, d2 = self.w2.forward_with_tangents(z, dz)
         w1, dw1 = o1.unflatten(-1, (self.rank, N_ERR)), d1.unflatten(-1, (self.rank, N_ERR))
@@ -332,7 +344,7 @@ class ContractionMetric(nn.Module):
         shape = (2, *([1] * (z.ndim - 1)))
         d_theta = torch.tensor([1.0, 0.0], dtype=z.dtype, device=z.device).reshape(shape)
         d_v = torch.tensor([0.0, 1.0], dtype=z.dtype, device=z.device).reshape(shape)
-        dz = torch.stack(torch.broadcast_tensors(*self._features.tangents(x[..., THETA], d_theta, d_v)), dim=-1)
+        dz = torch.stack(torch.broadcast_tensors(*self._features.tangents(x[..., THETA], x[..., V], d_theta, d_v)), dim=-1)
         out, dout = self.net.forward_with_tangents(z, dz)
         dout = dout.expand(2, *out.shape)
         el = self._assemble(self.l_pp.to(z), out)

@@ -310,10 +310,10 @@ def train_c3m(
                         frac_cl, frac_c1)
             if bar is not None:
                 bar.set_postfix(loss=f"{mean[0]:.3g}", cl_ok=f"{frac_cl:.4f}", c1_ok=f"{frac_c1:.4f}")
-            if callback is not None:
-                callback(epoch + 1, history)
             if (epoch + 1) % config.checkpoint_every == 0 or epoch + 1 == config.epochs:
                 checkpoint(epoch + 1)
+            if callback is not None:
+                callback(epoch + 1, history)
     finally:
         if bar is not None:
             bar.close()
@@ -328,10 +328,15 @@ def train_c3m(
     return C3MTrainResult(cpu_model, history, pt_path, diagnostics, wall)
 
 
-def _quantiles(x: torch.Tensor, qs=(0.0, 0.01, 0.05, 0.5, 0.95, 0.99, 1.0)) -> dict[str, float]:
+def _quantiles(x: torch.Tensor) -> dict[str, float]:
+    """min, 1/5/50/95/99th percentiles, max and mean of ``x``."""
     x = x.double()
-    return {f"q{round(q * 100):02d}" if q not in (0.0, 1.0) else ("min" if q == 0 else "max"): float(torch.quantile(x, q))
-            for q in qs} | {"mean": float(x.mean())}
+    out = {"min": float(x.min())}
+    for q in (1, 5, 50, 95, 99):
+        out[f"q{q:02d}"] = float(torch.quantile(x, q / 100))
+    out["max"] = float(x.max())
+    out["mean"] = float(x.mean())
+    return out
 
 
 @torch.no_grad()
