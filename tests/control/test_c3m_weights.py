@@ -40,8 +40,8 @@ def test_round_trip_gives_identical_outputs(saved):
     assert pt.name == "ctrl.pt" and js.name == "ctrl.json"
     loaded, meta = load_c3m_model(pt)
     s = sample_tracking_states(200, torch.Generator().manual_seed(0))
-    torch.testing.assert_close(loaded.controller(s.x_hat, s.x_ref, s.u_ref), model.controller(s.x_hat, s.x_ref, s.u_ref),
-                               rtol=0, atol=0)
+    u_loaded = loaded.controller(s.x_hat, s.x_ref, s.u_ref)
+    torch.testing.assert_close(u_loaded, model.controller(s.x_hat, s.x_ref, s.u_ref), rtol=0, atol=0)
     torch.testing.assert_close(loaded.metric(s.x), model.metric(s.x), rtol=0, atol=0)
     assert meta["kind"] == "c3m_car_controller" and meta["architecture"]["hidden"] == 16
     assert meta["training_config"] == {"seed": 3} and meta["command"] == "cmd" and meta["diagnostics"] == {"x": 1.0}
