@@ -80,6 +80,10 @@ def _command(args: argparse.Namespace) -> str:
         parts += ["--set", item]
     if args.export is not None:
         parts += ["--export", str(args.export)]
+    if args.threads is not None:
+        parts += ["--threads", str(args.threads)]
+    if args.device is not None:
+        parts += ["--device", str(args.device)]
     if args.check_samples != 100_000:
         parts += ["--check-samples", str(args.check_samples)]
     if args.check_references != 1000:

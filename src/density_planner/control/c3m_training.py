@@ -64,9 +64,9 @@ class C3MTrainConfig:
     #: contraction rate lambda of condition (CL) and (C1) [1/s]
     rate: float = 0.5
     #: margin of condition (CL): penalise lambda_max + margin > 0 (in 1/s if ``normalized``)
-    margin: float = 0.1
+    margin: float = 0.4
     #: margin of condition (C1)
-    margin_c1: float = 0.1
+    margin_c1: float = 0.4
     #: weight of the (C1) penalty
     weight_c1: float = 1.0
     #: weight of the (C2) penalty (zero by construction of the metric; kept for completeness)
