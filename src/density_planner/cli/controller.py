@@ -113,6 +113,12 @@ def _targets(contraction: dict[str, Any] | None, tracking: dict[str, Any], name:
     return out
 
 
+def _integration() -> str:
+    from ..evaluation.controller import TRACKING_INTEGRATION as c
+
+    return f"{c.integrator} {c.dt:g} s"
+
+
 def _tracking(controllers: dict, n_references: int, seed: int):
     from ..evaluation.controller import evaluate_tracking
 
@@ -151,7 +157,7 @@ def run_train(args: argparse.Namespace) -> int:
         "contraction": result.diagnostics,
         "tracking": summary,
         "tracking_setup": {"n_references": args.check_references, "seed": 0, "initial_error_box": "XE0",
-                           "integrator": "rk4 0.1 s"},
+                           "integrator": _integration()},
         "targets": _targets(result.diagnostics, summary, "c3m"),
         "train_wall_time_s": result.wall_time,
         "command_wall_time_s": time.perf_counter() - t0,
@@ -215,7 +221,7 @@ def run_validate(args: argparse.Namespace) -> int:
     summary = evaluation.summary()
     report["tracking"] = summary
     report["tracking_setup"] = {"n_references": args.references, "seed": args.seed, "initial_error_box": "XE0",
-                                "integrator": "rk4 0.1 s", "wall_time_s": evaluation.wall_time}
+                                "integrator": _integration(), "wall_time_s": evaluation.wall_time}
     report["targets"] = _targets(contraction, summary, name)
     atomic_write_json(out / "controller_report.json", report)
 
