@@ -52,7 +52,7 @@ class C3MTrainConfig:
     #: seed of the parameter initialisation and of the sample generator
     seed: int = 0
     #: number of epochs
-    epochs: int = 60
+    epochs: int = 80
     #: optimisation steps per epoch (each on a fresh batch)
     steps_per_epoch: int = 200
     #: samples per optimisation step
@@ -80,7 +80,7 @@ class C3MTrainConfig:
     weight_max_rate: float = 1.0
     #: bound on the volume compression of the closed loop: penalise ``-tr(A_cl) > max_divergence`` [1/s] (keeps the
     #: Liouville density growth and the stiffness bounded); 0 disables; exclusive with ``max_rate``
-    max_divergence: float = 0.0
+    max_divergence: float = 15.0
     #: clip the gradient norm to this value (0 disables)
     grad_clip: float = 10.0
     #: size of the fixed held-out set checked after every epoch
