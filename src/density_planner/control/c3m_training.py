@@ -52,7 +52,7 @@ class C3MTrainConfig:
     #: seed of the parameter initialisation and of the sample generator
     seed: int = 0
     #: number of epochs
-    epochs: int = 80
+    epochs: int = 60
     #: optimisation steps per epoch (each on a fresh batch)
     steps_per_epoch: int = 200
     #: samples per optimisation step
