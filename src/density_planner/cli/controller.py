@@ -228,10 +228,11 @@ def run_validate(args: argparse.Namespace) -> int:
     plot_error_decay(evaluation.t, evaluation.errors, out / "error_decay.png",
                      title=f"position tracking error from XE0 initial errors ({name} vs analytic)")
     k = min(6, args.references)
-    x_ref = evaluation.reference.x[:k, ::10].cpu().numpy()
+    stride = int(round(float(evaluation.t[1] - evaluation.t[0]) / evaluation.reference.dt))
+    x_ref = evaluation.reference.x[:k, ::stride].cpu().numpy()
     trajectories = {f"{c} {v}": evaluation.x[c][v][:k] for c in evaluation.x for v in ("unbiased", "biased")}
     bias = [f"ref {i}: bias {float(evaluation.x[name]['biased'][i, 0, 4]):+.3f} rad" for i in range(k)]
-    plot_tracked_trajectories(x_ref, trajectories, out / "trajectories.png", labels=bias,
+    plot_tracked_trajectories(x_ref, trajectories, out / "trajectories.png", t=evaluation.t, labels=bias,
                               title="tracked trajectories (dashed: with heading bias)")
     written = ["controller_report.json", "error_decay.png", "trajectories.png"]
     if samples is not None and contraction is not None:

@@ -372,8 +372,9 @@ def contraction_diagnostics(
     Returns a JSON-friendly dict: fraction where (CL) holds, where (C1) holds, largest ``|C2|_F``, quantiles of
     ``lambda_max(C)`` and of the generalised ``lambda_max(C, W)`` (whose negative half is the certified rate in
     excess of ``rate``), the fraction per speed band, the largest local contraction rate ``rate - lambda_min(C, W)/2``
-    [1/s] and the closed-loop divergence ``tr(A_cl)`` [1/s] of the unclipped law, and the fraction of samples whose unclipped input leaves the
-    input bounds (where the clipped controller differs from the certified one). With ``return_samples`` the
+    [1/s] and the closed-loop divergence ``tr(A_cl)`` [1/s] of the unclipped law, and the fraction of samples whose
+    unclipped input leaves the input bounds (where the clipped controller differs from the certified one). With
+    ``return_samples`` the
     per-sample eigenvalues are included as tensors under ``"_samples"``.
     """
     car = car or CarConfig()
