@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from . import group
-from ._common import add_config, add_out, out_dir, resolve_device
+from ._common import add_config, add_out, add_threads, out_dir, resolve_device
 
 logger = logging.getLogger(__name__)
 
@@ -36,8 +36,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--epochs", type=int, default=None, help="number of epochs (default from the configuration)")
     add_config(p)
     p.add_argument("--device", default=None, help="torch device for training: cpu (default), cuda, cuda:N or auto")
-    p.add_argument("--threads", type=int, default=None,
-                   help="CPU threads for torch (default: torch's choice; 1 is faster on a busy machine)")
+    add_threads(p)
     p.add_argument("--no-resume", action="store_true", help="start afresh even if DIR/checkpoint.pt exists")
     p.add_argument("--export", type=Path, default=None, metavar="FILE.pt",
                    help="also write the final weights to FILE.pt + FILE.json (e.g. the package's shipped weights)")
@@ -63,7 +62,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--samples", type=int, default=100_000, help="fresh samples for the condition (default 1e5)")
     p.add_argument("--references", type=int, default=1000, help="random references for tracking (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the tracking references (default 0)")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for torch (default: torch's choice)")
+    add_threads(p)
     add_out(p)
     p.set_defaults(func=run_validate)
 
@@ -132,10 +131,6 @@ def run_train(args: argparse.Namespace) -> int:
     from ..control.c3m import SHIPPED_C3M_WEIGHTS, save_c3m_model
     from ..control.c3m_training import C3MTrainConfig, train_c3m
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
     config = load_config(C3MTrainConfig, args.config, args.overrides)
     if args.epochs is not None:
         if args.epochs < 1:
@@ -190,10 +185,6 @@ def run_validate(args: argparse.Namespace) -> int:
 
     if args.samples < 1 or args.references < 1:
         raise ValueError("--samples and --references must be >= 1")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
     out = out_dir(args.out)
     spec = args.controller or DEFAULT_CONTROLLER
     report: dict[str, Any] = {"controller": spec}
