@@ -7,7 +7,7 @@ float64): maximum position error [m] and maximum / median absolute log-density e
 Targets (issue 2): <= 3 s for Euler at dt = 0.01 s, <= 1.5 s for the default integrator at equal or better
 accuracy, peak memory <= 500 MB.
 
-    python benchmarks/bench_liouville.py [--controller c3m|analytic] [--samples 500] [--repeats 5]
+    python benchmarks/bench_liouville.py [--controller c3m|analytic] [--samples 500] [--repeats 5] [--threads 1]
 """
 
 from __future__ import annotations
@@ -64,9 +64,12 @@ def main() -> None:
     p.add_argument("--controller", default=None)
     p.add_argument("--samples", type=int, default=500)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; 0 = torch's default)")
     p.add_argument("--child-integrator", default=None, help=argparse.SUPPRESS)
     p.add_argument("--child-dt", type=float, default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     if args.child_integrator:
         print(json.dumps(run_once(args)))
         return
@@ -89,7 +92,8 @@ def main() -> None:
                 out = propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
             times.append(time.perf_counter() - t0)
         child = subprocess.run(
-            [sys.executable, __file__, "--samples", str(args.samples), "--child-integrator", integrator,
+            [sys.executable, __file__, "--samples", str(args.samples), "--threads", str(args.threads),
+             "--child-integrator", integrator,
              "--child-dt", str(dt)] + (["--controller", args.controller] if args.controller else []),
             capture_output=True, text=True, check=True,
         )

@@ -125,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
         p_max = float(result.collision.max) if result.collision is not None else float("nan")
         title = (f"{scene.name}: {result.planner} ({result.status.value}), P_coll max {p_max:.3f}, "
                  f"{result.timings.get('total', float('nan')):.1f} s")
-        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title)
+        label = "reference" if result.reference is not None else "executed (nominal model)"
+        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label)
         written.append("plan.png")
         if not args.no_gif:
             animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)

@@ -40,11 +40,14 @@ def plot_plan(
     title: str | None = None,
     snapshot_times: Sequence[float] = (0.0, 2.5, 5.0, 7.5, 10.0),
     plan_dt: float = 0.1,
+    label: str = "reference",
 ) -> Path:
     """Plan over the time-max occupancy (left) and occupancy snapshots with the sample cloud (right).
 
     Args:
-        states: ``(T, nx)`` planned reference states on the planning grid.
+        states: ``(T, nx)`` planned states on the planning grid (a reference, or an executed trajectory that may
+            stop early: later snapshots then show where it stopped).
+        label: legend label of ``states``.
         samples_x: ``(N, T, nx)`` predicted sample trajectories; samples_log_rho: ``(N, T)``.
     """
     grid = scene.grid
@@ -59,7 +62,7 @@ def plot_plan(
     if samples_x is not None and samples_log_rho is not None:
         for k in range(0, states.shape[0], 10):
             sc = _cloud(ax, samples_x, samples_log_rho, k, size=2.0)
-    ax.plot(states[:, 0], states[:, 1], "-", color="tab:orange", lw=1.6, label="reference", zorder=4)
+    ax.plot(states[:, 0], states[:, 1], "-", color="tab:orange", lw=1.6, label=label, zorder=4)
     _decorate(ax, scene)
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
     ax.set_title(title or f"{scene.name}: plan", fontsize=9)
@@ -67,20 +70,21 @@ def plot_plan(
         fig.colorbar(sc, ax=ax, label=r"$\rho/\max\rho$ (per time)", shrink=0.6, pad=0.02)
 
     for j, ts in enumerate(snapshot_times):
-        k = int(round(ts / plan_dt))
-        if k >= states.shape[0]:
+        k_time = int(round(ts / plan_dt))
+        if k_time >= grid.n_slices:
             continue
+        k = min(k_time, states.shape[0] - 1)  # an executed trajectory that stopped early stays where it stopped
         ncol = (n_snap + 1) // 2
         a = fig.add_subplot(gs[j // ncol, 1 + j % ncol])
-        sl = grid.slice(int(grid.slice_index(ts))).detach().cpu().float().numpy()
+        sl = grid.slice(int(grid.slice_index(k_time * plan_dt))).detach().cpu().float().numpy()
         a.imshow(sl.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
                  interpolation="nearest")
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
-        if samples_x is not None and samples_log_rho is not None:
+        if samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
         a.plot(*scene.goal, "*", color="tab:red", ms=8)
         a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3)
-        a.set_title(f"t = {k * plan_dt:.1f} s", fontsize=8)
+        a.set_title(f"t = {k_time * plan_dt:.1f} s" + (" (stopped)" if k < k_time else ""), fontsize=8)
         a.tick_params(labelsize=6)
         a.set_aspect("equal")
     fig.tight_layout()
