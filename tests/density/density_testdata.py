@@ -1,0 +1,20 @@
+"""Small synthetic density data sets for the tests (analytic controller, a few references)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from density_planner.density.data import DensityDataConfig, generate_density_data
+
+#: 8 references x 6 samples in 4 shards (the last one is the validation split); about 1 s to generate
+TINY = DensityDataConfig(references=8, samples=6, references_per_shard=2, validation_fraction=0.25, seed=3,
+                         controller="analytic")
+#: enough data for a few epochs to lower the validation loss: 48 references x 16 samples
+SMALL = DensityDataConfig(references=48, samples=16, references_per_shard=8, validation_fraction=0.2, seed=5,
+                          controller="analytic")
+
+
+def make_data(tmp: Path, config: DensityDataConfig = TINY) -> Path:
+    out = tmp / "data"
+    generate_density_data(config, out, workers=1)
+    return out
