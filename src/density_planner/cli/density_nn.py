@@ -241,7 +241,10 @@ def run_validate(args: argparse.Namespace) -> int:
     predictors = {}
     for spec in specs:
         pred = load_learned_predictor(spec)
-        predictors[f"{pred.name}" if spec in ("trajectory", "pointwise", "learned") else spec] = pred
+        name = pred.name if spec in ("trajectory", "pointwise", "learned") else Path(spec).stem
+        if name in predictors:
+            name = f"{name} ({spec})"
+        predictors[name] = pred
     first = next(iter(predictors.values()))
     ctrl_spec = args.controller or (first.meta.get("controller") or {}).get("spec") or None
     controller = load_controller(ctrl_spec)

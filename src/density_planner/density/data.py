@@ -70,11 +70,13 @@ class DensityDataConfig:
     """What :func:`generate_density_data` produces (defaults: the paper's sampling, ``original.md`` §5)."""
 
     #: total number of random references (training + validation)
-    references: int = 8192
-    #: initial errors (closed-loop trajectories) per reference
-    samples: int = 32
+    references: int = 32768
+    #: initial errors (closed-loop trajectories) per reference. Many references with few samples each: the
+    #: predictors must generalise over the 23 reference features (parameters, start heading and speed), which only
+    #: new references teach, while the samples of all references together cover the five-dimensional error box
+    samples: int = 8
     #: references per shard (one task, one batched Liouville integration of ``references_per_shard x samples``)
-    references_per_shard: int = 64
+    references_per_shard: int = 256
     #: fraction of the shards (hence of the references) held out for validation (at least one shard)
     validation_fraction: float = 0.05
     #: seed; shard ``i`` uses a generator seeded from ``(seed, i)``

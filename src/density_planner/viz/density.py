@@ -148,7 +148,8 @@ def plot_density_heatmaps(
     """
     names = list(clouds)
     idx = [int(np.argmin(np.abs(np.asarray(t) - s))) for s in times]
-    fig, axes = plt.subplots(len(names), len(idx), figsize=(4.2 * len(idx), 3.7 * len(names)), squeeze=False)
+    fig, axes = plt.subplots(len(names), len(idx), figsize=(4.4 * len(idx), 3.6 * len(names)), squeeze=False,
+                             layout="constrained")
     for j, k in enumerate(idx):
         pts = np.concatenate([clouds[n][0][:, k, :2] for n in names])
         lo = np.percentile(pts, 0.5, axis=0)
@@ -168,7 +169,7 @@ def plot_density_heatmaps(
             ax.set_xlabel("$p_x$ [m]")
             ax.set_ylabel("$p_y$ [m]")
             ax.tick_params(labelsize=7)
-        fig.colorbar(im, ax=list(axes[:, j]), shrink=0.8, label="$P_{ego}$ per cell")
+        fig.colorbar(im, ax=list(axes[:, j]), location="bottom", shrink=0.8, aspect=30, label="$P_{ego}$ per cell")
     if title:
         fig.suptitle(title)
     return save_figure(fig, path)
