@@ -25,7 +25,7 @@ def _tiny(**kw) -> C3MTrainConfig:
 
 
 def _fixed_loss(model, rate: float) -> float:
-    s = sample_tracking_states(4000, torch.Generator().manual_seed(99))
+    s = sample_tracking_states(2000, torch.Generator().manual_seed(99))
     with torch.no_grad():
         terms = car_contraction_terms(model, s.x[:, :4], s.x_hat[:, :4], s.x_ref[:, :4], s.u_ref, rate)
         return float(contraction_loss(terms, margin=0.1, margin_c1=0.1).total)
@@ -34,22 +34,22 @@ def _fixed_loss(model, rate: float) -> float:
 def test_tiny_training_reduces_the_loss(tmp_path):
     from density_planner.control.c3m_training import _new_model
 
-    cfg = _tiny()
+    cfg = _tiny(epochs=3, steps_per_epoch=10)
     before = _fixed_loss(_new_model(cfg, None), cfg.rate)
-    result = train_c3m(cfg, tmp_path, progress=False, diagnostics_samples=2000)
+    result = train_c3m(cfg, tmp_path, progress=False, diagnostics_samples=1000)
     after = _fixed_loss(result.model, cfg.rate)
-    # 60 Adam steps at lr 3e-3 cut the penalty on a fixed held-out batch clearly (measured: by more than half)
+    # 30 Adam steps at lr 3e-3 cut the penalty on a fixed held-out batch clearly (measured: by about half)
     assert after < 0.8 * before
-    assert len(result.history.epoch) == 4 and result.history.loss[-1] < result.history.loss[0]
+    assert len(result.history.epoch) == 3 and result.history.loss[-1] < result.history.loss[0]
     assert result.weights_path.is_file() and (tmp_path / CHECKPOINT_NAME).is_file()
     hist = json.loads((tmp_path / "history.json").read_text())
-    assert hist["epoch"] == [1, 2, 3, 4]
+    assert hist["epoch"] == [1, 2, 3]
     model, meta = load_c3m_model(result.weights_path)
-    assert meta["training_config"]["epochs"] == 4 and 0.0 <= meta["diagnostics"]["contraction"]["frac_holds"] <= 1
+    assert meta["training_config"]["epochs"] == 3 and 0.0 <= meta["diagnostics"]["contraction"]["frac_holds"] <= 1
 
 
 def test_training_is_deterministic_and_resumes_exactly(tmp_path):
-    cfg = _tiny(epochs=3, steps_per_epoch=5, checkpoint_every=1)
+    cfg = _tiny(epochs=3, steps_per_epoch=3, checkpoint_every=1)
     straight = train_c3m(cfg, tmp_path / "a", progress=False, diagnostics_samples=500)
     again = train_c3m(cfg, tmp_path / "b", progress=False, diagnostics_samples=500)
     for (k, v), (_, w) in zip(straight.model.state_dict().items(), again.model.state_dict().items()):
@@ -96,6 +96,8 @@ def test_corrupt_checkpoint_is_reported(tmp_path):
         ({"rate": -0.1}, "rate must be >= 0"),
         ({"dtype": "float16"}, "dtype must be one of"),
         ({"device": "gpu7"}, "not a torch device"),
+        ({"max_rate": 3.0, "max_divergence": 10.0}, "either max_rate or max_divergence"),
+        ({"max_rate": 0.3, "max_divergence": 0.0}, "must exceed rate"),
     ],
 )
 def test_config_validation(kwargs, match):

@@ -124,3 +124,23 @@ def test_c1_cannot_hold_at_standstill():
     x[:, 2] = torch.linspace(0, 2 * math.pi, 10, dtype=F64)
     terms = car_contraction_terms(model, x, x, x, torch.zeros(10, 2, dtype=F64), 0.5)
     assert bool((max_eigenvalue(terms.c1) > 0).all())
+
+
+def test_rate_and_divergence_caps_on_a_fast_linear_example():
+    # A_cl = -5 I contracts at rate 5 in W = I: generalised eigenvalues of C are 2 (0.5 - 5) = -9 (both)
+    a = -5.0 * torch.eye(2, dtype=F64)
+    b = torch.tensor([[0.0], [1.0]], dtype=F64)
+    terms = _linear_terms(a, b, torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64), rate=0.5)
+    terms.a_cl = a[None]
+    assert float(contraction_loss(terms).total) == 0.0
+    # rate cap 3/s: penalty relu(2 (0.5 - 3) - (-9)) = 4
+    capped = contraction_loss(terms, rate=0.5, max_rate=3.0)
+    assert capped.rate_cap == pytest.approx(4.0, abs=1e-12) and float(capped.total) == pytest.approx(4.0, abs=1e-12)
+    assert float(contraction_loss(terms, rate=0.5, max_rate=6.0).total) == 0.0
+    # divergence tr(A_cl) = -10: cap 6/s gives relu(10 - 6) = 4, cap 12/s nothing
+    assert contraction_loss(terms, max_divergence=6.0).rate_cap == pytest.approx(4.0, abs=1e-12)
+    assert float(contraction_loss(terms, max_divergence=12.0).total) == 0.0
+    with pytest.raises(ValueError, match="either max_rate or max_divergence"):
+        contraction_loss(terms, rate=0.5, max_rate=3.0, max_divergence=6.0)
+    with pytest.raises(ValueError, match="must exceed rate"):
+        contraction_loss(terms, rate=0.5, max_rate=0.4)

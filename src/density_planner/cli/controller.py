@@ -113,6 +113,12 @@ def _targets(contraction: dict[str, Any] | None, tracking: dict[str, Any], name:
     return out
 
 
+def _integration() -> str:
+    from ..evaluation.controller import TRACKING_INTEGRATION as c
+
+    return f"{c.integrator} {c.dt:g} s"
+
+
 def _tracking(controllers: dict, n_references: int, seed: int):
     from ..evaluation.controller import evaluate_tracking
 
@@ -151,7 +157,7 @@ def run_train(args: argparse.Namespace) -> int:
         "contraction": result.diagnostics,
         "tracking": summary,
         "tracking_setup": {"n_references": args.check_references, "seed": 0, "initial_error_box": "XE0",
-                           "integrator": "rk4 0.1 s"},
+                           "integrator": _integration()},
         "targets": _targets(result.diagnostics, summary, "c3m"),
         "train_wall_time_s": result.wall_time,
         "command_wall_time_s": time.perf_counter() - t0,
@@ -215,17 +221,18 @@ def run_validate(args: argparse.Namespace) -> int:
     summary = evaluation.summary()
     report["tracking"] = summary
     report["tracking_setup"] = {"n_references": args.references, "seed": args.seed, "initial_error_box": "XE0",
-                                "integrator": "rk4 0.1 s", "wall_time_s": evaluation.wall_time}
+                                "integrator": _integration(), "wall_time_s": evaluation.wall_time}
     report["targets"] = _targets(contraction, summary, name)
     atomic_write_json(out / "controller_report.json", report)
 
     plot_error_decay(evaluation.t, evaluation.errors, out / "error_decay.png",
                      title=f"position tracking error from XE0 initial errors ({name} vs analytic)")
     k = min(6, args.references)
-    x_ref = evaluation.reference.x[:k, ::10].cpu().numpy()
+    stride = int(round(float(evaluation.t[1] - evaluation.t[0]) / evaluation.reference.dt))
+    x_ref = evaluation.reference.x[:k, ::stride].cpu().numpy()
     trajectories = {f"{c} {v}": evaluation.x[c][v][:k] for c in evaluation.x for v in ("unbiased", "biased")}
     bias = [f"ref {i}: bias {float(evaluation.x[name]['biased'][i, 0, 4]):+.3f} rad" for i in range(k)]
-    plot_tracked_trajectories(x_ref, trajectories, out / "trajectories.png", labels=bias,
+    plot_tracked_trajectories(x_ref, trajectories, out / "trajectories.png", t=evaluation.t, labels=bias,
                               title="tracked trajectories (dashed: with heading bias)")
     written = ["controller_report.json", "error_decay.png", "trajectories.png"]
     if samples is not None and contraction is not None:

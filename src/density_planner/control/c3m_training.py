@@ -24,7 +24,7 @@ from ..checks import check_positive
 from ..errors import CheckpointError
 from ..systems.car import CarConfig
 from .c3m import SHIPPED_C3M_WEIGHTS, C3MArchitecture, C3MModel, save_c3m_model
-from .contraction import car_contraction_terms, condition_holds, contraction_loss, max_eigenvalue
+from .contraction import car_contraction_terms, condition_holds, contraction_loss, eigenvalues, max_eigenvalue
 from .sampling import TrackingSamples, sample_tracking_states
 
 __all__ = [
@@ -73,6 +73,14 @@ class C3MTrainConfig:
     weight_c2: float = 1.0
     #: penalise generalised eigenvalues of (C, W) (scale-invariant) instead of eigenvalues of C
     normalized: bool = True
+    #: upper end of the contraction-rate band [1/s]: local rates above it are penalised (bounds the stiffness and
+    #: the divergence of the closed loop, so that the density integrators stay accurate); 0 disables
+    max_rate: float = 0.0
+    #: weight of the rate-cap (or divergence-cap) penalty
+    weight_max_rate: float = 1.0
+    #: bound on the volume compression of the closed loop: penalise ``-tr(A_cl) > max_divergence`` [1/s] (keeps the
+    #: Liouville density growth and the stiffness bounded); 0 disables; exclusive with ``max_rate``
+    max_divergence: float = 15.0
     #: clip the gradient norm to this value (0 disables)
     grad_clip: float = 10.0
     #: size of the fixed held-out set checked after every epoch
@@ -94,7 +102,14 @@ class C3MTrainConfig:
         check_positive("C3MTrainConfig.lr", self.lr)
         check_positive("C3MTrainConfig.lr_final", self.lr_final)
         check_positive("C3MTrainConfig.rate", self.rate, allow_zero=True)
-        for name in ("margin", "margin_c1", "weight_c1", "weight_c2", "grad_clip"):
+        if self.max_rate and self.max_divergence:
+            raise ValueError("C3MTrainConfig: set either max_rate or max_divergence, not both")
+        if self.max_rate and (self.max_rate <= self.rate or not self.normalized):
+            raise ValueError(
+                f"C3MTrainConfig.max_rate ({self.max_rate}) must exceed rate ({self.rate}) and needs normalized=true"
+            )
+        for name in ("margin", "margin_c1", "weight_c1", "weight_c2", "grad_clip", "max_rate", "weight_max_rate",
+                     "max_divergence"):
             check_positive(f"C3MTrainConfig.{name}", getattr(self, name), allow_zero=True)
         if self.dtype not in _DTYPES:
             raise ValueError(f"C3MTrainConfig.dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
@@ -282,7 +297,9 @@ def train_c3m(
                 terms = _terms(model, batch, config.rate)
                 loss = contraction_loss(
                     terms, margin=config.margin, margin_c1=config.margin_c1, weight_c1=config.weight_c1,
-                    weight_c2=config.weight_c2, normalized=config.normalized,
+                    weight_c2=config.weight_c2, normalized=config.normalized, rate=config.rate,
+                    max_rate=config.max_rate, weight_max_rate=config.weight_max_rate,
+                    max_divergence=config.max_divergence,
                 )
                 optimiser.zero_grad(set_to_none=True)
                 loss.total.backward()
@@ -354,8 +371,10 @@ def contraction_diagnostics(
 
     Returns a JSON-friendly dict: fraction where (CL) holds, where (C1) holds, largest ``|C2|_F``, quantiles of
     ``lambda_max(C)`` and of the generalised ``lambda_max(C, W)`` (whose negative half is the certified rate in
-    excess of ``rate``), the fraction per speed band, and the fraction of samples whose unclipped input leaves the
-    input bounds (where the clipped controller differs from the certified one). With ``return_samples`` the
+    excess of ``rate``), the fraction per speed band, the largest local contraction rate ``rate - lambda_min(C, W)/2``
+    [1/s] and the closed-loop divergence ``tr(A_cl)`` [1/s] of the unclipped law, and the fraction of samples whose
+    unclipped input leaves the input bounds (where the clipped controller differs from the certified one). With
+    ``return_samples`` the
     per-sample eigenvalues are included as tensors under ``"_samples"``.
     """
     car = car or CarConfig()
@@ -363,13 +382,16 @@ def contraction_diagnostics(
     p = next(model.parameters())
     samples = sample_tracking_states(n, gen, car, dtype=p.dtype, device=p.device)
     holds, lam, lam_n, lam1, c2 = [], [], [], [], []
-    clipped = []
+    clipped, lam_low, div = [], [], []
     lo = torch.as_tensor(car.input_min, dtype=p.dtype, device=p.device)
     hi = torch.as_tensor(car.input_max, dtype=p.dtype, device=p.device)
     for i in range(0, n, chunk):
         s = TrackingSamples(*(t[i:i + chunk] for t in (samples.x, samples.x_hat, samples.x_ref, samples.u_ref)))
         terms = _terms(model, s, rate)
         h, l_raw, l_norm = condition_holds(terms)
+        lam_low.append(eigenvalues(terms.cl, terms.w)[..., 0])
+        _, k = model.controller.jacobian(s.x_hat, s.x_ref, s.u_ref)
+        div.append(k[..., 0, 2] + k[..., 1, 3])  # tr(A_cl) = d omega / d theta + d a / d v (tr(da/dx) = 0)
         holds.append(h)
         lam.append(l_raw)
         lam_n.append(l_norm)
@@ -379,9 +401,10 @@ def contraction_diagnostics(
         clipped.append(((u < lo) | (u > hi)).any(-1))
     holds_t, lam_t, lam_n_t = torch.cat(holds), torch.cat(lam), torch.cat(lam_n)
     lam1_t, c2_t, clipped_t = torch.cat(lam1), torch.cat(c2), torch.cat(clipped)
+    lam_low_t, div_t = torch.cat(lam_low), torch.cat(div)
     v = samples.x[:, 3]
     bands = {}
-    for v0, v1 in ((-1.0, 0.5), (0.5, 2.0), (2.0, 11.0)):
+    for v0, v1 in ((-1.0, 0.0), (0.0, 0.5), (0.5, 2.0), (2.0, 11.0)):
         sel = (v >= v0) & (v < v1)
         if bool(sel.any()):
             bands[f"v_in_[{v0:g},{v1:g})"] = {"n": int(sel.sum()), "frac_holds": float(holds_t[sel].float().mean())}
@@ -395,6 +418,9 @@ def contraction_diagnostics(
         "lambda_max": _quantiles(lam_t),
         "lambda_max_generalised": _quantiles(lam_n_t),
         "frac_holds_by_speed": bands,
+        "frac_holds_v_ge_0.5": float(holds_t[v >= 0.5].float().mean()),
+        "max_local_rate": _quantiles(rate - 0.5 * lam_low_t),
+        "divergence_unclipped": _quantiles(div_t),
         "frac_input_clipped": float(clipped_t.float().mean()),
         "frac_holds_where_not_clipped": float(holds_t[~clipped_t].float().mean()) if bool((~clipped_t).any())
         else None,

@@ -43,6 +43,7 @@ __all__ = [
     "closed_loop_condition",
     "uncontrolled_conditions",
     "max_eigenvalue",
+    "eigenvalues",
     "contraction_loss",
     "ContractionLoss",
     "car_drift_jacobian",
@@ -97,14 +98,20 @@ def uncontrolled_conditions(
     return c1, c2
 
 
-def max_eigenvalue(c: Tensor, w: Tensor | None = None) -> Tensor:
-    """Largest eigenvalue of the symmetric ``c (*batch, k, k)``; of the pencil ``(c, w)`` if ``w`` is given."""
+def eigenvalues(c: Tensor, w: Tensor | None = None) -> Tensor:
+    """Ascending eigenvalues of the symmetric ``c (*batch, k, k)``; of the pencil ``(c, w)`` if ``w`` is given
+    (those of ``L^{-1} c L^{-T}`` with ``w = L L^T``)."""
     if w is not None:
         el = torch.linalg.cholesky(w)
         tmp = torch.linalg.solve_triangular(el, c, upper=False)
         c = torch.linalg.solve_triangular(el, tmp.transpose(-1, -2), upper=False)
     c = 0.5 * (c + c.transpose(-1, -2))
-    return torch.linalg.eigvalsh(c)[..., -1]
+    return torch.linalg.eigvalsh(c)
+
+
+def max_eigenvalue(c: Tensor, w: Tensor | None = None) -> Tensor:
+    """Largest eigenvalue of the symmetric ``c (*batch, k, k)``; of the pencil ``(c, w)`` if ``w`` is given."""
+    return eigenvalues(c, w)[..., -1]
 
 
 @dataclass
@@ -117,6 +124,7 @@ class ContractionTerms:
         c2: ``C2 (m, *b, n-m, n-m)`` (zero by construction for the car metric).
         w: ``W (*b, n, n)``.
         w_perp: ``B_perp^T W B_perp (*b, n-m, n-m)`` (for the normalised eigenvalues of ``C1``).
+        a_cl: closed-loop Jacobian, when known.
     """
 
     cl: Tensor
@@ -124,6 +132,8 @@ class ContractionTerms:
     c2: Tensor
     w: Tensor
     w_perp: Tensor
+    #: closed-loop Jacobian ``A_cl (*b, n, n)`` (its trace is the divergence of the closed loop) or ``None``
+    a_cl: Tensor | None = None
 
     def eigenvalues(self, normalized: bool = True) -> tuple[Tensor, Tensor]:
         """Largest eigenvalues of ``C`` and ``C1`` per sample (generalised w.r.t. ``W`` if ``normalized``)."""
@@ -155,6 +165,8 @@ class ContractionLoss:
     frac_cl: float
     #: fraction of the batch where (C1) holds with the margin
     frac_c1: float
+    #: mean penalty of the rate cap (0 when it is off)
+    rate_cap: float = 0.0
 
 
 def contraction_loss(
@@ -165,17 +177,48 @@ def contraction_loss(
     weight_c1: float = 1.0,
     weight_c2: float = 1.0,
     normalized: bool = True,
+    rate: float = 0.0,
+    max_rate: float = 0.0,
+    weight_max_rate: float = 1.0,
+    max_divergence: float = 0.0,
 ) -> ContractionLoss:
-    """``mean ReLU(lambda_max(C) + margin) + w1 mean ReLU(lambda_max(C1) + margin_c1) + w2 mean |C2|_F``.
+    """``mean ReLU(lambda_max(C) + margin) + w1 mean ReLU(lambda_max(C1) + margin_c1) + w2 mean |C2|_F``
+    ``[+ w3 mean ReLU(2 (rate - max_rate) - lambda_min(C, W))]``.
 
-    Zero exactly when every sample satisfies (CL) and (C1) with the margins and (C2) holds.
+    Zero exactly when every sample satisfies (CL) and (C1) with the margins and (C2) holds (and, with
+    ``max_rate > 0``, the rate cap). The generalised eigenvalues ``mu_i`` of ``(C, W)`` are ``2 (rate - r_i)``
+    with ``r_i`` the local contraction rates in the metric; the optional cap asks ``r_i <= max_rate`` [1/s], i.e.
+    ``mu_min >= 2 (rate - max_rate)``, which bounds the real parts of the closed-loop eigenvalues (stiffness)
+    and the divergence. It needs ``normalized=True`` and the ``rate`` that ``C`` was built with.
+
+    With ``max_divergence > 0`` the term ``w3 mean ReLU(-tr(A_cl) - max_divergence)`` is added instead (needs
+    ``terms.a_cl``): the closed loop may compress volume at most at ``max_divergence`` [1/s], which keeps the
+    Liouville density growth ``d log rho / dt = -div f`` and the stiffness of the closed loop bounded.
     """
-    lam, lam1 = terms.eigenvalues(normalized)
+    if max_rate > 0 and max_divergence > 0:
+        raise ValueError("contraction_loss: use either max_rate or max_divergence, not both")
+    if max_rate > 0 and not normalized:
+        raise ValueError("contraction_loss: max_rate needs normalized=True (generalised eigenvalues)")
+    if max_rate > 0:
+        if max_rate <= rate:
+            raise ValueError(f"contraction_loss: max_rate ({max_rate}) must exceed rate ({rate})")
+        ev = eigenvalues(terms.cl, terms.w)
+        lam, low = ev[..., -1], ev[..., 0]
+        lam1 = max_eigenvalue(terms.c1, terms.w_perp)
+        p_cap = torch.relu(2.0 * (rate - max_rate) - low)
+    else:
+        lam, lam1 = terms.eigenvalues(normalized)
+        p_cap = torch.zeros_like(lam)
+        if max_divergence > 0:
+            if terms.a_cl is None:
+                raise ValueError("contraction_loss: max_divergence needs the closed-loop Jacobian (terms.a_cl)")
+            div = torch.diagonal(terms.a_cl, dim1=-2, dim2=-1).sum(-1)
+            p_cap = torch.relu(-div - max_divergence)
     p_cl = torch.relu(lam + margin)
     p_c1 = torch.relu(lam1 + margin_c1)
     c2 = terms.c2_norm()
-    total = p_cl.mean() + weight_c1 * p_c1.mean() + weight_c2 * c2.mean()
-    p_cl, p_c1, c2 = p_cl.detach(), p_c1.detach(), c2.detach()
+    total = p_cl.mean() + weight_c1 * p_c1.mean() + weight_c2 * c2.mean() + weight_max_rate * p_cap.mean()
+    p_cl, p_c1, c2, p_cap = p_cl.detach(), p_c1.detach(), c2.detach(), p_cap.detach()
     return ContractionLoss(
         total=total,
         cl=float(p_cl.mean()),
@@ -183,6 +226,7 @@ def contraction_loss(
         c2=float(c2.mean()),
         frac_cl=float((p_cl == 0).to(p_cl.dtype).mean()),
         frac_c1=float((p_c1 == 0).to(p_c1.dtype).mean()),
+        rate_cap=float(p_cap.mean()),
     )
 
 
@@ -223,4 +267,4 @@ def car_contraction_terms(
     b_perp = torch.as_tensor(CAR_B_PERP, dtype=w.dtype, device=w.device)
     c1, c2 = uncontrolled_conditions(a, w, dw_f, dw, b_perp, rate)
     w_perp = b_perp.T @ w @ b_perp
-    return ContractionTerms(cl=cl, c1=c1, c2=c2, w=w, w_perp=w_perp)
+    return ContractionTerms(cl=cl, c1=c1, c2=c2, w=w, w_perp=w_perp, a_cl=a_cl)

@@ -58,42 +58,54 @@ def plot_tracked_trajectories(
     trajectories: Mapping[str, np.ndarray],
     path: str | Path,
     *,
+    t: np.ndarray | None = None,
     labels: Sequence[str] | None = None,
     title: str | None = None,
 ) -> Path:
-    """A few references and the trajectories that track them, one panel per reference.
+    """A few references and the trajectories that track them: the path in the plane and, below it, the position
+    error over time (log scale) of every trajectory.
 
     Args:
         x_ref: ``(k, T, nx)`` reference states.
-        trajectories: ``{name: (k, T, nx)}`` closed-loop states on the same time grid.
+        trajectories: ``{name: (k, T, nx)}`` closed-loop states on the same time grid; names ending in "biased"
+            (not "unbiased") are drawn dashed.
+        t: ``(T,)`` times [s] (default: 0.1 s steps).
         labels: optional panel titles.
     """
-    k = x_ref.shape[0]
+    k, n_t = x_ref.shape[0], x_ref.shape[1]
+    t = np.arange(n_t) * 0.1 if t is None else np.asarray(t)
     cols = min(k, 3)
     rows = int(np.ceil(k / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.0 * rows), squeeze=False)
-    for j in range(rows * cols):
-        ax = axes[j // cols, j % cols]
-        if j >= k:
-            ax.axis("off")
-            continue
-        ax.plot(x_ref[j, :, 0], x_ref[j, :, 1], "k-", lw=2.2, alpha=0.5, label="reference")
-        ax.plot(x_ref[j, 0, 0], x_ref[j, 0, 1], "ko", ms=5)
+    fig = plt.figure(figsize=(4.4 * cols, 5.6 * rows))
+    grid = fig.add_gridspec(2 * rows, cols, height_ratios=[3.0, 1.3] * rows, hspace=0.45, wspace=0.3)
+    for j in range(k):
+        r, c = divmod(j, cols)
+        ax = fig.add_subplot(grid[2 * r, c])
+        ax_e = fig.add_subplot(grid[2 * r + 1, c])
+        ax.plot(x_ref[j, :, 0], x_ref[j, :, 1], "k-", lw=2.2, alpha=0.45, label="reference")
+        ax.plot(x_ref[j, 0, 0], x_ref[j, 0, 1], "ko", ms=5, label="reference start")
         for i, (name, x) in enumerate(trajectories.items()):
-            c = _colour(name.split(" ")[0], i)
-            ls = "--" if "biased" in name and "unbiased" not in name else "-"
-            ax.plot(x[j, :, 0], x[j, :, 1], color=c, ls=ls, lw=1.1, label=name)
-            ax.plot(x[j, 0, 0], x[j, 0, 1], "o", color=c, ms=3)
+            colour = _colour(name.split(" ")[0], i)
+            ls = "--" if name.endswith("biased") and not name.endswith("unbiased") else "-"
+            ax.plot(x[j, :, 0], x[j, :, 1], color=colour, ls=ls, lw=1.1, label=name)
+            ax.plot(x[j, 0, 0], x[j, 0, 1], "o", color=colour, ms=3)
+            err = np.linalg.norm(x[j, :, :2] - x_ref[j, :, :2], axis=-1)
+            ax_e.plot(t, np.maximum(err, 1e-7), color=colour, ls=ls, lw=1.0)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("$p_x$ [m]")
         ax.set_ylabel("$p_y$ [m]")
         if labels is not None:
             ax.set_title(labels[j], fontsize=8)
         ax.grid(True, alpha=0.3)
-    axes[0, 0].legend(loc="best", fontsize=7)
+        ax_e.set_yscale("log")
+        ax_e.set_ylim(1e-6, 5.0)
+        ax_e.set_xlabel("t [s]")
+        ax_e.set_ylabel("error [m]")
+        ax_e.grid(True, which="major", alpha=0.3)
+        if j == 0:
+            ax.legend(loc="best", fontsize=6.5)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     return save_figure(fig, path)
 
 
@@ -120,7 +132,7 @@ def plot_contraction_eigenvalues(
     ax.hist(np.clip(lam, bins[0], bins[-1]), bins=bins, color="C0", alpha=0.8)
     ax.axvline(0.0, color="k", lw=1)
     ax.set_yscale("log")
-    ax.set_xlabel(r"$\lambda_{max}(C)$")
+    ax.set_xlabel(r"$\lambda_{max}(C)$  (outer bins: beyond the 0.1/99.9th percentiles)")
     ax.set_ylabel("samples")
     ax.set_title(f"holds on {np.mean(lam < 0):.2%} of {lam.size} samples")
     ax = axes[1]
