@@ -32,6 +32,7 @@ def test_shard_shapes_and_invariants():
     for k, shape in shapes.items():
         assert tuple(data[k].shape) == shape, k
         assert data[k].dtype == torch.float32
+        assert data[k].untyped_storage().nbytes() == data[k].numel() * 4, k  # no views of larger tensors on disk
     # exact structure: the error starts at xe0, the log-density ratio at 0, the bias error is constant
     torch.testing.assert_close(data["xe"][:, :, 0], data["xe0"], rtol=0, atol=1e-6)
     assert float(data["log_ratio"][..., 0].abs().max()) == 0.0

@@ -202,6 +202,8 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
         "log_ratio": (traj.log_rho - traj.log_rho0.unsqueeze(-1)).to(f32),
         "x_ref": x_ref.to(f32),
     }
+    # own storage for every tensor (views such as the reference start would save the whole fine-grid reference)
+    out = {k: v.contiguous().clone() for k, v in out.items()}
     if not all(bool(torch.isfinite(v).all()) for v in out.values()):
         raise FloatingPointError(f"shard {index}: non-finite values in the propagated trajectories")
     return out
