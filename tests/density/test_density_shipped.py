@@ -22,8 +22,8 @@ ARCHS = ("trajectory", "pointwise")
 
 #: (median, 95th percentile) of the position error [m] and of |log-density error| over all samples and times
 TOLERANCES = {
-    "trajectory": {"position": (POS_MED_T, POS_P95_T), "log_density": (LD_MED_T, LD_P95_T)},
-    "pointwise": {"position": (POS_MED_P, POS_P95_P), "log_density": (LD_MED_P, LD_P95_P)},
+    "trajectory": {"position": (0.15, 0.6), "log_density": (4.0, 16.0)},
+    "pointwise": {"position": (0.2, 0.7), "log_density": (4.5, 20.0)},
 }
 
 

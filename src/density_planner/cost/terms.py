@@ -108,18 +108,33 @@ class BoundsCost(CostTerm):
             raise ValueError("bounds low and high must be vectors of the same length")
         if bool((self.low > self.high).any()):
             raise ValueError("bounds low must be <= high")
+        # only components with a finite bound can be violated: select them once (a slice when contiguous)
+        self._lo_sel = _selector(torch.isfinite(self.low))
+        self._hi_sel = _selector(torch.isfinite(self.high))
 
     def violation(self, x: Tensor) -> Tensor:
         """Squared violation per sample and time, ``(*batch, N, T)``."""
-        lo, hi = self.low.to(x), self.high.to(x)
-        below = torch.relu(lo - x)
-        above = torch.relu(x - hi)
-        below = torch.where(torch.isfinite(lo), below, torch.zeros_like(below))
-        above = torch.where(torch.isfinite(hi), above, torch.zeros_like(above))
-        return (below.pow(2) + above.pow(2)).sum(-1)
+        out = x.new_zeros(x.shape[:-1])
+        if self._lo_sel is not None:
+            below = torch.relu(self.low[self._lo_sel].to(x) - x[..., self._lo_sel])
+            out = out + below.pow(2).sum(-1)
+        if self._hi_sel is not None:
+            above = torch.relu(x[..., self._hi_sel] - self.high[self._hi_sel].to(x))
+            out = out + above.pow(2).sum(-1)
+        return out
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         return (inputs.weights * self.violation(inputs.x)).sum(dim=(-1, -2))
+
+
+def _selector(mask: Tensor) -> slice | Tensor | None:
+    """Index of the True entries of a 1-D mask: ``None`` if none, a slice if contiguous, else an index tensor."""
+    idx = torch.nonzero(mask).flatten()
+    if idx.numel() == 0:
+        return None
+    if int(idx[-1] - idx[0]) + 1 == idx.numel():
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
 
 
 def _gather(grid: OccupancyGrid, k: Tensor, i: Tensor, j: Tensor, fill: float) -> Tensor:

@@ -97,7 +97,7 @@ def plot_density_errors(summaries: Mapping[str, dict], path: str | Path, *, titl
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     keys = [("position_error_m", "position error [m]"),
             ("log_density_abs_error", r"$|\Delta \log\rho|$"),
-            ("log_density_relative_abs_error", r"$|\Delta \log\rho - \mathrm{mean}_i\, \Delta \log\rho|$")]
+            ("log_density_relative_abs_error", r"$|\Delta \log\rho - \overline{\Delta \log\rho}|$ (mean over samples)")]
     for c, (name, s) in enumerate(summaries.items()):
         t = np.asarray(s["t"])
         for ax, (key, label) in zip(axes, keys):
@@ -152,8 +152,8 @@ def plot_density_heatmaps(
                              layout="constrained")
     for j, k in enumerate(idx):
         pts = np.concatenate([clouds[n][0][:, k, :2] for n in names])
-        lo = np.percentile(pts, 0.5, axis=0)
-        hi = np.percentile(pts, 99.5, axis=0)
+        lo = np.percentile(pts, 1.0, axis=0)
+        hi = np.percentile(pts, 99.0, axis=0)
         c = 0.5 * (lo + hi)
         half = max(0.5 * float(np.max(hi - lo)) * 1.1, 0.05)
         ex = np.linspace(c[0] - half, c[0] + half, bins + 1)
