@@ -39,21 +39,23 @@ def build_context(args: argparse.Namespace, run_config, progress: bool):
     """Planner context (system, controller, predictor factories) from the command-line arguments."""
     from ..control.registry import load_controller
     from ..density.liouville import ExactLiouville
-    from ..density.registry import DEFAULT_PREDICTOR, load_predictor
+    from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
     device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
     car = KinematicCar()
     controller = load_controller(args.controller).to(device=device, dtype=dtype)
-    density = args.density or DEFAULT_PREDICTOR
-    load_predictor(density, car, controller, liouville=run_config.liouville)  # validate the name early
+    # None: the default learned predictor if it was trained for this controller, else exact Liouville
+    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville)
+    if hasattr(predictor, "to"):
+        predictor = predictor.to(device=device, dtype=dtype)
     return PlannerContext(
         system=car,
         controller=controller,
         config=run_config,
-        predictor_factory=lambda: load_predictor(density, car, controller, liouville=run_config.liouville),
-        exact_factory=None if density == "exact" else (
+        predictor_factory=lambda: predictor,
+        exact_factory=None if isinstance(predictor, ExactLiouville) else (
             lambda: ExactLiouville(car, controller, run_config.liouville)),
         device=device,
         dtype=dtype,
@@ -107,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
-        "density_predictor": args.density or "default",
+        "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
         "config": to_dict(run_config),
         "versions": versions(),
         "command": "density-planner " + " ".join(getattr(args, "argv", []) or []),

@@ -108,18 +108,33 @@ class BoundsCost(CostTerm):
             raise ValueError("bounds low and high must be vectors of the same length")
         if bool((self.low > self.high).any()):
             raise ValueError("bounds low must be <= high")
+        # only components with a finite bound can be violated: select them once (a slice when contiguous)
+        self._lo_sel = _selector(torch.isfinite(self.low))
+        self._hi_sel = _selector(torch.isfinite(self.high))
 
     def violation(self, x: Tensor) -> Tensor:
         """Squared violation per sample and time, ``(*batch, N, T)``."""
-        lo, hi = self.low.to(x), self.high.to(x)
-        below = torch.relu(lo - x)
-        above = torch.relu(x - hi)
-        below = torch.where(torch.isfinite(lo), below, torch.zeros_like(below))
-        above = torch.where(torch.isfinite(hi), above, torch.zeros_like(above))
-        return (below.pow(2) + above.pow(2)).sum(-1)
+        out = x.new_zeros(x.shape[:-1])
+        if self._lo_sel is not None:
+            below = torch.relu(self.low[self._lo_sel].to(x) - x[..., self._lo_sel])
+            out = out + below.pow(2).sum(-1)
+        if self._hi_sel is not None:
+            above = torch.relu(x[..., self._hi_sel] - self.high[self._hi_sel].to(x))
+            out = out + above.pow(2).sum(-1)
+        return out
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         return (inputs.weights * self.violation(inputs.x)).sum(dim=(-1, -2))
+
+
+def _selector(mask: Tensor) -> slice | Tensor | None:
+    """Index of the True entries of a 1-D mask: ``None`` if none, a slice if contiguous, else an index tensor."""
+    idx = torch.nonzero(mask).flatten()
+    if idx.numel() == 0:
+        return None
+    if int(idx[-1] - idx[0]) + 1 == idx.numel():
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
 
 
 def _gather(grid: OccupancyGrid, k: Tensor, i: Tensor, j: Tensor, fill: float) -> Tensor:
@@ -177,6 +192,66 @@ def desired_positions(
     return grid.cell_to_world(c_des), p.to(xy.dtype)
 
 
+class _DesiredPositionMemo:
+    """Per-cell memo of :func:`desired_positions` for cells inside the map.
+
+    ``p_des`` and ``P_occ`` depend only on the sample's cell ``(k, i, j)`` (and the dtype), and an optimisation
+    moves its samples by little from one iteration to the next, so most cells repeat. The values of every cell
+    seen so far are kept in a dense table over the grid (allocated uninitialised, so only the memory pages of
+    visited cells are ever touched) with a mask of known cells; new cells are computed with
+    :func:`desired_positions` itself, so the results are identical. Positions outside the map are computed
+    directly every time.
+    """
+
+    #: no memo for grids with more cells than this (the mask alone would take this many bytes)
+    MAX_CELLS = 60_000_000
+
+    def __init__(self, grid: OccupancyGrid, beta: float, plateau_scales: tuple[int, ...]):
+        self.grid = grid
+        self.beta = beta
+        self.plateau_scales = plateau_scales
+        self._table: Tensor | None = None
+        self._known: Tensor | None = None
+
+    @property
+    def enabled(self) -> bool:
+        t, nx, ny = self.grid.shape
+        return t * nx * ny <= self.MAX_CELLS
+
+    def __call__(self, xy: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        grid = self.grid
+        t, nx, ny = grid.shape
+        c = torch.round(grid.world_to_cell(xy)).long()
+        k = torch.as_tensor(k, device=xy.device).long().expand(c.shape[:-1])
+        inside = (c[..., 0] >= 0) & (c[..., 0] < nx) & (c[..., 1] >= 0) & (c[..., 1] < ny)
+        if self._table is None or self._table.dtype != xy.dtype or self._table.device != xy.device:
+            self._table = torch.empty(t * nx * ny, 3, dtype=xy.dtype, device=xy.device)
+            self._known = torch.zeros(t * nx * ny, dtype=torch.bool, device=xy.device)
+        assert self._known is not None
+        lin = ((k * nx + c[..., 0].clamp(0, nx - 1)) * ny + c[..., 1].clamp(0, ny - 1)).reshape(-1)
+        flat_inside = inside.reshape(-1)
+        new = lin[flat_inside & ~self._known[lin]]
+        if new.numel():
+            new = torch.unique(new)
+            kk, rem = new // (nx * ny), new % (nx * ny)
+            cells = torch.stack([rem // ny, rem % ny], dim=-1).to(xy.dtype)
+            p_des, p = desired_positions(grid, grid.cell_to_world(cells), kk, beta=self.beta,
+                                         plateau_scales=self.plateau_scales)
+            self._table[new, :2] = p_des
+            self._table[new, 2] = p
+            self._known[new] = True
+        values = self._table[lin]
+        if not bool(flat_inside.all()):
+            out = ~flat_inside
+            flat_xy = xy.reshape(-1, 2)
+            p_des, p = desired_positions(grid, flat_xy[out], k.reshape(-1)[out], beta=self.beta,
+                                         plateau_scales=self.plateau_scales)
+            values[out, :2] = p_des
+            values[out, 2] = p
+        values = values.reshape(*c.shape[:-1], 3)
+        return values[..., :2], values[..., 2]
+
+
 class CollisionCost(CostTerm):
     """The paper's differentiable collision risk ``J_C`` (Eq. (10)) [m^2]::
 
@@ -184,22 +259,33 @@ class CollisionCost(CostTerm):
 
     with ``p_des`` from :func:`desired_positions` (step ``beta`` in cells). ``P_occ`` and ``p_des`` are constants;
     gradients flow through the positions and the weights. It is the optimisation surrogate (reported as the
-    *collision cost*), not a probability.
+    *collision cost*), not a probability. With ``memo`` (default) the desired positions of the cells already
+    seen are reused (identical values; the planner's iterations revisit most cells).
     """
 
     name = "collision"
 
-    def __init__(self, grid: OccupancyGrid, *, beta: float = 100.0, plateau_scales: Sequence[int] = ()):
+    def __init__(self, grid: OccupancyGrid, *, beta: float = 100.0, plateau_scales: Sequence[int] = (),
+                 memo: bool = True):
         if not math.isfinite(beta) or beta < 0:
             raise ValueError(f"beta must be a finite number >= 0, got {beta}")
         self.grid = grid
         self.beta = float(beta)
         self.plateau_scales = tuple(int(s) for s in plateau_scales)
+        self._memo = _DesiredPositionMemo(grid, self.beta, self.plateau_scales) if memo else None
+        if self._memo is not None and not self._memo.enabled:
+            self._memo = None
+
+    @torch.no_grad()
+    def desired(self, pos: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        """``(p_des (..., 2), P_occ (...))`` of positions ``pos (..., 2)`` in slices ``k`` (no gradient)."""
+        if self._memo is not None:
+            return self._memo(pos, k)
+        return desired_positions(self.grid, pos, k, beta=self.beta, plateau_scales=self.plateau_scales)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         pos = inputs.x[..., :2]
         k = inputs.slices.to(pos.device).clamp(0, self.grid.n_slices - 1)
-        p_des, p_occ = desired_positions(self.grid, pos.detach(), k, beta=self.beta,
-                                         plateau_scales=self.plateau_scales)
+        p_des, p_occ = self.desired(pos.detach(), k)
         d2 = (pos - p_des).pow(2).sum(-1)
         return (inputs.weights * p_occ * d2).sum(dim=(-1, -2))

@@ -1,7 +1,9 @@
-"""Density propagation: closed loop, exact Liouville integration, initial distributions, predictors."""
+"""Density propagation: closed loop, exact Liouville integration, initial distributions, predictors (exact and
+learned)."""
 
 from .base import DensityPredictor, DensityTrajectory, sample_weights
 from .closed_loop import ClosedLoop
+from .data import DensityData, DensityDataConfig, generate_density_data, load_density_data
 from .distributions import (
     Gaussian,
     GaussianMixture,
@@ -12,6 +14,10 @@ from .distributions import (
 )
 from .integrators import EULER, RK4, FixedStepIntegrator, get_integrator
 from .liouville import ExactLiouville, LiouvilleConfig, propagate_density, simulate_closed_loop
+from .network import DensityNetArchitecture, DensityNetwork, LearnedDensity, load_density_model, save_density_model
+from .registry import DEFAULT_PREDICTOR, PREDICTOR_CHOICES, load_learned_predictor, load_predictor
+from .train import DensityTrainConfig, DensityTrainResult, train_density
+from .validation import DensityComparison, compare_with_exact, fresh_references
 
 __all__ = [
     "DensityPredictor",
@@ -32,4 +38,23 @@ __all__ = [
     "ExactLiouville",
     "propagate_density",
     "simulate_closed_loop",
+    "DensityDataConfig",
+    "DensityData",
+    "generate_density_data",
+    "load_density_data",
+    "DensityNetArchitecture",
+    "DensityNetwork",
+    "LearnedDensity",
+    "save_density_model",
+    "load_density_model",
+    "DensityTrainConfig",
+    "DensityTrainResult",
+    "train_density",
+    "DensityComparison",
+    "compare_with_exact",
+    "fresh_references",
+    "DEFAULT_PREDICTOR",
+    "PREDICTOR_CHOICES",
+    "load_predictor",
+    "load_learned_predictor",
 ]

@@ -1,28 +1,103 @@
-"""Density predictor selection by name: ``"exact"`` (Liouville integration) or a learned predictor."""
+"""Density predictor selection by name: ``"exact"`` (Liouville integration) or a learned predictor.
+
+Names:
+
+* ``"exact"``: :class:`~density_planner.density.liouville.ExactLiouville` (always available, any controller);
+* ``"trajectory"`` / ``"pointwise"``: the shipped learned predictors (``density_planner/weights/density_*.pt``);
+* ``"learned"``: the default learned predictor (:data:`DEFAULT_LEARNED`, the faster one at equal or better
+  accuracy);
+* a path ``NAME.pt`` (with ``NAME.json`` beside it) written by ``density-planner train density``.
+
+A learned predictor is only valid for the closed loop it was trained on, so the controller must be the one that
+generated its training data (compared by :func:`~density_planner.density.network.controller_fingerprint`); a
+named learned predictor with another controller is an error. With no name (``spec=None``) the planner uses
+:data:`DEFAULT_PREDICTOR` when it fits the controller and exact Liouville otherwise (logged).
+"""
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 from ..control.base import TrackingController
+from ..errors import CheckpointError
 from ..systems.base import System
 from .base import DensityPredictor
 from .liouville import ExactLiouville, LiouvilleConfig
 
-__all__ = ["DEFAULT_PREDICTOR", "PREDICTOR_CHOICES", "load_predictor"]
+__all__ = ["DEFAULT_PREDICTOR", "DEFAULT_LEARNED", "PREDICTOR_CHOICES", "load_predictor", "load_learned_predictor"]
 
+logger = logging.getLogger(__name__)
+
+#: the learned predictor behind the name "learned": the trajectory head (faster than the pointwise net at equal or
+#: better accuracy; see docs/density.md)
+DEFAULT_LEARNED = "trajectory"
 #: predictor used by the planner's second stage when none is named
-DEFAULT_PREDICTOR = "exact"
-PREDICTOR_CHOICES = ("exact",)
+DEFAULT_PREDICTOR = "learned"
+PREDICTOR_CHOICES = ("exact", "learned", "trajectory", "pointwise")
+
+
+def load_learned_predictor(spec: str | Path, controller: TrackingController | None = None):
+    """The learned predictor ``spec`` ("learned", "trajectory", "pointwise" or a weights path).
+
+    If ``controller`` is given, it must be the controller the predictor was trained for.
+
+    Raises:
+        CheckpointError: missing/corrupt/mismatched weights, or a controller other than the training one.
+    """
+    from .network import LearnedDensity, controller_fingerprint, load_density_model, shipped_density_path
+
+    name = DEFAULT_LEARNED if spec == "learned" else spec
+    if name in ("trajectory", "pointwise"):
+        path, arch = shipped_density_path(str(name)), str(name)
+        if not path.is_file():
+            raise CheckpointError(
+                f"the package ships no weights for the {name!r} density predictor ({path}); train them with "
+                f"`density-planner train density --arch {name}` (see docs/density.md) or use --density exact"
+            )
+    else:
+        path, arch = Path(name), None
+    model, meta = load_density_model(path, arch=arch)
+    if controller is not None:
+        trained = (meta.get("controller") or {}).get("fingerprint")
+        found = controller_fingerprint(controller)
+        if trained is not None and trained != found:
+            label = (meta.get("controller") or {}).get("spec", "?")
+            raise CheckpointError(
+                f"the learned density predictor {str(spec)!r} was trained for the controller {label!r} "
+                f"(fingerprint {trained}), not for this {type(controller).__name__} (fingerprint {found}); use "
+                "--density exact or train a predictor for this controller"
+            )
+    return LearnedDensity(model, meta=meta)
 
 
 def load_predictor(
-    spec: str | None,
+    spec: str | Path | None,
     system: System,
     controller: TrackingController,
     *,
     liouville: LiouvilleConfig | None = None,
 ) -> DensityPredictor:
-    """Density predictor ``spec`` (``None`` for :data:`DEFAULT_PREDICTOR`) for ``system`` tracked by ``controller``."""
-    spec = spec or DEFAULT_PREDICTOR
+    """Density predictor ``spec`` for ``system`` tracked by ``controller``.
+
+    ``None`` selects :data:`DEFAULT_PREDICTOR` if it was trained for ``controller`` (else exact Liouville, with
+    a log message); see the module docstring for the names.
+    """
+    if spec is None:
+        try:
+            return load_learned_predictor(DEFAULT_PREDICTOR, controller)
+        except CheckpointError as exc:
+            logger.info("default density predictor %r not usable (%s); using exact Liouville",
+                           DEFAULT_PREDICTOR, exc)
+            return ExactLiouville(system, controller, liouville)
     if spec == "exact":
         return ExactLiouville(system, controller, liouville)
-    raise ValueError(f"unknown density predictor {spec!r}; valid choices: {', '.join(PREDICTOR_CHOICES)}")
+    if spec in PREDICTOR_CHOICES:
+        return load_learned_predictor(spec, controller)
+    path = Path(spec)
+    if path.suffix in (".pt", ".json") or path.exists() or path.with_name(path.name + ".pt").exists():
+        return load_learned_predictor(path, controller)
+    raise ValueError(
+        f"unknown density predictor {str(spec)!r}; valid choices: {', '.join(PREDICTOR_CHOICES)} or a weights "
+        "file (.pt)"
+    )

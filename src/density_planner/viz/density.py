@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .style import DENSITY_CMAP, plt, save_figure
 
-__all__ = ["plot_density_snapshots"]
+__all__ = ["plot_density_snapshots", "plot_density_errors", "plot_density_heatmaps", "binned_density"]
 
 
 def _relative_density(log_rho_k: np.ndarray) -> np.ndarray:
@@ -86,4 +86,90 @@ def plot_density_snapshots(
     h3, l3 = ax3.get_legend_handles_labels()
     ax2.legend(h2 + h3, l2 + l3, loc="center right", fontsize=8)
     ax2.set_title("tracking error and density growth (contraction concentrates the density)")
+    return save_figure(fig, path)
+
+
+def plot_density_errors(summaries: Mapping[str, dict], path: str | Path, *, title: str | None = None) -> Path:
+    """Median and 95th percentile of the position and log-density errors over time, one colour per predictor.
+
+    ``summaries[name]`` is :meth:`density_planner.density.validation.DensityComparison.summary`.
+    """
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    keys = [("position_error_m", "position error [m]"),
+            ("log_density_abs_error", r"$|\Delta \log\rho|$"),
+            ("log_density_relative_abs_error", r"$|\Delta \log\rho - \overline{\Delta \log\rho}|$ (mean over samples)")]
+    for c, (name, s) in enumerate(summaries.items()):
+        t = np.asarray(s["t"])
+        for ax, (key, label) in zip(axes, keys):
+            pt = s[key]["per_time"]
+            ax.plot(t, pt["median"], color=f"C{c}", label=f"{name}: median")
+            ax.plot(t, pt["p95"], color=f"C{c}", ls="--", label=f"{name}: 95th percentile")
+            ax.set_xlabel("t [s]")
+            ax.set_ylabel(label)
+            ax.set_yscale("log")
+            ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_title("position error vs exact Liouville")
+    axes[1].set_title("log-density error vs exact Liouville")
+    axes[2].set_title("log-density error relative to the other samples")
+    axes[0].legend(fontsize=7, loc="best")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def binned_density(xy: np.ndarray, log_rho: np.ndarray, edges_x: np.ndarray, edges_y: np.ndarray) -> np.ndarray:
+    """The paper's occupancy of the ego vehicle (§IV-B): the densities of the samples falling into each cell are
+    averaged, and the cell values are normalised to sum one over the plane. Returns ``(len(edges_x) - 1,
+    len(edges_y) - 1)``."""
+    w = np.exp(log_rho - np.max(log_rho))
+    total, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=(edges_x, edges_y), weights=w)
+    count, _, _ = np.histogram2d(xy[:, 0], xy[:, 1], bins=(edges_x, edges_y))
+    mean = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+    s = mean.sum()
+    return mean / s if s > 0 else mean
+
+
+def plot_density_heatmaps(
+    t: np.ndarray,
+    clouds: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    x_ref: np.ndarray,
+    path: str | Path,
+    *,
+    times: Sequence[float] = (0.5, 4.0, 10.0),
+    bins: int = 40,
+    title: str | None = None,
+) -> Path:
+    """Paper-style figure ("Performance of the density NN"): x-y density maps of one sample cloud per predictor
+    (rows) at a few times (columns), same cells and colour scale within a column.
+
+    Args:
+        t: ``(T,)`` times; clouds: name -> ``(x (N, T, >=2), log_rho (N, T))``; x_ref: ``(T, >=2)`` reference.
+    """
+    names = list(clouds)
+    idx = [int(np.argmin(np.abs(np.asarray(t) - s))) for s in times]
+    fig, axes = plt.subplots(len(names), len(idx), figsize=(4.4 * len(idx), 3.6 * len(names)), squeeze=False,
+                             layout="constrained")
+    for j, k in enumerate(idx):
+        pts = np.concatenate([clouds[n][0][:, k, :2] for n in names])
+        lo = np.percentile(pts, 1.0, axis=0)
+        hi = np.percentile(pts, 99.0, axis=0)
+        c = 0.5 * (lo + hi)
+        half = max(0.5 * float(np.max(hi - lo)) * 1.1, 0.05)
+        ex = np.linspace(c[0] - half, c[0] + half, bins + 1)
+        ey = np.linspace(c[1] - half, c[1] + half, bins + 1)
+        maps = [binned_density(clouds[n][0][:, k, :2], clouds[n][1][:, k], ex, ey) for n in names]
+        vmax = max(float(m.max()) for m in maps) or 1.0
+        for i, (n, m) in enumerate(zip(names, maps)):
+            ax = axes[i, j]
+            im = ax.imshow(m.T, extent=(ex[0], ex[-1], ey[0], ey[-1]), origin="lower", cmap=DENSITY_CMAP, vmin=0,
+                           vmax=vmax, interpolation="nearest")
+            ax.plot(x_ref[k, 0], x_ref[k, 1], "r+", ms=10, mew=1.5)
+            ax.set_title(f"{n}, t = {t[k]:.1f} s", fontsize=9)
+            ax.set_xlabel("$p_x$ [m]")
+            ax.set_ylabel("$p_y$ [m]")
+            ax.tick_params(labelsize=7)
+        fig.colorbar(im, ax=list(axes[:, j]), location="bottom", shrink=0.8, aspect=30, label="$P_{ego}$ per cell")
+    if title:
+        fig.suptitle(title)
     return save_figure(fig, path)

@@ -1,0 +1,471 @@
+"""Learned density predictors: networks that replace the Liouville integration (paper §IV-A, §V).
+
+Both architectures predict, for an initial error ``xe0 = x0 - x_ref(0)``, a reference start and the reference
+parameters ``p``, the closed-loop error ``xe(t) = x(t) - x_ref(t)`` and the log-density ratio
+``L(t) = log rho(x(t), t) - log rho0(x0) = -int_0^t div f_cl`` (paper Eq. (2)) on the planning grid
+``t_k = k dt``, ``k = 0..T-1`` (T = 101, dt = 0.1 s):
+
+* ``"pointwise"`` (the paper): an MLP (7 x 150, ReLU) of ``(xe0, reference start, t, p)`` that returns the
+  outputs at one time ``t``; a trajectory needs ``T - 1`` evaluations per sample.
+* ``"trajectory"`` (ours, the paper's future work): an MLP of ``(xe0, reference start, p)`` that returns the whole
+  horizon, ``(T - 1) x 5`` outputs, in one evaluation per sample.
+
+Frames. Position errors are expressed in the frame of the reference at the same time, ``(e_long, e_lat) =
+R(theta_ref(t))^T (p - p_ref(t))``, both for the initial error (frame of the reference start) and for the outputs
+(rotated back with the exactly known reference heading ``theta_ref(t)``). The rotation of the world-frame error
+with the reference heading is then no longer something the network has to learn.
+
+Inputs. The reference start enters through ``(cos theta_ref(0), sin theta_ref(0), v_ref(0))`` only: the closed
+loop is invariant to translations (the controller sees position *errors*; its gains are scheduled on heading and
+speed), so the start position carries no information, and leaving it out lets a predictor trained on the
+artificial map serve scenes with any coordinates; the heading enters periodically. The features
+``(xe0 [5], cos, sin, v, p [nu * S])`` are standardised with the mean and standard deviation of the training data
+(buffers ``in_mean``, ``in_std``; the pointwise net also gets ``(t - t_mid) / t_half``).
+
+Outputs. Known parts are not learned: at ``t = 0`` the output is exactly ``(xe0, 0)``, and the heading-bias
+component of the error is constant (the bias does not change and the reference has none). The four other error
+components (``e_long, e_lat, e_theta, e_v``) and ``L`` are predicted as a per-time linear baseline plus a scaled
+network residual::
+
+    y_k = A_k f + b_k + s_k * net(f)_k          (per output channel)
+
+with ``A_k, b_k`` the least-squares fit of ``y_k`` on the standardised features ``f`` over the training data and
+``s_k`` the standard deviation of what the fit leaves (buffers ``base_weight``, ``base_bias``, ``out_scale``).
+This is the output normalisation: the network's targets ``(y_k - A_k f - b_k) / s_k`` have unit variance at every
+time step and channel (errors shrink over time under the contraction controller, the log-density ratio grows),
+and an untrained network (its last layer starts at zero) already predicts the linear baseline. The pointwise net
+interpolates the tables linearly in ``t``.
+
+:class:`LearnedDensity` wraps a trained network as a :class:`~density_planner.density.base.DensityPredictor`:
+``x(t) = x_ref(t) + xe(t)``, ``log rho(t) = log rho0 + L(t)``, differentiable w.r.t. the reference parameters
+and start (the planner's second stage backpropagates through it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import asdict, dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..checks import broadcast_shape, check_tensor
+from ..control.reference import Reference
+from ..errors import CheckpointError
+from ..systems.car import BIAS, THETA, V
+from .base import DensityPredictor, DensityTrajectory
+
+__all__ = [
+    "ARCHITECTURES",
+    "DENSITY_KIND",
+    "DensityNetArchitecture",
+    "DensityNetwork",
+    "LearnedDensity",
+    "controller_fingerprint",
+    "shipped_density_path",
+    "save_density_model",
+    "load_density_model",
+]
+
+Arch = Literal["pointwise", "trajectory"]
+ARCHITECTURES: tuple[str, ...] = ("trajectory", "pointwise")
+#: ``kind`` entry of the weights' JSON metadata
+DENSITY_KIND = "density_predictor"
+#: error components predicted by the network (p_x, p_y, theta, v); the bias error (the last one) is constant
+LEARNED_ERR = (0, 1, 2, 3)
+assert BIAS == len(LEARNED_ERR), "the heading bias must be the last state component"
+N_ERR = 5
+#: outputs per time step: four error components and the log-density ratio
+N_OUT = len(LEARNED_ERR) + 1
+#: reference-start features: cos and sin of the heading, speed
+N_REF_START = 3
+
+_ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh}
+
+
+@dataclass(frozen=True)
+class DensityNetArchitecture:
+    """Everything that determines the ``state_dict`` of a :class:`DensityNetwork` (checked on loading)."""
+
+    #: "pointwise" (one time per evaluation, the paper) or "trajectory" (the whole horizon per evaluation)
+    arch: Arch = "trajectory"
+    #: width of the hidden layers
+    hidden: int = 256
+    #: number of hidden layers
+    layers: int = 3
+    #: activation of the hidden layers: "relu", "silu" or "tanh"
+    activation: Literal["relu", "silu", "tanh"] = "silu"
+    #: points of the planning grid including t = 0
+    n_times: int = 101
+    #: step of the planning grid [s]
+    dt: float = 0.1
+    #: reference inputs (channels) and segments per channel: the parameter vector has nu * n_segments entries
+    nu: int = 2
+    n_segments: int = 10
+
+    def __post_init__(self) -> None:
+        if self.arch not in ARCHITECTURES:
+            raise ValueError(f"arch must be one of {list(ARCHITECTURES)}, got {self.arch!r}")
+        if self.activation not in _ACTIVATIONS:
+            raise ValueError(f"activation must be one of {list(_ACTIVATIONS)}, got {self.activation!r}")
+        for name in ("hidden", "layers", "n_times", "nu", "n_segments"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.n_times < 2:
+            raise ValueError(f"n_times must be >= 2, got {self.n_times}")
+        if not (math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be > 0, got {self.dt!r}")
+
+    @classmethod
+    def default(cls, arch: Arch) -> DensityNetArchitecture:
+        """The shipped sizes: pointwise 7 x 150 ReLU (the paper), trajectory head 3 x 256 SiLU."""
+        if arch == "pointwise":
+            return cls(arch="pointwise", hidden=150, layers=7, activation="relu")
+        return cls(arch=arch)
+
+    @property
+    def n_sample_features(self) -> int:
+        return N_ERR
+
+    @property
+    def n_reference_features(self) -> int:
+        return N_REF_START + self.nu * self.n_segments
+
+    @property
+    def n_features(self) -> int:
+        return self.n_sample_features + self.n_reference_features
+
+    @property
+    def horizon(self) -> float:
+        return (self.n_times - 1) * self.dt
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DensityNetArchitecture:
+        from ..config import from_dict
+
+        return from_dict(cls, data)
+
+
+class DensityNetwork(nn.Module):
+    """Network with its input/output normalisation (see the module docstring)."""
+
+    def __init__(self, architecture: DensityNetArchitecture):
+        super().__init__()
+        a = self.architecture = architecture
+        n_in = a.n_features + (1 if a.arch == "pointwise" else 0)
+        n_out = N_OUT * (a.n_times - 1) if a.arch == "trajectory" else N_OUT
+        act = _ACTIVATIONS[a.activation]
+        widths = [n_in] + [a.hidden] * a.layers
+        self.first = nn.Linear(n_in, a.hidden)
+        body: list[nn.Module] = [act()]
+        for w_in, w_out in zip(widths[1:-1], widths[2:]):
+            body += [nn.Linear(w_in, w_out), act()]
+        self.body = nn.Sequential(*body)
+        self.last = nn.Linear(a.hidden, n_out)
+        nn.init.zeros_(self.last.weight)
+        nn.init.zeros_(self.last.bias)
+        f, t = a.n_features, a.n_times
+        self.register_buffer("in_mean", torch.zeros(f))
+        self.register_buffer("in_std", torch.ones(f))
+        self.register_buffer("base_weight", torch.zeros(t, f, N_OUT))
+        self.register_buffer("base_bias", torch.zeros(t, N_OUT))
+        self.register_buffer("out_scale", torch.ones(t, N_OUT))
+
+    # ------------------------------------------------------------------------------------------- features
+    def features(self, xe0: Tensor, ref_start: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+        """Standardised sample features ``s (..., 5)`` and reference features ``r (..., 3 + nu S)`` for rows with
+        one reference each (``xe0 (..., 5)``, ``ref_start (..., 5)``, ``params (..., nu, S)``)."""
+        ns = self.architecture.n_sample_features
+        s = (sample_features(xe0, ref_start) - self.in_mean[:ns]) / self.in_std[:ns]
+        r = (reference_features(ref_start, params) - self.in_mean[ns:]) / self.in_std[ns:]
+        return s, r
+
+    def _sample_axis_features(self, xe0: Tensor, ref_start: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+        """Features for samples ``xe0 (*b, N, 5)`` of references ``(*b, 5)``: ``s (*b, N, 5)``, ``r (*b, 1, R)``."""
+        s, r = self.features(xe0, ref_start.unsqueeze(-2), params.unsqueeze(-3))
+        return s, r
+
+    def _t_feature(self, t: Tensor) -> Tensor:
+        half = 0.5 * self.architecture.horizon
+        return (t - half) / half
+
+    # --------------------------------------------------------------------------------------- normalisation
+    def tables_at(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Baseline weight ``(K, F, 5)``, bias ``(K, 5)`` and scale ``(K, 5)`` at times ``t (K,)`` (linear in t)."""
+        a = self.architecture
+        pos = (t / a.dt).clamp(0, a.n_times - 1)
+        lo = pos.floor().long().clamp(max=a.n_times - 2)
+        w = (pos - lo.to(pos.dtype)).to(self.base_weight.dtype)
+        hi = lo + 1
+
+        def interp(table: Tensor) -> Tensor:
+            ww = w.reshape(-1, *([1] * (table.ndim - 1)))
+            return table[lo] * (1 - ww) + table[hi] * ww
+
+        return interp(self.base_weight), interp(self.base_bias), interp(self.out_scale)
+
+    def baseline(self, s: Tensor, r: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+        """``A f + b`` for features split into ``s (..., 5)`` and ``r (..., R)``: ``(..., K, 5)`` for tables of K
+        times (``weight (K, F, 5)``)."""
+        ns = self.architecture.n_sample_features
+        ys = torch.einsum("...f,kfo->...ko", s, weight[:, :ns])
+        yr = torch.einsum("...f,kfo->...ko", r, weight[:, ns:])
+        return ys + yr + bias
+
+    # ---------------------------------------------------------------------------------------------- network
+    def _trunk(self, first: Tensor) -> Tensor:
+        return self.last(self.body(first))
+
+    def raw_trajectory(self, s: Tensor, r: Tensor) -> Tensor:
+        """Trajectory head: network output ``(..., T - 1, 5)`` (normalised residual) for broadcastable ``s, r``."""
+        ns = self.architecture.n_sample_features
+        w, b = self.first.weight, self.first.bias
+        h = F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:], b)
+        out = self._trunk(h)
+        return out.reshape(*out.shape[:-1], self.architecture.n_times - 1, N_OUT)
+
+    def raw_pointwise(self, s: Tensor, r: Tensor, t: Tensor) -> Tensor:
+        """Pointwise net: network output ``(..., 5)`` (normalised residual) at times ``t`` (broadcastable)."""
+        ns = self.architecture.n_sample_features
+        nf = self.architecture.n_features
+        w, b = self.first.weight, self.first.bias
+        h = F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:nf], b) + self._t_feature(t).unsqueeze(-1) * w[:, nf]
+        return self._trunk(h)
+
+    def grid_outputs(self, s: Tensor, r: Tensor) -> Tensor:
+        """Outputs ``y (..., T - 1, 5)`` (reference frame) at ``t_1 .. t_{T-1}`` from standardised features.
+
+        The trajectory head folds the baseline and the output scale into one affine map of the last hidden layer
+        and the features (three matrix products, no per-time element-wise work)."""
+        a = self.architecture
+        t1 = a.n_times - 1
+        if a.arch == "trajectory":
+            ns = a.n_sample_features
+            w, b = self.first.weight, self.first.bias
+            h = self.body(F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:], b))
+            scale = self.out_scale[1:].reshape(-1)
+            base = self.base_weight[1:].permute(0, 2, 1).reshape(t1 * N_OUT, -1)  # (T-1 * 5, F)
+            bias = scale * self.last.bias + self.base_bias[1:].reshape(-1)
+            y = F.linear(h, scale.unsqueeze(-1) * self.last.weight, bias) + F.linear(s, base[:, :ns]) + F.linear(
+                r, base[:, ns:])
+            return y.reshape(*y.shape[:-1], t1, N_OUT)
+        t = torch.arange(1, a.n_times, dtype=s.dtype, device=s.device) * a.dt
+        net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t)  # (..., T-1, 5)
+        return self.baseline(s, r, self.base_weight[1:], self.base_bias[1:]) + self.out_scale[1:] * net
+
+    def forward(self, xe0: Tensor, ref_start: Tensor, params: Tensor, ref_heading: Tensor) -> tuple[Tensor, Tensor]:
+        """Predictions on the full grid for samples ``xe0 (*b, N, 5)`` of references ``ref_start (*b, 5)``,
+        ``params (*b, nu, S)`` with headings ``ref_heading (*b, T)`` on the grid: world-frame error
+        ``xe (*b, N, T, 5)`` and log-density ratio ``L (*b, N, T)``."""
+        s, r = self._sample_axis_features(xe0, ref_start, params)
+        y = self.grid_outputs(s, r)
+        xe_rest, lr_rest = outputs_to_errors(y, xe0, ref_heading[..., 1:].unsqueeze(-2))
+        xe = torch.cat([xe0.unsqueeze(-2), xe_rest], dim=-2)
+        log_ratio = torch.cat([lr_rest.new_zeros(*lr_rest.shape[:-1], 1), lr_rest], dim=-1)
+        return xe, log_ratio
+
+    def predict_at(self, xe0: Tensor, ref_start: Tensor, params: Tensor, t: Tensor,
+                   ref_heading_t: Tensor) -> tuple[Tensor, Tensor]:
+        """Evaluation at arbitrary times ``t (K,)`` in ``[0, horizon]`` (reference headings ``ref_heading_t
+        (*b, K)`` at those times): ``xe (*b, N, K, 5)``, ``L (*b, N, K)``. The pointwise net evaluates at ``t``
+        directly; the trajectory head interpolates its grid outputs linearly."""
+        a = self.architecture
+        s, r = self._sample_axis_features(xe0, ref_start, params)
+        if a.arch == "trajectory":
+            y_grid = self.grid_outputs(s, r)
+            body0 = sample_features(xe0, ref_start.unsqueeze(-2))[..., : len(LEARNED_ERR)]
+            y0 = torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1)  # exact outputs at t = 0
+            y_grid = torch.cat([y0.unsqueeze(-2), y_grid], dim=-2)  # (*b, N, T, 5) in the reference frame
+            pos = (t / a.dt).clamp(0, a.n_times - 1)
+            lo = pos.floor().long().clamp(max=a.n_times - 2)
+            w = (pos - lo.to(pos.dtype)).to(y_grid.dtype).unsqueeze(-1)
+            y = y_grid[..., lo, :] * (1 - w) + y_grid[..., lo + 1, :] * w
+        else:
+            weight, bias, scale = self.tables_at(t)
+            net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t.to(s.dtype))
+            y = self.baseline(s, r, weight, bias) + scale * net
+            body0 = sample_features(xe0, ref_start.unsqueeze(-2))[..., : len(LEARNED_ERR)]
+            y0 = torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1).unsqueeze(-2)
+            y = torch.where((t == 0).reshape(-1, 1), y0, y)  # t = 0 is known exactly
+        return outputs_to_errors(y, xe0, ref_heading_t.unsqueeze(-2))
+
+
+# ---------------------------------------------------------------------------------------------- transforms
+def to_reference_frame(dx: Tensor, dy: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
+    """Longitudinal and lateral components of a world-frame position error in the frame of ``heading``."""
+    c, s = torch.cos(heading), torch.sin(heading)
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def from_reference_frame(e_long: Tensor, e_lat: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
+    """Inverse of :func:`to_reference_frame`."""
+    c, s = torch.cos(heading), torch.sin(heading)
+    return c * e_long - s * e_lat, s * e_long + c * e_lat
+
+
+def sample_features(xe0: Tensor, ref_start: Tensor) -> Tensor:
+    """Initial error ``(..., 5)`` with its position part in the frame of the reference start (``ref_start``
+    broadcasts with ``xe0``)."""
+    el, et = to_reference_frame(xe0[..., 0], xe0[..., 1], ref_start[..., THETA])
+    return torch.cat([el.unsqueeze(-1), et.unsqueeze(-1), xe0[..., 2:]], dim=-1)
+
+
+def reference_features(ref_start: Tensor, params: Tensor) -> Tensor:
+    """``(cos theta_ref(0), sin theta_ref(0), v_ref(0), p flattened)``, ``(..., 3 + nu S)``."""
+    th = ref_start[..., THETA]
+    return torch.cat([torch.stack([torch.cos(th), torch.sin(th), ref_start[..., V]], dim=-1), params.flatten(-2)],
+                     dim=-1)
+
+
+def errors_to_outputs(xe: Tensor, log_ratio: Tensor, ref_heading: Tensor) -> Tensor:
+    """Learned outputs ``(..., T, 5)`` = ``(e_long, e_lat, e_theta, e_v, L)`` of world-frame errors ``xe (..., T,
+    5)``, log-density ratios ``(..., T)`` and reference headings ``(..., T)``."""
+    el, et = to_reference_frame(xe[..., 0], xe[..., 1], ref_heading)
+    return torch.stack([el, et, xe[..., 2], xe[..., 3], log_ratio], dim=-1)
+
+
+def outputs_to_errors(y: Tensor, xe0: Tensor, ref_heading: Tensor) -> tuple[Tensor, Tensor]:
+    """World-frame errors ``(..., K, 5)`` (bias copied from ``xe0``) and log-density ratios ``(..., K)`` from
+    outputs ``y (..., K, 5)``; ``ref_heading`` broadcasts to ``y.shape[:-1]``."""
+    dx, dy = from_reference_frame(y[..., 0], y[..., 1], ref_heading)
+    bias = xe0[..., BIAS].unsqueeze(-1).expand_as(dx)
+    xe = torch.stack([dx, dy, y[..., 2], y[..., 3], bias], dim=-1)
+    return xe, y[..., len(LEARNED_ERR)]
+
+
+# -------------------------------------------------------------------------------------------------- predictor
+def controller_fingerprint(controller: nn.Module) -> str:
+    """Short hash identifying a tracking controller: its class, its parameters and buffers, and its gains (if any).
+
+    A learned density predictor is only valid for the controller whose closed loop generated its training data.
+    """
+    h = hashlib.sha256(type(controller).__name__.encode())
+    for name, value in sorted(controller.state_dict().items()):
+        h.update(name.encode())
+        h.update(value.detach().to(torch.float32).cpu().contiguous().numpy().tobytes())
+    gains = getattr(controller, "gains", None)
+    if gains is not None:
+        h.update(repr(gains).encode())
+    return h.hexdigest()[:16]
+
+
+class LearnedDensity(DensityPredictor):
+    """:class:`DensityPredictor` backed by a trained :class:`DensityNetwork` (either architecture)."""
+
+    def __init__(self, model: DensityNetwork, *, meta: dict[str, Any] | None = None):
+        self.model = model.eval().requires_grad_(False)
+        self.meta = dict(meta or {})
+        self.name = model.architecture.arch
+
+    @property
+    def architecture(self) -> DensityNetArchitecture:
+        return self.model.architecture
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> LearnedDensity:
+        self.model = self.model.to(device=device, dtype=dtype)
+        return self
+
+    def _check_reference(self, reference: Reference) -> None:
+        if not isinstance(reference, Reference):
+            raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
+        a, par = self.architecture, reference.parameterization
+        if par.n_plan != a.n_times or not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6) or (
+            tuple(reference.params.shape[-2:]) != (a.nu, a.n_segments)
+        ):
+            raise ValueError(
+                f"the learned density predictor was trained for {a.n_times} planning points at {a.dt} s and "
+                f"parameters of shape ({a.nu}, {a.n_segments}); the reference has {par.n_plan} points at "
+                f"{par.plan_dt} s and parameters {tuple(reference.params.shape[-2:])} (use --density exact)"
+            )
+
+    def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+        self._check_reference(reference)
+        dtype, device = reference.x.dtype, reference.x.device
+        x0 = check_tensor("x0", x0, last_dims=(None, N_ERR), dtype=dtype, device=device)
+        try:
+            batch = broadcast_shape(x0.shape[:-2], reference.batch_shape)
+        except ValueError:
+            raise ValueError(
+                f"batch shape of x0 {tuple(x0.shape[:-2])} does not broadcast with the reference batch shape "
+                f"{tuple(reference.batch_shape)}"
+            ) from None
+        x0 = x0.expand(*batch, *x0.shape[-2:])
+        log_rho0 = check_tensor("log_rho0", log_rho0, dtype=dtype, device=device)
+        try:
+            log_rho0 = log_rho0.expand(x0.shape[:-1])
+        except RuntimeError:
+            raise ValueError(
+                f"log_rho0 must have shape {tuple(x0.shape[:-1])} (one value per sample), got {tuple(log_rho0.shape)}"
+            ) from None
+        p = next(self.model.parameters())
+        if p.dtype != dtype or p.device != device:
+            self.model = self.model.to(device=device, dtype=dtype)
+        start = reference.start
+        xe0 = x0 - start.unsqueeze(-2)
+        xe, log_ratio = self.model(xe0, start, reference.params, reference.x_plan[..., THETA])
+        x = reference.x_plan.unsqueeze(-3) + xe
+        return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
+                                 log_rho0=log_rho0)
+
+
+# ------------------------------------------------------------------------------------------------------ files
+def shipped_density_path(arch: str) -> Path:
+    """Path (``.pt``) of the shipped weights of ``arch`` ("trajectory" or "pointwise")."""
+    if arch not in ARCHITECTURES:
+        raise ValueError(f"unknown density architecture {arch!r}; valid choices: {', '.join(ARCHITECTURES)}")
+    return Path(str(resources.files("density_planner") / "weights" / f"density_{arch}.pt"))
+
+
+def save_density_model(
+    path: str | Path,
+    model: DensityNetwork,
+    *,
+    config: dict[str, Any] | None = None,
+    diagnostics: dict[str, Any] | None = None,
+    command: str | None = None,
+    extra: dict[str, Any] | None = None,
+) -> tuple[Path, Path]:
+    """Write ``NAME.pt`` (state_dict, normalisation included) and ``NAME.json`` (architecture, training
+    configuration, diagnostics, command, and ``extra`` such as the controller fingerprint and data sizes)."""
+    from ..io.checkpoint import save_weights
+
+    return save_weights(path, model.state_dict(), kind=DENSITY_KIND, architecture=model.architecture.to_dict(),
+                        config=config, diagnostics=diagnostics, command=command, extra=extra)
+
+
+def load_density_model(path: str | Path, *, arch: str | None = None) -> tuple[DensityNetwork, dict[str, Any]]:
+    """Load a weights file written by :func:`save_density_model`; ``arch`` (if given) must match.
+
+    Returns ``(model, meta)`` with the model in ``eval`` mode.
+
+    Raises:
+        CheckpointError: missing, corrupt or mismatched files (wrong kind, wrong architecture, bad state_dict).
+    """
+    from ..io.checkpoint import check_state_dict, load_weights, weights_paths
+
+    pt_path, json_path = weights_paths(path)
+    state, meta = load_weights(pt_path, kind=DENSITY_KIND)
+    try:
+        architecture = DensityNetArchitecture.from_dict(meta["architecture"])
+    except (ValueError, TypeError) as exc:
+        raise CheckpointError(f"{json_path}: invalid architecture ({exc})") from exc
+    if arch is not None and architecture.arch != arch:
+        raise CheckpointError(
+            f"{json_path}: the weights are of a {architecture.arch!r} density predictor, expected {arch!r}"
+        )
+    model = DensityNetwork(architecture)
+    check_state_dict(model, state, pt_path)
+    model.load_state_dict(state)
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(f"{pt_path}: non-finite values in {bad[:3]}")
+    return model.eval(), meta

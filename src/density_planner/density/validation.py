@@ -1,0 +1,151 @@
+"""Accuracy and speed of a density predictor against exact Liouville propagation on fresh references.
+
+:func:`compare_with_exact` draws references and initial errors the same way as the training data (but with a
+seed of its own; initial errors in the XE0 box by default), propagates them with both predictors and returns the
+per-sample errors. :meth:`DensityComparison.summary` reduces them to the numbers of the validation report:
+
+* per time: median and 95th percentile of the position error ``||p_NN(t) - p_LE(t)||`` [m] and of the absolute
+  log-density error ``|log rho_NN(t) - log rho_LE(t)|``, and of the *relative* log-density error (the error
+  minus its mean over the samples of the same reference and time: what the planner's per-time normalised sample
+  weights see);
+* overall (all samples and times): the mean squared error of the error state ``x - x_ref`` (5 components,
+  comparable with the paper's validation MSE 0.018) and the log-density RMSE (paper: about 9.3);
+* timing of both predictors.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..control.reference import Reference
+from .base import DensityPredictor
+
+__all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
+
+#: the paper's stored validation numbers of its density network (``original.md`` §6)
+PAPER_ERROR_MSE = 0.0182
+PAPER_LOG_DENSITY_RMSE = 9.3
+
+
+def fresh_references(n: int, samples: int, seed: int, *, error_scale: float = 1.0,
+                     start_low: Sequence[float] | None = None, start_high: Sequence[float] | None = None,
+                     dtype: torch.dtype = torch.float32) -> tuple[Reference, Tensor]:
+    """``n`` random feasible references and ``samples`` initial states per reference (errors uniform in
+    ``error_scale * XE0``): ``(reference (n,), x0 (n, samples, 5))``."""
+    from ..control.sampling import sample_feasible_references, sample_initial_errors
+    from ..systems.car import KinematicCar
+    from .data import DensityDataConfig
+
+    defaults = DensityDataConfig()
+    car = KinematicCar()
+    gen = torch.Generator().manual_seed(seed)
+    ref = sample_feasible_references(car, n, gen, start_low=start_low or defaults.start_low,
+                                     start_high=start_high or defaults.start_high, dtype=dtype)
+    box = [error_scale * v for v in car.config.initial_error_max]
+    xe0 = sample_initial_errors(n * samples, gen, box=box, dtype=dtype).reshape(n, samples, car.nx)
+    return ref, ref.start.unsqueeze(-2) + xe0
+
+
+@dataclass
+class DensityComparison:
+    """Per-sample errors of a predictor against exact Liouville: ``(R, N, T)`` tensors over references, samples
+    and times, plus the error-state errors ``(R, N, T, 5)`` and wall times [s]."""
+
+    t: Tensor
+    position_error: Tensor
+    log_density_error: Tensor
+    state_error: Tensor
+    time_exact: float
+    time_predictor: float
+    n_references: int
+    n_samples: int
+
+    def summary(self) -> dict:
+        pe, le = self.position_error, self.log_density_error
+        rel = le - le.mean(dim=1, keepdim=True)
+        ale, arel = le.abs(), rel.abs()
+
+        def per_time(x: Tensor) -> dict[str, list[float]]:
+            flat = x.permute(2, 0, 1).reshape(x.shape[2], -1).double()
+            return {"median": flat.median(dim=1).values.tolist(),
+                    "p95": torch.quantile(flat, 0.95, dim=1).tolist()}
+
+        def overall(x: Tensor) -> dict[str, float]:
+            flat = x.reshape(-1).double()
+            if flat.numel() > 10_000_000:
+                flat = flat[torch.randperm(flat.numel(), generator=torch.Generator().manual_seed(0))[:10_000_000]]
+            return {"median": float(flat.median()), "p95": float(torch.quantile(flat, 0.95)),
+                    "max": float(flat.max())}
+
+        se = self.state_error.double()
+        mse5 = float((se ** 2).mean())
+        mse4 = float((se[..., :4] ** 2).mean())
+        lrmse = float((le.double() ** 2).mean().sqrt())
+        rel_rmse = float((rel.double() ** 2).mean().sqrt())
+        n_traj = self.n_references * self.n_samples
+        return {
+            "n_references": self.n_references,
+            "samples_per_reference": self.n_samples,
+            "t": self.t.tolist(),
+            "position_error_m": {"per_time": per_time(pe), "overall": overall(pe)},
+            "log_density_abs_error": {"per_time": per_time(ale), "overall": overall(ale)},
+            "log_density_relative_abs_error": {"per_time": per_time(arel), "overall": overall(arel)},
+            "error_state_mse": mse5,
+            "error_state_mse_without_bias": mse4,
+            "position_rmse_m": float((pe.double() ** 2).mean().sqrt()),
+            "log_density_rmse": lrmse,
+            "log_density_relative_rmse": rel_rmse,
+            "paper": {"error_state_mse": PAPER_ERROR_MSE, "log_density_rmse": PAPER_LOG_DENSITY_RMSE,
+                      "better_error_mse": mse5 < PAPER_ERROR_MSE,
+                      "better_log_density_rmse": lrmse < PAPER_LOG_DENSITY_RMSE},
+            "time_exact_s": self.time_exact,
+            "time_predictor_s": self.time_predictor,
+            "time_exact_per_500_trajectories_s": self.time_exact / n_traj * 500,
+            "time_predictor_per_500_trajectories_s": self.time_predictor / n_traj * 500,
+        }
+
+
+@torch.no_grad()
+def compare_with_exact(
+    predictor: DensityPredictor,
+    exact: DensityPredictor,
+    reference: Reference,
+    x0: Tensor,
+    *,
+    chunk: int = 32,
+) -> DensityComparison:
+    """Errors of ``predictor`` against ``exact`` for the initial states ``x0 (R, N, 5)`` of ``reference (R,)``,
+    ``chunk`` references at a time (log rho0 = 0: only the log-density *ratio* is compared)."""
+    r, n = x0.shape[:2]
+    pos, lde, se = [], [], []
+    t_exact = t_pred = 0.0
+    t = None
+    for i in range(0, r, chunk):
+        ref = reference.select(slice(i, i + chunk))
+        x = x0[i:i + chunk]
+        lr0 = torch.zeros(x.shape[:-1], dtype=x.dtype)
+        t0 = time.perf_counter()
+        ex = exact.predict(x, lr0, ref)
+        t1 = time.perf_counter()
+        pr = predictor.predict(x, lr0, ref)
+        t2 = time.perf_counter()
+        t_exact += t1 - t0
+        t_pred += t2 - t1
+        t = ex.t
+        d = pr.x - ex.x
+        pos.append(d[..., :2].norm(dim=-1))
+        lde.append(pr.log_rho - ex.log_rho)
+        se.append(d)
+    assert t is not None
+    pe = torch.cat(pos)
+    le = torch.cat(lde)
+    if not (bool(torch.isfinite(pe).all()) and bool(torch.isfinite(le).all())):
+        raise FloatingPointError("non-finite predictions in the density comparison")
+    return DensityComparison(t=t, position_error=pe, log_density_error=le, state_error=torch.cat(se),
+                             time_exact=t_exact, time_predictor=t_pred, n_references=r, n_samples=n)
+

@@ -1,0 +1,26 @@
+"""Shared fixtures of the density tests: session-wide tiny data sets (generated once, read-only)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from density_testdata import SMALL, TINY, make_data
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory):
+    return make_data(tmp_path_factory.mktemp("tiny"), TINY)
+
+
+@pytest.fixture(scope="session")
+def small_data(tmp_path_factory):
+    return make_data(tmp_path_factory.mktemp("small"), SMALL)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Small tensors: one torch thread is fastest (and timing-stable on a shared machine)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

@@ -1,0 +1,93 @@
+"""Learned predictors in the planner: both architectures plug into stage 2; the plan is re-checked with exact
+Liouville and both figures are reported (library and ``plan`` command)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from density_planner.cli import main
+from density_planner.control.analytic import CarTrackingController
+from density_planner.density.liouville import ExactLiouville
+from density_planner.density.network import (
+    DensityNetArchitecture,
+    DensityNetwork,
+    LearnedDensity,
+    controller_fingerprint,
+    save_density_model,
+)
+from density_planner.environment import random_scene
+from density_planner.planners.base import PlanStatus
+from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
+from density_planner.planners.problem import PlanningProblem
+from density_planner.systems.car import KinematicCar
+
+FAST = DensityPlannerConfig(n_candidates=6, epochs_init=15, epochs_density=4, n_samples=30)
+
+
+def untrained(arch: str) -> DensityNetwork:
+    torch.manual_seed(0)
+    net = DensityNetwork(DensityNetArchitecture(arch=arch, hidden=16, layers=2))
+    with torch.no_grad():
+        net.last.weight.normal_(0, 0.01)
+    return net
+
+
+@pytest.mark.parametrize("arch", ["trajectory", "pointwise"])
+def test_learned_predictor_in_density_planner(arch):
+    car, ctrl = KinematicCar(), CarTrackingController()
+    scene = random_scene(1)
+    problem = PlanningProblem.from_scene(scene, seed=1)
+    planner = DensityPlanner(LearnedDensity(untrained(arch)), FAST, exact_check=ExactLiouville(car, ctrl))
+    result = planner.plan(problem)
+    assert result.status == PlanStatus.SUCCESS
+    assert result.extras["predictor"] == arch
+    check = result.extras["exact_check"]
+    assert check["predictor"] == "exact"
+    assert set(check["cost"]) >= {"goal", "collision", "total"}
+    assert 0.0 <= check["collision_probability_max"] <= 1.0
+    assert result.samples.x.shape == (FAST.n_samples, 101, 5)
+    # stage 2 changed the parameters: the prediction is differentiable w.r.t. them
+    assert len(result.cost_history["stage2"]["total"]) == FAST.epochs_density
+
+
+@pytest.mark.slow
+def test_plan_command_with_learned_predictor_reports_exact_check(tmp_path):
+    ctrl = CarTrackingController()
+    save_density_model(tmp_path / "w", untrained("trajectory"),
+                       extra={"controller": {"spec": "analytic", "fingerprint": controller_fingerprint(ctrl)}})
+    fast = ["--set", "density_planner.n_candidates=6", "--set", "density_planner.epochs_init=15",
+            "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20"]
+    rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density",
+               str(tmp_path / "w.pt"), *fast, "-q", "--no-gif", "--out", str(tmp_path / "p")])
+    assert rc == 0
+    data = json.loads((tmp_path / "p" / "plan.json").read_text())
+    assert data["density_predictor"] == "trajectory"
+    assert data["extras"]["predictor"] == "trajectory"
+    assert data["extras"]["exact_check"]["predictor"] == "exact"
+    assert "collision_probability_max" in data["extras"]["exact_check"]
+    assert data["collision_probability"]["max"] is not None
+
+
+@pytest.mark.slow
+def test_plan_command_default_falls_back_to_exact_for_other_controller(tmp_path):
+    fast = ["--set", "density_planner.n_candidates=4", "--set", "density_planner.epochs_init=5",
+            "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=10"]
+    rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", *fast, "-q", "--no-gif",
+               "--out", str(tmp_path / "p")])
+    assert rc == 0
+    data = json.loads((tmp_path / "p" / "plan.json").read_text())
+    assert data["extras"]["predictor"] == "exact"
+    assert "exact_check" not in data["extras"]  # no second exact propagation of the same plan
+
+
+def test_plan_command_learned_predictor_for_wrong_controller_is_a_clear_error(tmp_path, capsys):
+    save_density_model(tmp_path / "w", untrained("trajectory"),
+                       extra={"controller": {"spec": "c3m", "fingerprint": "0123456789abcdef"}})
+    rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density",
+               str(tmp_path / "w.pt"), "-q", "--out", str(tmp_path / "p")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "was trained for the controller 'c3m'" in err and "--density exact" in err

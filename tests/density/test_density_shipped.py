@@ -1,0 +1,74 @@
+"""The shipped learned predictors against exact Liouville on a handful of fresh references (shipped C3M
+controller), and their metadata.
+
+Tolerances: a few times the errors measured by ``density-planner validate density`` on 200 fresh references x
+100 samples (docs/density.md) — the medians of 6 references x 40 samples scatter around those, and the test must
+catch a broken or mismatched file (errors of metres and of tens in log-density), not re-validate the training.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from density_planner.control.registry import load_controller
+from density_planner.density.liouville import ExactLiouville
+from density_planner.density.network import LearnedDensity, controller_fingerprint, shipped_density_path
+from density_planner.density.registry import DEFAULT_LEARNED, load_predictor
+from density_planner.density.validation import compare_with_exact, fresh_references
+from density_planner.systems.car import KinematicCar
+
+ARCHS = ("trajectory", "pointwise")
+
+#: (median, 95th percentile) of the position error [m] and of |log-density error| over all samples and times
+TOLERANCES = {
+    "trajectory": {"position": (0.15, 0.6), "log_density": (4.0, 16.0)},
+    "pointwise": {"position": (0.2, 0.7), "log_density": (4.5, 20.0)},
+}
+
+
+def _shipped(arch: str) -> None:
+    if not shipped_density_path(arch).is_file():
+        pytest.fail(f"shipped weights missing: {shipped_density_path(arch)}")
+
+
+@pytest.fixture(scope="module")
+def controller():
+    return load_controller("c3m")
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_shipped_predictor_close_to_exact_liouville(arch, controller):
+    _shipped(arch)
+    car = KinematicCar()
+    pred = load_predictor(arch, car, controller)
+    assert isinstance(pred, LearnedDensity) and pred.name == arch
+    ref, x0 = fresh_references(6, 40, seed=424242)
+    summary = compare_with_exact(pred, ExactLiouville(car, controller), ref, x0).summary()
+    pos, ld = summary["position_error_m"]["overall"], summary["log_density_abs_error"]["overall"]
+    tol = TOLERANCES[arch]
+    assert pos["median"] < tol["position"][0] and pos["p95"] < tol["position"][1], pos
+    assert ld["median"] < tol["log_density"][0] and ld["p95"] < tol["log_density"][1], ld
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_shipped_metadata(arch, controller):
+    _shipped(arch)
+    meta = load_predictor(arch, KinematicCar(), controller).meta
+    assert meta["architecture"]["arch"] == arch
+    assert meta["controller"]["fingerprint"] == controller_fingerprint(controller)
+    for key in ("data", "training", "commands", "diagnostics"):
+        assert meta[key], key
+    assert meta["data"]["sizes"]["references_train"] > 1000
+    assert meta["training"]["wall_time_s"] > 0
+    assert meta["commands"]["train"].startswith("density-planner train density")
+    assert shipped_density_path(arch).stat().st_size < 4_000_000  # a few MB at most
+
+
+def test_default_learned_predictor_is_the_trajectory_head(controller):
+    _shipped(DEFAULT_LEARNED)
+    assert DEFAULT_LEARNED == "trajectory"
+    pred = load_predictor(None, KinematicCar(), controller)
+    assert isinstance(pred, LearnedDensity) and pred.name == "trajectory"
+    pred2 = load_predictor("learned", KinematicCar(), controller)
+    assert torch.equal(pred2.model.last.weight, pred.model.last.weight)
