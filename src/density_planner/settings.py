@@ -23,6 +23,8 @@ from .environment.commonroad import CommonRoadSceneConfig
 from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .planners.density_planner import DensityPlannerConfig
+from .planners.mpc import MPCConfig
+from .planners.oracle import OracleConfig
 
 __all__ = ["RunConfig"]
 
@@ -41,3 +43,10 @@ class RunConfig:
     ind: IndSceneConfig = field(default_factory=IndSceneConfig)
     #: [commonroad]: scenes from CommonRoad scenarios
     commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
+    #: [mpc]: standard MPC M0 (planner "mpc"); its tube_radius is ignored (always 0)
+    mpc: MPCConfig = field(default_factory=MPCConfig)
+    #: [tube_mpc]: tube MPC M1-M3 (planners "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0" fix their radius;
+    #: planner "tube_mpc" uses tube_radius); 10 IPOPT iterations per step as the paper's code
+    tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
+    #: [oracle]: the full-horizon NLP from the true initial state (planner "oracle")
+    oracle: OracleConfig = field(default_factory=OracleConfig)

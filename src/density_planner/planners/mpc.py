@@ -1,0 +1,707 @@
+"""Receding-horizon MPC baselines (paper §V "Baseline methods"): standard MPC (M0) and tube MPC (M1-M3).
+
+At every step ``h`` (``t_h = h * 0.1 s``) the controller solves, from the measured state ``x_hat``::
+
+    min   w_G(h) ||p_H - p_goal||^2  +  alpha_C sum_{k=1}^{H} S_k^2  +  alpha_I sum_{k=0}^{H-1} ||u_k||^2
+    s.t.  x_{k+1} = F(x_k, u_k)                       (multiple shooting; F = 10 Euler steps of 0.01 s)
+          |omega_k|, |a_k| <= 3,  theta, v in the car's state box,
+          p_k in the map, shrunk by the tube radius r      (tube MPC: constraints enforced within the tube)
+
+with ``x_0 = x_hat`` (4 states, no bias), ``H = 10`` stages of 0.1 s, and ``S_k = sum_{d in D_r} P_occ(p_k + d,
+t_{h+k})``: the bilinear interpolation of the occupancy at the predicted position (M0, ``D_0 = {0}``) or summed
+over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for r = 0.3 / 0.5 / 1 m, as
+the paper's code). This is the paper's ``J_MPC`` (Eq. (11)) with its weights ``alpha`` (``original.md`` §9, §12).
+The stage-0 collision term depends on the measurement only and is left out of the NLP. ``w_G(h) = alpha_G`` (the
+paper) or ``alpha_G (h / N)^2`` (``goal_weight_growth``, the paper's code).
+
+**Built once, re-solved with parameters.** The NLP is built with CasADi (``nlpsol`` + IPOPT) on the first use and
+rebuilt only if the map's cell size changes (:attr:`MPCPlanner.n_builds` counts constructions). Its parameters
+are the measured state, the goal, the goal weight and, per stage ``k``, a square window of the occupancy slice
+of time ``t_{h+k}`` around the measured position, read by a *parametric* linear interpolant
+(``casadi.interpolant(..., 'linear', grid, 1)``, values as an input). The window of stage ``k`` has a fixed size
+covering every position reachable in ``k`` stages (``k * 0.1 s * (v_max + a_max * 0.1 s)``) plus the tube radius,
+so the NLP structure is the same for every step and every map, the parameter vector stays small (~1.6e5 values
+for M0 instead of 101 x 241 x 401 for a full map) and large recorded maps cost no more than the artificial ones.
+The reachable box is also imposed as (non-binding) variable bounds, so that intermediate IPOPT iterates never
+leave the windows. Cells of a window outside the map read 1 ("outside the map is occupied").
+Each step warm-starts IPOPT from the previous solution shifted by one stage (the first step: zero inputs and
+the constant-input rollout). The solve is limited by ``max_iter`` and ``max_cpu_time``; when IPOPT stops
+without converging, the first input of its last iterate is applied (as the paper's code) and the step is
+recorded as failed.
+
+The closed loop (:meth:`MPCPlanner.plan_from`) applies the first input to the true state with the nominal Euler
+model, measures the state (heading biased by ``theta_bias`` when ``biased_measurement``), and stops early within
+``goal_stop_distance`` of the goal. Step times count the whole step (window extraction, parameter update,
+solve, warm-start shift), not only IPOPT.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..checks import check_choice
+from ..cost.composite import CostConfig
+from ..environment.grid import OccupancyGrid
+from ..systems.car import THETA, KinematicCar, V
+from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
+from ._report import evaluate_trajectory
+from .base import Planner, PlanResult, PlanStatus
+from .problem import PlanningProblem
+from .registry import PlannerContext, register_planner
+
+__all__ = [
+    "MPCWeights",
+    "MPCConfig",
+    "MPCStep",
+    "MPCPlanner",
+    "TUBE_RADII",
+    "tube_offsets",
+    "tube_mpc_name",
+    "disc_sum",
+    "mpc_objective",
+]
+
+log = logging.getLogger(__name__)
+
+#: tube radii [m] of the paper's M1, M2, M3
+TUBE_RADII = (0.3, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
+class MPCWeights:
+    """Weights ``alpha`` of ``J_MPC`` (paper Eq. (11)); the paper takes them from the planner's cost (§9)."""
+
+    #: alpha_G on the squared terminal distance to the goal [1/m^2]
+    goal: float = 1e-2
+    #: alpha_I on the squared inputs, summed over the stages (1e-6 = the original's 1e-4 times its factor 0.01)
+    input: float = 1e-6
+    #: alpha_C on the squared (tube-summed) occupancy at the predicted positions
+    collision: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("goal", "input", "collision"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"MPC weight {name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    """Settings of the MPC baselines (defaults: M0 of ``original.md`` §12; tube variants set ``tube_radius``
+    and ``max_iter = 10``)."""
+
+    #: H, prediction stages
+    horizon: int = 10
+    #: duration of one stage and of one closed-loop step [s]
+    stage_dt: float = 0.1
+    #: explicit-Euler sub-steps per stage (0.01 s each by default)
+    substeps: int = 10
+    #: IPOPT iteration limit per step (original: 300 for M0, 10 for the tube variants)
+    max_iter: int = 300
+    #: IPOPT CPU-time limit per step [s] (None: no limit)
+    max_cpu_time: float | None = 0.1
+    #: IPOPT Hessian: "exact" or "limited-memory" (L-BFGS)
+    hessian: Literal["exact", "limited-memory"] = "exact"
+    #: weights of J_MPC
+    weights: MPCWeights = field(default_factory=MPCWeights)
+    #: multiply alpha_G by (h / N)^2 at step h of N (the paper's code; not in the paper, hence off by default)
+    goal_weight_growth: bool = False
+    #: tube radius r [m]: 0 for standard MPC (M0); 0.3, 0.5, 1.0 for M1, M2, M3
+    tube_radius: float = 0.0
+    #: spacing of the lattice of offsets inside the tube disc [m]
+    tube_lattice: float = 0.1
+    #: how the tube sum is evaluated: "offsets" (one interpolant call per offset and stage, as the paper's code),
+    #: "precomputed" (interpolate the disc sum of the occupancy, computed once per scene: the same function when
+    #: the lattice is a whole number of cells, since bilinear interpolation commutes with whole-cell shifts), or
+    #: "auto" (precomputed where it is exact, else offsets)
+    tube_method: Literal["auto", "offsets", "precomputed"] = "auto"
+    #: shrink the position constraints (the map) by the tube radius (the paper; the paper's code did not)
+    tighten_constraints: bool = True
+    #: feed the controller the biased heading theta + theta_bias (the paper's "biased" variants)
+    biased_measurement: bool = False
+    #: stop the closed loop once the car is within this distance of the goal [m] (0: never stop early)
+    goal_stop_distance: float = 1.0
+    #: closed-loop steps (None: the problem's horizon / stage_dt, i.e. 100 for 10 s)
+    n_steps: int | None = None
+    #: extra window size around the reachable box [m]
+    window_margin: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("horizon", "substeps", "max_iter"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.n_steps is not None and (not isinstance(self.n_steps, int) or self.n_steps < 1):
+            raise ValueError(f"n_steps must be a positive integer or None, got {self.n_steps!r}")
+        for name in ("stage_dt", "tube_lattice"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        for name in ("tube_radius", "goal_stop_distance", "window_margin"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
+            raise ValueError(f"max_cpu_time must be > 0 or None, got {self.max_cpu_time!r}")
+        check_choice("hessian", self.hessian, ("exact", "limited-memory"))
+        check_choice("tube_method", self.tube_method, ("auto", "offsets", "precomputed"))
+
+
+def tube_mpc_name(radius: float) -> str:
+    """Registered name of the tube MPC with ``radius`` [m]: ``tube_mpc_0.3``, ``tube_mpc_0.5``, ``tube_mpc_1.0``."""
+    text = f"{radius:g}"
+    return f"tube_mpc_{text if '.' in text else text + '.0'}"
+
+
+def _lattice_cells(lattice: float, cell: float) -> int | None:
+    """``lattice / cell`` if it is a whole number (1e-6 tolerance), else None."""
+    ratio = lattice / cell
+    n = round(ratio)
+    return n if n >= 1 and abs(ratio - n) <= 1e-6 * max(1.0, ratio) else None
+
+
+def disc_sum(probs: np.ndarray, offsets_cells: np.ndarray, fill: float = 1.0) -> np.ndarray:
+    """``S[k, i, j] = sum_d P[k, i + d_i, j + d_j]`` over integer cell offsets ``d`` (``(M, 2)``), with cells
+    outside the map reading ``fill``; float32 ``(T, NX, NY)``. Bilinear interpolation of ``S`` at ``p`` equals the
+    sum of the bilinear interpolations of ``P`` at ``p + d * cell`` (both are linear in the cell values).
+
+    Computed per slice as sums of contiguous runs along ``y`` (prefix sums), one pass per row offset ``d_i``.
+    """
+    offsets_cells = np.asarray(offsets_cells, dtype=int).reshape(-1, 2)
+    n = int(np.abs(offsets_cells).max(initial=0))
+    T, NX, NY = probs.shape
+    rows: dict[int, list[int]] = {}
+    for di, dj in offsets_cells.tolist():
+        rows.setdefault(di, []).append(dj)
+    out = np.empty((T, NX, NY), dtype=np.float32)
+    pad = np.full((NX + 2 * n, NY + 2 * n + 1), fill, dtype=np.float64)
+    for k in range(T):
+        pad[n : n + NX, n + 1 : n + 1 + NY] = probs[k]
+        pad[:, 0] = 0.0
+        csum = np.cumsum(pad, axis=1)  # csum[:, c] = sum of pad[:, 1..c] (column 0 is the zero prefix)
+        acc = np.zeros((NX, NY))
+        for di, djs in rows.items():
+            lo, hi = min(djs), max(djs)
+            if hi - lo + 1 != len(djs):
+                raise ValueError("disc_sum needs the offsets of each row to be contiguous")
+            block = csum[n + di : n + di + NX]
+            acc += block[:, n + 1 + hi : n + 1 + hi + NY] - block[:, n + lo : n + lo + NY]
+        out[k] = acc
+    return out
+
+
+def tube_offsets(radius: float, lattice: float = 0.1) -> np.ndarray:
+    """``(M, 2)`` lattice offsets ``(i, j) * lattice`` [m] with ``i^2 + j^2 <= (radius / lattice)^2``.
+
+    29 / 81 / 317 offsets for 0.3 / 0.5 / 1 m at 0.1 m; ``[[0, 0]]`` for radius 0. (The paper's code compared
+    floating-point distances and lost the four boundary points at 0.3 m, giving 25.)
+    """
+    n = int(math.floor(radius / lattice + 1e-9))
+    r2 = (radius / lattice) ** 2 + 1e-9
+    ij = np.array([(i, j) for i in range(-n, n + 1) for j in range(-n, n + 1) if i * i + j * j <= r2], dtype=float)
+    return ij.reshape(-1, 2) * lattice
+
+
+@dataclass
+class MPCStep:
+    """One MPC step.
+
+    Attributes:
+        step: closed-loop step index ``h`` (time ``h * stage_dt``).
+        input: ``(2,)`` applied input ``[omega, a]`` (first input of the returned iterate, clipped to the bounds).
+        predicted: ``(H + 1, 4)`` predicted states ``[p_x, p_y, theta, v]`` from the measured state.
+        predicted_inputs: ``(H, 2)`` predicted inputs.
+        status: IPOPT return status (``"Solve_Succeeded"``, ``"Maximum_CpuTime_Exceeded"``, ...), or
+            ``"Exception"`` / ``"Invalid_Iterate"`` when no usable iterate came back.
+        success: IPOPT converged.
+        iterations: IPOPT iterations.
+        objective: J_MPC of the returned iterate (without the constant stage-0 collision term).
+        solve_time: wall time of the IPOPT call [s].
+        step_time: wall time of the whole step [s] (occupancy windows, parameters, solve, warm start).
+        message: detail on failures.
+    """
+
+    step: int
+    input: np.ndarray
+    predicted: np.ndarray
+    predicted_inputs: np.ndarray
+    status: str
+    success: bool
+    iterations: int
+    objective: float
+    solve_time: float
+    step_time: float
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class _Limits:
+    """Car bounds used by the NLP (from the system's configuration)."""
+
+    u_min: tuple[float, float]
+    u_max: tuple[float, float]
+    theta: tuple[float, float]
+    v: tuple[float, float]
+
+
+class _MPCProgram:
+    """The NLP of one MPC configuration for one map cell size: structure, windows and the buffered solver."""
+
+    def __init__(self, ca: Any, config: MPCConfig, cell: float, limits: _Limits, precomputed: bool):
+        self.config, self.cell, self.limits, self.precomputed = config, cell, limits, precomputed
+        H = config.horizon
+        dt = config.stage_dt
+        self.H = H
+        #: offsets of the tube disc [m] (all of them are summed, by the NLP or by the precomputed map)
+        self.tube = tube_offsets(config.tube_radius, config.tube_lattice)
+        #: offsets evaluated by the NLP
+        self.offsets = np.zeros((1, 2)) if precomputed else self.tube
+        radius = float(np.linalg.norm(self.offsets, axis=1).max())
+        v_reach = max(abs(limits.v[0]), abs(limits.v[1])) + max(map(abs, limits.u_min + limits.u_max)) * dt
+        #: reachable distance [m] after k stages (k = 1..H) from the measured position (exact bound of F)
+        self.reach = np.array([k * dt * v_reach for k in range(1, H + 1)])
+        #: window half-width [cells] and edge length [cells] per stage
+        self.half = np.ceil((self.reach + radius + config.window_margin) / cell).astype(int) + 1
+        self.size = 2 * self.half + 2
+        n_win = self.size**2
+        # parameter layout: x0 (4), goal (2), goal weight (1), window origins (2 H), windows
+        self.i_x0, self.i_goal, self.i_wg, self.i_org = 0, 4, 6, 7
+        self.win_start = 7 + 2 * H + np.concatenate([[0], np.cumsum(n_win)[:-1]])
+        n_p = int(7 + 2 * H + n_win.sum())
+
+        F = car_step_function(ca, dt, config.substeps)
+        X = ca.MX.sym("X", 4, H)
+        U = ca.MX.sym("U", 2, H)
+        P = ca.MX.sym("p", n_p)
+        x0 = P[0:4]
+        goal = P[4:6]
+        w_goal = P[6]
+        D = ca.DM(self.offsets.T)
+        M = self.offsets.shape[0]
+        w = config.weights
+        J = w_goal * ca.sumsqr(X[0:2, H - 1] - goal) + w.input * ca.sumsqr(U)
+        g = []
+        prev = x0
+        for k in range(H):
+            g.append(X[:, k] - F(prev, U[:, k]))
+            prev = X[:, k]
+            s = int(self.size[k])
+            axis = [float(v) for v in np.arange(s) * cell]
+            occ = ca.interpolant(f"occ_{k + 1}", "linear", [axis, axis], 1)
+            origin = P[7 + 2 * k : 9 + 2 * k]
+            start = int(self.win_start[k])
+            values = P[start : start + s * s]
+            pts = ca.repmat(X[0:2, k] - origin, 1, M) + D
+            s_k = ca.sum2(occ(pts, values))
+            J = J + w.collision * s_k**2
+        nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": P, "f": J, "g": ca.vertcat(*g)}
+        opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
+        self.nlp = BufferedNLP(ca.nlpsol("mpc", "ipopt", nlp, opts))
+        self.n_x = 4 * H
+        # Fortran-order views on the windows inside the parameter vector (first grid axis fastest, as CasADi)
+        p = self.nlp.args["p"]
+        self.windows = [
+            p[int(a) : int(a) + int(s) * int(s)].reshape(int(s), int(s), order="F")
+            for a, s in zip(self.win_start, self.size)
+        ]
+        # constant bounds: inputs and heading/speed; positions are set per step
+        lbx, ubx = self.nlp.args["lbx"], self.nlp.args["ubx"]
+        lbx[self.n_x :: 2], ubx[self.n_x :: 2] = limits.u_min[0], limits.u_max[0]
+        lbx[self.n_x + 1 :: 2], ubx[self.n_x + 1 :: 2] = limits.u_min[1], limits.u_max[1]
+        lbx[2 : self.n_x : 4], ubx[2 : self.n_x : 4] = limits.theta
+        lbx[3 : self.n_x : 4], ubx[3 : self.n_x : 4] = limits.v
+
+    def cold_start(self, x0: np.ndarray) -> None:
+        """Initial guess of the first step: zero inputs and the constant-input rollout of the nominal model."""
+        guess = self.nlp.args["x0"]
+        H, dt = self.H, self.config.stage_dt
+        k = np.arange(1, H + 1)
+        xs = np.empty((H, 4))
+        xs[:, 0] = x0[0] + k * dt * x0[3] * math.cos(x0[2])
+        xs[:, 1] = x0[1] + k * dt * x0[3] * math.sin(x0[2])
+        xs[:, 2], xs[:, 3] = x0[2], x0[3]
+        guess[: self.n_x] = xs.reshape(-1)
+        guess[self.n_x :] = 0.0
+
+    def shift(self) -> None:
+        """Warm start of the next step: the last solution shifted by one stage (last stage repeated)."""
+        sol, guess = self.nlp.res["x"], self.nlp.args["x0"]
+        H = self.H
+        xs = sol[: self.n_x].reshape(H, 4)
+        us = sol[self.n_x :].reshape(H, 2)
+        guess[: self.n_x] = np.concatenate([xs[1:], xs[-1:]]).reshape(-1)
+        guess[self.n_x :] = np.concatenate([us[1:], us[-1:]]).reshape(-1)
+
+
+@dataclass
+class _Binding:
+    """The scene an :class:`MPCPlanner` currently controls in (numpy copies for the per-step work)."""
+
+    problem: PlanningProblem
+    probs: np.ndarray  # (T, NX, NY) float32
+    origin: np.ndarray  # (2,)
+    cell: float
+    slices: np.ndarray  # occupancy slice of every closed-loop time step + horizon
+    pos_lo: np.ndarray  # (2,) position bounds (map, tightened)
+    pos_hi: np.ndarray
+    goal: np.ndarray
+    n_steps: int
+    outside: float = 1.0  # value of cells outside the map
+    warm: bool = False
+
+
+class MPCPlanner(Planner):
+    """Standard MPC (``tube_radius = 0``, M0) or tube MPC (M1-M3); see the module docstring.
+
+    Use :meth:`plan` / :meth:`plan_from` for a closed-loop run, or :meth:`reset` then :meth:`solve` step by step.
+    """
+
+    name = "mpc"
+
+    def __init__(
+        self,
+        config: MPCConfig | None = None,
+        *,
+        name: str | None = None,
+        system: KinematicCar | None = None,
+        evaluation_cost: CostConfig | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+    ):
+        """
+        Args:
+            config: MPC settings.
+            name: planner name in results (default ``"mpc"``, or ``"tube_mpc_<r>"`` when the tube radius is > 0).
+            system: the car (its input and state bounds enter the NLP); default :class:`KinematicCar`.
+            evaluation_cost: cost configuration of the reported (evaluation-form) cost, shared with the density
+                planner for comparability (default :class:`CostConfig`).
+            dtype, device: of the returned tensors.
+
+        Raises:
+            OptionalDependencyError: CasADi (extra ``mpc``) is not installed.
+        """
+        self._ca = import_casadi("MPC baselines")
+        self.config = config or MPCConfig()
+        self.name = name or ("mpc" if self.config.tube_radius == 0 else tube_mpc_name(self.config.tube_radius))
+        self.system = system or KinematicCar()
+        self.evaluation_cost = evaluation_cost or CostConfig()
+        self.dtype = dtype
+        self.device = torch.device(device)
+        #: number of NLP constructions so far (one per planner and map cell size)
+        self.n_builds = 0
+        #: wall time of the last NLP construction [s]
+        self.build_time = 0.0
+        self._program: _MPCProgram | None = None
+        self._bound: _Binding | None = None
+        self._disc_cache: tuple[OccupancyGrid, np.ndarray] | None = None
+        #: wall time of the last tube disc-sum precomputation [s] (0 when cached or not needed)
+        self.precompute_time = 0.0
+
+    # ------------------------------------------------------------------ set-up
+    def _limits(self, system: KinematicCar) -> _Limits:
+        cfg = system.config
+        return _Limits(
+            u_min=tuple(cfg.input_min), u_max=tuple(cfg.input_max),
+            theta=(cfg.state_min[THETA], cfg.state_max[THETA]), v=(cfg.state_min[V], cfg.state_max[V]),
+        )
+
+    def _precomputed(self, cell: float) -> bool:
+        cfg = self.config
+        if cfg.tube_radius == 0:
+            return False
+        exact = _lattice_cells(cfg.tube_lattice, cell) is not None
+        if cfg.tube_method == "precomputed" and not exact:
+            raise ValueError(f"tube_method='precomputed' needs tube_lattice ({cfg.tube_lattice} m) to be a whole "
+                             f"number of map cells ({cell} m); use 'offsets' or 'auto'")
+        return cfg.tube_method == "precomputed" or (cfg.tube_method == "auto" and exact)
+
+    def _program_for(self, cell: float, limits: _Limits) -> _MPCProgram:
+        prog = self._program
+        pre = self._precomputed(cell)
+        if (prog is None or not math.isclose(prog.cell, cell, rel_tol=1e-9) or prog.limits != limits
+                or prog.precomputed != pre):
+            t0 = time.perf_counter()
+            prog = _MPCProgram(self._ca, self.config, cell, limits, pre)
+            self.build_time = time.perf_counter() - t0
+            self.n_builds += 1
+            self._program = prog
+            log.info("%s: NLP built in %.3f s (%d parameters, %d offsets per stage)", self.name, self.build_time,
+                     prog.nlp.args["p"].size, prog.offsets.shape[0])
+        return prog
+
+    def reset(self, problem: PlanningProblem) -> None:
+        """Bind ``problem``'s scene and goal (building the NLP if this is the first map of its cell size) and
+        forget the warm start. Raises :class:`ValueError` if the problem's system is not the kinematic car."""
+        system = problem.system
+        if not isinstance(system, KinematicCar):
+            raise ValueError(f"the MPC baselines need the KinematicCar system, got {type(system).__name__}")
+        self.system = system
+        grid: OccupancyGrid = problem.scene.grid
+        prog = self._program_for(grid.cell_size, self._limits(system))
+        cfg = self.config
+        n_steps = cfg.n_steps or int(round(problem.parameterization.horizon / cfg.stage_dt))
+        times = torch.arange(n_steps + cfg.horizon + 1, dtype=torch.float64) * cfg.stage_dt
+        xmin, xmax, ymin, ymax = grid.bounds
+        shrink = cfg.tube_radius if cfg.tighten_constraints else 0.0
+        lo = np.array([xmin + shrink, ymin + shrink])
+        hi = np.array([xmax - shrink, ymax - shrink])
+        if np.any(lo > hi):
+            raise ValueError(f"tube radius {cfg.tube_radius} m leaves no room in the map {grid.bounds}")
+        probs = grid.probs.detach().to("cpu", torch.float32).numpy()
+        self.precompute_time = 0.0
+        if prog.precomputed:
+            if self._disc_cache is None or self._disc_cache[0] is not grid:
+                t0 = time.perf_counter()
+                step = _lattice_cells(cfg.tube_lattice, grid.cell_size)
+                cells = np.rint(prog.tube / cfg.tube_lattice).astype(int) * step
+                self._disc_cache = (grid, disc_sum(probs, cells))
+                self.precompute_time = time.perf_counter() - t0
+            probs = self._disc_cache[1]
+        self._bound = _Binding(
+            problem=problem,
+            probs=probs,
+            origin=np.asarray(grid.origin, dtype=float),
+            cell=grid.cell_size,
+            slices=grid.slice_index(times).numpy(),
+            pos_lo=lo,
+            pos_hi=hi,
+            goal=np.asarray(problem.goal, dtype=float),
+            n_steps=n_steps,
+            outside=float(prog.tube.shape[0]) if prog.precomputed else 1.0,
+        )
+        prog.nlp.args["lam_x0"][:] = 0.0
+        prog.nlp.args["lam_g0"][:] = 0.0
+
+    # ------------------------------------------------------------------ one step
+    def _fill_windows(self, prog: _MPCProgram, b: _Binding, pos: np.ndarray, step: int) -> None:
+        p = prog.nlp.args["p"]
+        T, NX, NY = b.probs.shape
+        ic = np.floor((pos - b.origin) / b.cell).astype(int)
+        last = b.slices.shape[0] - 1
+        for k in range(prog.H):
+            half, s = int(prog.half[k]), int(prog.size[k])
+            i0, j0 = ic[0] - half, ic[1] - half
+            win = prog.windows[k]
+            a0, a1 = max(i0, 0), min(i0 + s, NX)
+            c0, c1 = max(j0, 0), min(j0 + s, NY)
+            sl = int(b.slices[min(step + k + 1, last)])
+            if a0 - i0 > 0 or c0 - j0 > 0 or a1 - i0 < s or c1 - j0 < s:
+                win.fill(b.outside)  # part of the window lies outside the map
+            if a0 < a1 and c0 < c1:
+                win[a0 - i0 : a1 - i0, c0 - j0 : c1 - j0] = b.probs[sl, a0:a1, c0:c1]
+            p[prog.i_org + 2 * k : prog.i_org + 2 * k + 2] = b.origin + b.cell * np.array([i0, j0])
+
+    def solve(self, state: np.ndarray | Tensor, step: int) -> MPCStep:
+        """One MPC step from the measured state ``[p_x, p_y, theta, v]`` (extra entries are ignored) at step ``step``
+        (time ``step * stage_dt``) of the problem bound by :meth:`reset`. Never raises for solver trouble."""
+        t_start = time.perf_counter()
+        if self._bound is None or self._program is None:
+            raise ValueError("call reset(problem) before solve(state, step)")
+        b, prog, cfg = self._bound, self._program, self.config
+        x0 = np.asarray(state.detach().cpu() if isinstance(state, Tensor) else state, dtype=float).reshape(-1)[:4]
+        if x0.shape != (4,) or not np.all(np.isfinite(x0)):
+            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {state!r}")
+        args = prog.nlp.args
+        p = args["p"]
+        p[0:4] = x0
+        p[4:6] = b.goal
+        growth = (step / b.n_steps) ** 2 if cfg.goal_weight_growth else 1.0
+        p[6] = cfg.weights.goal * growth
+        self._fill_windows(prog, b, x0[:2], step)
+        # per-stage position bounds: the map (tightened) intersected with the reachable box of the windows
+        lbx, ubx = args["lbx"], args["ubx"]
+        for axis in (0, 1):
+            lo = np.maximum(b.pos_lo[axis], x0[axis] - prog.reach)
+            hi = np.minimum(b.pos_hi[axis], x0[axis] + prog.reach)
+            lbx[axis : prog.n_x : 4], ubx[axis : prog.n_x : 4] = lo, np.maximum(hi, lo)
+        if not b.warm:
+            prog.cold_start(x0)
+        info: SolveInfo = prog.nlp.solve()
+        sol = prog.nlp.res["x"]
+        xs = sol[: prog.n_x].reshape(prog.H, 4)
+        us = sol[prog.n_x :].reshape(prog.H, 2)
+        status, message = info.status, info.message
+        lo_u, hi_u = np.asarray(prog.limits.u_min), np.asarray(prog.limits.u_max)
+        finite = bool(np.all(np.isfinite(sol)))
+        if finite:
+            u = np.clip(us[0], lo_u, hi_u)
+            prog.shift()
+            b.warm = True
+        else:
+            # no usable iterate: continue the previous plan (its next input is the warm start's first input)
+            u = np.clip(np.nan_to_num(args["x0"][prog.n_x : prog.n_x + 2]), lo_u, hi_u) if b.warm else np.zeros(2)
+            status = "Invalid_Iterate" if status != "Exception" else status
+            message = message or "IPOPT returned a non-finite iterate"
+            b.warm = False
+        predicted = np.concatenate([x0[None], xs])
+        return MPCStep(
+            step=step, input=u, predicted=predicted, predicted_inputs=us.copy(), status=status,
+            success=info.success and finite, iterations=info.iterations, objective=info.objective,
+            solve_time=info.time, step_time=time.perf_counter() - t_start, message=message,
+        )
+
+    # -------------------------------------------------------------- closed loop
+    def _measure(self, x: Tensor) -> np.ndarray:
+        xs = self.system.measure(x) if self.config.biased_measurement else x
+        return xs[:4].detach().cpu().numpy().astype(float)
+
+    def _plant(self, x: Tensor, u: np.ndarray) -> Tensor:
+        cfg = self.config
+        uu = torch.as_tensor(u, dtype=x.dtype).expand(cfg.substeps, 2)
+        return self.system.rollout(x, uu, cfg.stage_dt / cfg.substeps)[-1]
+
+    def plan(self, problem: PlanningProblem) -> PlanResult:
+        """Closed-loop run from the problem's reference start (mean of the initial law, no bias)."""
+        return self.plan_from(problem, problem.reference_start(torch.float64))
+
+    def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
+        """Closed-loop run from the true initial state ``true_state (nx,)`` (its bias enters the measurement
+        when ``biased_measurement``). Never raises: failures are reported in the result's status."""
+        t_start = time.perf_counter()
+        steps: list[MPCStep] = []
+        states: list[Tensor] = []
+        inputs: list[Tensor] = []
+        try:
+            builds = self.n_builds
+            self.reset(problem)
+            t_build = self.build_time if self.n_builds > builds else 0.0
+            t_pre = self.precompute_time
+            x = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
+            if x.shape != (problem.system.nx,):
+                raise ValueError(f"true_state must have {problem.system.nx} entries, got shape {tuple(x.shape)}")
+            goal = torch.tensor(problem.goal, dtype=torch.float64)
+            states.append(x)
+            stop = self.config.goal_stop_distance
+            for h in range(self._bound.n_steps):
+                st = self.solve(self._measure(x), h)
+                steps.append(st)
+                x = self._plant(x, st.input)
+                states.append(x)
+                inputs.append(torch.as_tensor(st.input, dtype=torch.float64))
+                if not bool(torch.isfinite(x).all()):
+                    raise FloatingPointError(f"the state became non-finite at step {h}")
+                if stop > 0 and float(torch.linalg.norm(x[:2] - goal)) < stop:
+                    break
+        except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
+            log.warning("%s failed: %s", self.name, exc)
+            return self._result(problem, PlanStatus.ERROR, states, inputs, steps, t_start, 0.0, 0.0,
+                                f"{type(exc).__name__}: {exc}")
+        return self._result(problem, PlanStatus.SUCCESS, states, inputs, steps, t_start, t_build, t_pre, "")
+
+    def _result(self, problem: PlanningProblem, status: PlanStatus, states: list[Tensor], inputs: list[Tensor],
+                steps: list[MPCStep], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
+        kw = {"dtype": self.dtype, "device": self.device}
+        counts = Counter(s.status for s in steps)
+        n_fail = sum(1 for s in steps if not s.success)
+        step_times = [s.step_time for s in steps]
+        extras: dict[str, Any] = {
+            "tube_radius": self.config.tube_radius,
+            "n_tube_offsets": int(tube_offsets(self.config.tube_radius, self.config.tube_lattice).shape[0]),
+            "tube_precomputed": bool(self._program is not None and self._program.precomputed),
+            "biased_measurement": self.config.biased_measurement,
+            "n_builds": self.n_builds,
+            "n_failed_steps": n_fail,
+            "step_status_counts": dict(counts),
+            "step_status": [s.status for s in steps],
+            "step_iterations": [s.iterations for s in steps],
+            "step_times": step_times,
+            "solve_times": [s.solve_time for s in steps],
+            "step_time_median": float(np.median(step_times)) if steps else math.nan,
+            "applied_inputs": [s.input.tolist() for s in steps],
+            "predicted_states": [s.predicted.tolist() for s in steps],
+        }
+        if n_fail and not message:
+            message = (f"{n_fail} of {len(steps)} steps did not converge ({dict(counts)}); the last iterate was "
+                       "applied")
+        result = PlanResult(planner=self.name, status=status, message=message, extras=extras,
+                            iterations={"steps": len(steps), "ipopt": sum(s.iterations for s in steps)})
+        if len(states) >= 2:
+            x = torch.stack(states).to(**kw)
+            u = torch.stack(inputs).to(**kw)
+            result.states = x
+            result.extras["applied_inputs_plan"] = u.tolist()
+            try:
+                result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
+                result.extras["objective"] = mpc_objective(problem.scene.grid, x, u, problem.goal,
+                                                           self.config.weights, dt=self.config.stage_dt)
+            except Exception as exc:  # noqa: BLE001
+                result.message += f" (evaluation failed: {exc})"
+        elif states:
+            result.states = torch.stack(states).to(**kw)
+        online = float(sum(step_times))
+        result.timings = {"nlp_build": t_build, "tube_precompute": t_pre, "online": online,
+                          "total": time.perf_counter() - t_start}
+        return result
+
+
+@torch.no_grad()
+def mpc_objective(
+    grid: OccupancyGrid,
+    states: Tensor,
+    inputs: Tensor,
+    goal: tuple[float, float],
+    weights: MPCWeights,
+    *,
+    offsets: np.ndarray | None = None,
+    dt: float = 0.1,
+) -> dict[str, float]:
+    """``J_MPC`` (paper Eq. (11)) of a whole trajectory ``states (T, >=2)`` on the 0.1-s grid with
+    ``inputs (T - 1, 2)``, from ``h = 0`` over ``T - 1`` stages: the oracle's objective, also used to compare the
+    closed-loop MPC runs with it. Terms unweighted, ``total`` weighted; occupancy interpolated bilinearly (fill 1
+    outside the map), summed over ``offsets (M, 2)`` [m] if given."""
+    states = states.detach().to("cpu", torch.float64)
+    inputs = inputs.detach().to("cpu", torch.float64)
+    g = grid.to("cpu")
+    T = states.shape[0]
+    k = g.slice_index(torch.arange(T, dtype=torch.float64) * dt)
+    pos = states[:, :2]
+    if offsets is not None:
+        pos = pos[:, None, :] + torch.as_tensor(offsets, dtype=torch.float64)[None]
+        occ = g.lookup(pos, k[:, None]).sum(-1)
+    else:
+        occ = g.lookup(pos, k)
+    terms = {
+        "goal": float((states[-1, :2] - torch.tensor(goal, dtype=torch.float64)).pow(2).sum()),
+        "input": float(inputs.pow(2).sum()),
+        "collision": float(occ.pow(2).sum()),
+    }
+    terms["total"] = weights.goal * terms["goal"] + weights.input * terms["input"] + weights.collision * terms[
+        "collision"]
+    return terms
+
+
+def _mpc_factory(ctx: PlannerContext, config: MPCConfig, name: str) -> MPCPlanner:
+    return MPCPlanner(config, name=name, system=ctx.system if isinstance(ctx.system, KinematicCar) else None,
+                      evaluation_cost=ctx.config.density_planner.cost, dtype=ctx.dtype, device=ctx.device)
+
+
+@register_planner("mpc", "standard MPC M0 (CasADi/IPOPT, 1-s horizon, collision term P_occ^2; extra 'mpc')")
+def _make_mpc(ctx: PlannerContext) -> MPCPlanner:
+    return _mpc_factory(ctx, replace(ctx.config.mpc, tube_radius=0.0), "mpc")
+
+
+@register_planner("tube_mpc", "tube MPC with the radius of [tube_mpc] tube_radius (extra 'mpc')")
+def _make_tube_mpc(ctx: PlannerContext) -> MPCPlanner:
+    cfg = ctx.config.tube_mpc
+    return _mpc_factory(ctx, cfg, tube_mpc_name(cfg.tube_radius))
+
+
+def _register_tube(radius: float, label: str) -> None:
+    name = tube_mpc_name(radius)
+
+    @register_planner(name, f"tube MPC {label} (radius {radius:g} m, [tube_mpc] settings; extra 'mpc')")
+    def _make(ctx: PlannerContext) -> MPCPlanner:
+        return _mpc_factory(ctx, replace(ctx.config.tube_mpc, tube_radius=radius), name)
+
+
+for _r, _label in zip(TUBE_RADII, ("M1", "M2", "M3")):
+    _register_tube(_r, _label)

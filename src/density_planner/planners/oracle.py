@@ -1,0 +1,295 @@
+"""The oracle baseline O (paper §V "Baseline methods"): the full-horizon ``J_MPC`` problem (``h = 0``,
+``H = N = 100``) solved offline from the TRUE initial state with the exact model and no time limit.
+
+One NLP (CasADi ``nlpsol`` + IPOPT)::
+
+    min   alpha_G ||p_N - p_goal||^2 + alpha_C sum_{k=1}^{N} P_occ(p_k, t_k)^2 + alpha_I sum_{k=0}^{N-1} ||u_k||^2
+    s.t.  x_{k+1} = F(x_k, u_k),  x_0 = true initial state (4 states; the oracle never sees the bias)
+          u_k = p[:, segment(k)]     (the planner's piecewise-constant inputs: 10 segments of 1 s)
+          |p| <= 3,  p_k in the map,  theta and v in the car's state box
+
+over the parameters ``p (2, 10)`` and the states ``x_1..x_N`` (multiple shooting on the 0.1-s planning grid,
+``F`` = 10 explicit-Euler steps of 0.01 s, identical to the reference rollout). The occupancy enters through a
+linear interpolant over (x, y, slice) whose values are the scene's whole occupancy grid as constant data, so the
+NLP is built once per scene (``n_builds`` counts it; the restarts and later :meth:`OraclePlanner.plan_from`
+calls on the same scene reuse it): the full grid is 101 x 241 x 401 values, too many to pass as a parameter on
+every function evaluation.
+
+Restarts (``original.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
+``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every solution
+is re-simulated open loop and scored with the same ``J_MPC`` (:func:`~density_planner.planners.mpc.mpc_objective`);
+the best converged one is kept (the paper's code kept the lowest collision term). The reported planning time is the
+sum of all restarts plus the NLP construction.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..checks import check_choice
+from ..control.reference import make_reference
+from ..cost.composite import CostConfig
+from ..systems.car import BIAS, THETA, KinematicCar, V
+from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
+from ._report import evaluate_trajectory
+from .base import Planner, PlanResult, PlanStatus
+from .mpc import MPCWeights, mpc_objective
+from .problem import PlanningProblem
+from .registry import PlannerContext, register_planner
+
+__all__ = ["OracleConfig", "OraclePlanner"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OracleConfig:
+    """Settings of the oracle (``original.md`` §12)."""
+
+    #: number of IPOPT solves: a zero initial guess, then random guesses
+    restarts: int = 10
+    #: standard deviation of the random initial parameters (clipped to the input bounds)
+    init_std: float = 0.5
+    #: seed of the random initial guesses
+    seed: int = 0
+    #: IPOPT iteration limit per restart
+    max_iter: int = 5000
+    #: IPOPT CPU-time limit per restart [s] (None: no limit, as the paper)
+    max_cpu_time: float | None = None
+    #: IPOPT Hessian: "exact" or "limited-memory"
+    hessian: Literal["exact", "limited-memory"] = "exact"
+    #: weights of J_MPC (the paper: the planner's alphas)
+    weights: MPCWeights = field(default_factory=MPCWeights)
+
+    def __post_init__(self) -> None:
+        for name in ("restarts", "max_iter"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+        if not math.isfinite(self.init_std) or self.init_std < 0:
+            raise ValueError(f"init_std must be a finite number >= 0, got {self.init_std!r}")
+        if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
+            raise ValueError(f"max_cpu_time must be > 0 or None, got {self.max_cpu_time!r}")
+        check_choice("hessian", self.hessian, ("exact", "limited-memory"))
+
+
+class _OracleProgram:
+    """The oracle NLP for one scene (grid values are constants of the interpolant)."""
+
+    def __init__(self, ca: Any, config: OracleConfig, problem: PlanningProblem):
+        par = problem.parameterization
+        grid = problem.scene.grid
+        car: KinematicCar = problem.system  # type: ignore[assignment]
+        self.grid = grid
+        self.n_seg = par.n_segments
+        self.N = par.n_plan - 1  # stages of plan_dt
+        if self.N % self.n_seg:
+            raise ValueError(f"{self.N} planning steps do not split into {self.n_seg} segments")
+        per_seg = self.N // self.n_seg
+        T, NX, NY = grid.shape
+        xs = [float(v) for v in grid.xs]
+        ys = [float(v) for v in grid.ys]
+        ts = [float(k) for k in range(T)] if T > 1 else [0.0, 1.0]
+        probs = grid.probs.detach().to("cpu", torch.float64).numpy()
+        if T == 1:
+            probs = np.concatenate([probs, probs])
+        values = np.ascontiguousarray(probs.transpose(0, 2, 1)).ravel()  # x fastest, then y, then slice
+        occ = ca.interpolant("occ", "linear", [xs, ys, ts], values)
+        slices = grid.slice_index(torch.arange(self.N + 1, dtype=torch.float64) * par.plan_dt).tolist()
+
+        F = car_step_function(ca, par.plan_dt, par.plan_stride)
+        Pm = ca.MX.sym("params", 2, self.n_seg)
+        X = ca.MX.sym("X", 4, self.N)
+        prm = ca.MX.sym("p", 6)  # x0 (4), goal (2)
+        w = config.weights
+        g = []
+        prev = prm[0:4]
+        for k in range(self.N):
+            g.append(X[:, k] - F(prev, Pm[:, k // per_seg]))
+            prev = X[:, k]
+        pts = ca.vertcat(X[0:2, :], ca.DM([slices[1:]]))
+        J = (w.goal * ca.sumsqr(X[0:2, self.N - 1] - prm[4:6]) + w.collision * ca.sumsqr(occ(pts))
+             + w.input * per_seg * ca.sumsqr(Pm))
+        nlp = {"x": ca.vertcat(ca.vec(Pm), ca.vec(X)), "p": prm, "f": J, "g": ca.vertcat(*g)}
+        opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
+        self.nlp = BufferedNLP(ca.nlpsol("oracle", "ipopt", nlp, opts))
+        self.n_p = 2 * self.n_seg
+        lbx, ubx = self.nlp.args["lbx"], self.nlp.args["ubx"]
+        cfg = car.config
+        lbx[0 : self.n_p : 2], ubx[0 : self.n_p : 2] = cfg.input_min[0], cfg.input_max[0]
+        lbx[1 : self.n_p : 2], ubx[1 : self.n_p : 2] = cfg.input_min[1], cfg.input_max[1]
+        xmin, xmax, ymin, ymax = grid.bounds
+        for i, (lo, hi) in enumerate([(xmin, xmax), (ymin, ymax), (cfg.state_min[THETA], cfg.state_max[THETA]),
+                                      (cfg.state_min[V], cfg.state_max[V])]):
+            lbx[self.n_p + i :: 4], ubx[self.n_p + i :: 4] = lo, hi
+        self.limits = (cfg.input_min, cfg.input_max)
+
+    def params_of(self, sol: np.ndarray) -> np.ndarray:
+        """``(2, n_segments)`` parameters of a solution vector."""
+        return sol[: self.n_p].reshape(self.n_seg, 2).T.copy()
+
+
+class OraclePlanner(Planner):
+    """Full-horizon NLP from the true initial state with restarts (see the module docstring)."""
+
+    name = "oracle"
+
+    def __init__(
+        self,
+        config: OracleConfig | None = None,
+        *,
+        evaluation_cost: CostConfig | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+    ):
+        """
+        Args:
+            config: oracle settings.
+            evaluation_cost: cost configuration of the reported (evaluation-form) cost (default :class:`CostConfig`).
+
+        Raises:
+            OptionalDependencyError: CasADi (extra ``mpc``) is not installed.
+        """
+        self._ca = import_casadi("the oracle baseline")
+        self.config = config or OracleConfig()
+        self.evaluation_cost = evaluation_cost or CostConfig()
+        self.dtype = dtype
+        self.device = torch.device(device)
+        #: number of NLP constructions so far (one per scene)
+        self.n_builds = 0
+        self._program: _OracleProgram | None = None
+        self._program_key: tuple | None = None
+
+    def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
+        key = (problem.scene.grid, problem.parameterization, problem.system.config)
+        if self._program is None or self._program_key is None or any(
+            a is not b and a != b for a, b in zip(self._program_key, key)
+        ):
+            t0 = time.perf_counter()
+            self._program = _OracleProgram(self._ca, self.config, problem)
+            self._program_key = key
+            self.n_builds += 1
+            t = time.perf_counter() - t0
+            log.info("oracle: NLP built in %.2f s", t)
+            return self._program, t
+        return self._program, 0.0
+
+    def plan(self, problem: PlanningProblem) -> PlanResult:
+        """Plan from the problem's reference start (the mean of the initial law, without bias)."""
+        return self.plan_from(problem, problem.reference_start(torch.float64))
+
+    def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
+        """Plan from the true initial state ``true_state (nx,)`` (its bias is ignored). Never raises."""
+        t_start = time.perf_counter()
+        try:
+            return self._plan(problem, true_state, t_start)
+        except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
+            log.warning("oracle failed: %s", exc)
+            return PlanResult(self.name, PlanStatus.ERROR, message=f"{type(exc).__name__}: {exc}",
+                              timings={"total": time.perf_counter() - t_start})
+
+    def _guesses(self, problem: PlanningProblem) -> Tensor:
+        cfg = self.config
+        lo, hi = problem.system.input_bounds
+        n_seg = problem.parameterization.n_segments
+        gen = torch.Generator().manual_seed(cfg.seed)
+        rand = cfg.init_std * torch.randn(cfg.restarts - 1, 2, n_seg, dtype=torch.float64, generator=gen)
+        p = torch.cat([torch.zeros(1, 2, n_seg, dtype=torch.float64), rand])
+        low = torch.tensor(lo, dtype=torch.float64)[:, None]
+        high = torch.tensor(hi, dtype=torch.float64)[:, None]
+        return torch.maximum(torch.minimum(p, high), low)
+
+    def _plan(self, problem: PlanningProblem, true_state: Tensor, t_start: float) -> PlanResult:
+        if not isinstance(problem.system, KinematicCar):
+            raise ValueError(f"the oracle needs the KinematicCar system, got {type(problem.system).__name__}")
+        system, par, cfg = problem.system, problem.parameterization, self.config
+        prog, t_build = self._program_for(problem)
+        start = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
+        if start.shape != (system.nx,) or not bool(torch.isfinite(start).all()):
+            raise ValueError(f"true_state must hold {system.nx} finite numbers, got {true_state!r}")
+        start[BIAS] = 0.0  # the oracle knows the exact model: no measurement bias
+        args = prog.nlp.args
+        args["p"][0:4] = start[:4].numpy()
+        args["p"][4:6] = problem.goal
+        stride = par.plan_stride
+        restarts: list[dict[str, Any]] = []
+        best: tuple[float, int] | None = None
+        t_solve = 0.0
+        for r, p0 in enumerate(self._guesses(problem)):
+            ref0 = make_reference(system, start, p0, par)
+            args["x0"][: prog.n_p] = p0.T.reshape(-1).numpy()
+            args["x0"][prog.n_p :] = ref0.x[stride::stride, :4].reshape(-1).numpy()
+            args["lam_x0"][:] = 0.0
+            args["lam_g0"][:] = 0.0
+            info: SolveInfo = prog.nlp.solve()
+            t_solve += info.time
+            sol = prog.nlp.res["x"]
+            entry: dict[str, Any] = {"status": info.status, "success": info.success, "iterations": info.iterations,
+                                     "time": info.time, "objective": math.nan}
+            if np.all(np.isfinite(sol)):
+                params = torch.from_numpy(prog.params_of(sol)).clamp(-1e9, 1e9)
+                lo, hi = prog.limits
+                params = torch.maximum(torch.minimum(params, torch.tensor(hi, dtype=torch.float64)[:, None]),
+                                       torch.tensor(lo, dtype=torch.float64)[:, None])
+                ref = make_reference(system, start, params, par)
+                obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
+                                    dt=par.plan_dt)
+                entry["objective"] = obj["total"]
+                entry["params"] = params
+                rank = (0 if info.success else 1, obj["total"])
+                if math.isfinite(obj["total"]) and (best is None or rank < best):
+                    best = rank
+                    entry["best"] = True
+            restarts.append(entry)
+            log.debug("oracle restart %d: %s, %d iterations, J = %.4g", r, info.status, info.iterations,
+                      entry["objective"])
+        t_total = time.perf_counter() - t_start
+        summary = [{k: v for k, v in e.items() if k not in ("params", "best")} for e in restarts]
+        extras: dict[str, Any] = {"restarts": summary, "n_builds": self.n_builds}
+        timings = {"nlp_build": t_build, "solve": t_solve, "total": t_total}
+        iterations = {"restarts": len(restarts), "ipopt": sum(e["iterations"] for e in restarts)}
+        if best is None:
+            return PlanResult(self.name, PlanStatus.FAILED, timings=timings, iterations=iterations, extras=extras,
+                              message="no restart returned a finite iterate")
+        i_best = max(i for i, e in enumerate(restarts) if e.get("best"))
+        params = restarts[i_best]["params"]
+        converged = best[0] == 0
+        kw = {"dtype": self.dtype, "device": self.device}
+        ref = make_reference(system, start.to(**kw), params.to(**kw), par)
+        cost, coll = evaluate_trajectory(problem, ref.x_plan, ref.u_plan, cost_config=self.evaluation_cost)
+        extras["best_restart"] = i_best
+        extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
+                                            dt=par.plan_dt)
+        n_conv = sum(1 for e in restarts if e["success"])
+        message = f"{n_conv} of {len(restarts)} restarts converged; best: restart {i_best}"
+        if not converged:
+            message = f"no restart converged; the best last iterate (restart {i_best}) is reported"
+        return PlanResult(
+            planner=self.name,
+            status=PlanStatus.SUCCESS if converged else PlanStatus.FAILED,
+            params=params.to(**kw),
+            reference=ref,
+            states=ref.x_plan,
+            cost=cost,
+            collision=coll,
+            timings=timings,
+            iterations=iterations,
+            message=message,
+            extras=extras,
+        )
+
+
+@register_planner("oracle", "oracle O: full-horizon NLP from the true start, 10 restarts (CasADi/IPOPT; extra 'mpc')")
+def _make_oracle(ctx: PlannerContext) -> OraclePlanner:
+    return OraclePlanner(ctx.config.oracle, evaluation_cost=ctx.config.density_planner.cost, dtype=ctx.dtype,
+                         device=ctx.device)
