@@ -22,6 +22,7 @@ from .density.liouville import LiouvilleConfig
 from .environment.commonroad import CommonRoadSceneConfig
 from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
+from .evaluation.config import EvaluationConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig
 from .planners.oracle import OracleConfig
@@ -50,3 +51,5 @@ class RunConfig:
     tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
     #: [oracle]: the full-horizon NLP from the true initial state (planner "oracle")
     oracle: OracleConfig = field(default_factory=OracleConfig)
+    #: [evaluation]: closed-loop evaluation and benchmarks (Monte-Carlo samples, failure thresholds, execution)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
