@@ -7,7 +7,8 @@
   valid runs);
 * :mod:`.benchmark`: the ``ablation``, ``artificial`` and ``real`` sweeps with one resumable JSON record per run,
   serial, joblib or Dask;
-* :mod:`.report`: ``summary.csv`` / ``summary.md`` from the records alone (figures: :mod:`density_planner.viz.benchmark`).
+* :mod:`.report`: ``summary.csv`` / ``summary.md`` from the records alone (figures:
+  :mod:`density_planner.viz.benchmark`).
 """
 
 from .benchmark import (

@@ -51,7 +51,7 @@ import torch
 from ..config import to_dict
 from ..io.atomic import atomic_save_npz, atomic_write_json
 from ..parallel import run_tasks
-from ..planners.base import PlanResult, PlanStatus
+from ..planners.base import PlanResult
 from ..planners.problem import PlanningProblem
 from ..systems.car import BIAS
 from .config import EvaluationConfig
@@ -196,7 +196,9 @@ def _ind_duration(data_dir: Path, recording: int) -> float | None:
     return float(d) if isinstance(d, float) and math.isfinite(d) else None
 
 
-def real_envs(indices: Sequence[int], data_dir: str | Path | None = None, *, window: float = 10.0) -> tuple[EnvSpec, ...]:
+def real_envs(
+    indices: Sequence[int], data_dir: str | Path | None = None, *, window: float = 10.0
+) -> tuple[EnvSpec, ...]:
     """Recorded-traffic environments.
 
     With ``data_dir``: inD recordings there (``NN_tracks.csv`` ...) or CommonRoad scenarios (``*.xml``). inD: the
@@ -508,7 +510,9 @@ def error_record(job: Job, variant: str, error: str, where: str = "run") -> dict
     return rec
 
 
-def _true_states(problem: PlanningProblem, env: EnvSpec, eval_cfg: EvaluationConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def _true_states(
+    problem: PlanningProblem, env: EnvSpec, eval_cfg: EvaluationConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The run's true initial state ``(nx,)`` and the Monte-Carlo states ``(M_max, nx)``, float64, bias included;
     the same for every planner of the environment."""
     dist = problem.initial_distribution
@@ -738,11 +742,13 @@ def run_benchmark(
     progress: bool = False,
     retry_errors: bool = False,
     run_info: dict[str, Any] | None = None,
+    job_fn: Any = None,
 ) -> SweepReport:
     """Run every missing record of ``spec`` into ``out`` (serial, joblib ``workers`` or a Dask ``scheduler``).
 
     Records are written by this process as jobs finish; a job whose worker died (or that could not be run at all)
-    becomes failure records with the error. Returns counts and the wall time.
+    becomes failure records with the error. ``job_fn`` replaces :func:`run_job` (a picklable module-level function
+    ``job -> JobResult``; for tests and instrumentation). Returns counts and the wall time.
     """
     out = Path(out)
     t0 = time.perf_counter()
@@ -762,7 +768,7 @@ def run_benchmark(
     written = failed = errors = 0
     bar = tqdm(total=pending, desc=f"bench {spec.setting}", unit="run", disable=not progress)
     try:
-        outcomes: Iterator = run_tasks(run_job, jobs, workers=workers, scheduler=scheduler,
+        outcomes: Iterator = run_tasks(job_fn or run_job, jobs, workers=workers, scheduler=scheduler,
                                        threads_per_worker=spec.evaluation.threads_per_worker, progress=False)
         for outcome in outcomes:
             job = jobs[outcome.index]

@@ -59,7 +59,8 @@ class EvaluationConfig:
                 raise ValueError(f"evaluation.{name} must be an integer >= 0, got {v!r}")
         if isinstance(self.threads_per_worker, bool) or not isinstance(self.threads_per_worker, int) or (
                 self.threads_per_worker < 1):
-            raise ValueError(f"evaluation.threads_per_worker must be a positive integer, got {self.threads_per_worker!r}")
+            raise ValueError(
+                f"evaluation.threads_per_worker must be a positive integer, got {self.threads_per_worker!r}")
         if not 0.0 <= self.collision_threshold < 1.0:
             raise ValueError(f"evaluation.collision_threshold must lie in [0, 1), got {self.collision_threshold!r}")
         for name in ("max_collision_cost", "max_goal_distance", "max_bounds_cost", "plan_time_limit", "dt"):

@@ -62,8 +62,10 @@ def _bars(ax, rows: Sequence[Mapping[str, Any]], metric: str, *, annotate: bool 
             y = heights[i] if np.isfinite(heights[i]) else 0
             ax.annotate(text, (x[i], y if np.isfinite(y) else 0), textcoords="offset points", xytext=(0, 2),
                         ha="center", va="bottom", fontsize=7)
-    if log:
+    if log and (finite & (vals > 0)).any():
         ax.set_yscale("log")
+    elif log:
+        ax.set_ylim(0, 1)
     elif metric == "failure_rate":
         ax.set_ylim(0, 110)
     else:
@@ -112,8 +114,8 @@ def plot_env_trajectories(
     goal: Sequence[float] | None = None,
     title: str | None = None,
 ) -> Path:
-    """Executed trajectories ``label -> (planner, biased, states (T, >=2))`` of one environment over its time-max occupancy
-    (``scene_map`` from the records; plain axes without it), references dashed."""
+    """Executed trajectories ``label -> (planner, biased, states (T, >=2))`` of one environment over its time-max
+    occupancy (``scene_map`` from the records; plain axes without it), references dashed."""
     fig, ax = plt.subplots(figsize=(6.2, 7.0))
     if scene_map is not None:
         occ = np.asarray(scene_map["occupancy_u8"], dtype=float) / 255.0
