@@ -24,8 +24,10 @@ from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .evaluation.config import EvaluationConfig
 from .planners.density_planner import DensityPlannerConfig
-from .planners.mpc import MPCConfig
+from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
+from .planners.sampling import SamplingConfig
+from .planners.search import SearchConfig
 
 __all__ = ["RunConfig"]
 
@@ -40,16 +42,20 @@ class RunConfig:
     liouville: LiouvilleConfig = field(default_factory=LiouvilleConfig)
     #: [random_scene]: the artificial scene generator
     random_scene: RandomSceneConfig = field(default_factory=RandomSceneConfig)
-    #: [ind]: scenes from inD recordings
-    ind: IndSceneConfig = field(default_factory=IndSceneConfig)
-    #: [commonroad]: scenes from CommonRoad scenarios
-    commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
     #: [mpc]: standard MPC M0 (planner "mpc"); its tube_radius is ignored (always 0)
     mpc: MPCConfig = field(default_factory=MPCConfig)
     #: [tube_mpc]: tube MPC M1-M3 (planners "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0" fix their radius;
     #: planner "tube_mpc" uses tube_radius); 10 IPOPT iterations per step as the paper's code
-    tube_mpc: MPCConfig = field(default_factory=lambda: MPCConfig(max_iter=10, tube_radius=0.5))
+    tube_mpc: TubeMPCConfig = field(default_factory=TubeMPCConfig)
     #: [oracle]: the full-horizon NLP from the true initial state (planner "oracle")
     oracle: OracleConfig = field(default_factory=OracleConfig)
+    #: [search]: the search-based optimiser of the ablation (planner "search")
+    search: SearchConfig = field(default_factory=SearchConfig)
+    #: [sampling]: the sampling-based optimiser of the ablation (planner "sampling")
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    #: [ind]: scenes from inD recordings
+    ind: IndSceneConfig = field(default_factory=IndSceneConfig)
+    #: [commonroad]: scenes from CommonRoad scenarios
+    commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
     #: [evaluation]: closed-loop evaluation and benchmarks (Monte-Carlo samples, failure thresholds, execution)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)

@@ -20,8 +20,9 @@ are the measured state, the goal, the goal weight and, per stage ``k``, a square
 of time ``t_{h+k}`` around the measured position, read by a *parametric* linear interpolant
 (``casadi.interpolant(..., 'linear', grid, 1)``, values as an input). The window of stage ``k`` has a fixed size
 covering every position reachable in ``k`` stages (``k * 0.1 s * (v_max + a_max * 0.1 s)``) plus the tube radius,
-so the NLP structure is the same for every step and every map, the parameter vector stays small (~1.6e5 values
-for M0 instead of 101 x 241 x 401 for a full map) and large recorded maps cost no more than the artificial ones.
+so the NLP structure is the same for every step and every map, the parameter vector stays small (1.8e5 values
+for M0 at 0.1 m instead of 10 x 241 x 401 for full slices) and large recorded maps cost no
+more than the artificial ones.
 The reachable box is also imposed as (non-binding) variable bounds, so that intermediate IPOPT iterates never
 leave the windows. Cells of a window outside the map read 1 ("outside the map is occupied").
 Each step warm-starts IPOPT from the previous solution shifted by one stage (the first step: zero inputs and
@@ -61,6 +62,7 @@ from .registry import PlannerContext, register_planner
 __all__ = [
     "MPCWeights",
     "MPCConfig",
+    "TubeMPCConfig",
     "MPCStep",
     "MPCPlanner",
     "TUBE_RADII",
@@ -114,7 +116,7 @@ class MPCConfig:
     #: weights of J_MPC
     weights: MPCWeights = field(default_factory=MPCWeights)
     #: multiply alpha_G by (h / N)^2 at step h of N (the paper's code; not in the paper, hence off by default)
-    goal_weight_growth: bool = False
+    goal_weight_growth: bool = True
     #: tube radius r [m]: 0 for standard MPC (M0); 0.3, 0.5, 1.0 for M1, M2, M3
     tube_radius: float = 0.0
     #: spacing of the lattice of offsets inside the tube disc [m]
@@ -160,6 +162,17 @@ def tube_mpc_name(radius: float) -> str:
     """Registered name of the tube MPC with ``radius`` [m]: ``tube_mpc_0.3``, ``tube_mpc_0.5``, ``tube_mpc_1.0``."""
     text = f"{radius:g}"
     return f"tube_mpc_{text if '.' in text else text + '.0'}"
+
+
+@dataclass(frozen=True)
+class TubeMPCConfig(MPCConfig):
+    """Settings of the tube MPC (M1-M3): :class:`MPCConfig` with the paper code's 10 IPOPT iterations per step.
+    The registered planners ``tube_mpc_0.3/0.5/1.0`` replace ``tube_radius``; ``tube_mpc`` uses it."""
+
+    #: IPOPT iteration limit per step (original: 10 for the tube variants)
+    max_iter: int = 10
+    #: tube radius r [m] of the planner "tube_mpc"
+    tube_radius: float = 0.5
 
 
 def _lattice_cells(lattice: float, cell: float) -> int | None:
