@@ -127,15 +127,22 @@ def spec_from_args(args: argparse.Namespace, run_config):
                          density=args.density)
 
 
-def _check_components(spec) -> None:
-    """Load the controller and the density predictor once here, so that a bad name fails before the sweep."""
-    from ..control.registry import load_controller
-    from ..density.registry import load_predictor
+def _resolve_components(spec):
+    """Resolve the default controller and predictor names and load both once (a bad name fails before the sweep);
+    the spec gets the resolved names and the digest of their weights."""
+    from dataclasses import replace
+
+    from ..control.registry import DEFAULT_CONTROLLER, load_controller
+    from ..density.registry import DEFAULT_PREDICTOR, load_predictor
+    from ..evaluation.benchmark import component_digest
     from ..systems.car import KinematicCar
 
-    controller = load_controller(spec.controller)
-    if "density" in spec.planners:
-        load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    controller_name = spec.controller or DEFAULT_CONTROLLER
+    density_name = spec.density or DEFAULT_PREDICTOR
+    controller = load_controller(controller_name)
+    predictor = load_predictor(density_name, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    return replace(spec, controller=controller_name, density=density_name,
+                   components=component_digest(controller, predictor))
 
 
 def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
@@ -154,8 +161,7 @@ def run_bench(args: argparse.Namespace) -> int:
     from .plan import versions
 
     run_config = load_config(RunConfig, args.config, args.overrides)
-    spec = spec_from_args(args, run_config)
-    _check_components(spec)
+    spec = _resolve_components(spec_from_args(args, run_config))
     if args.plot_envs < 0:
         raise ValueError(f"--plot-envs must be >= 0, got {args.plot_envs}")
     out = out_dir(args.out)

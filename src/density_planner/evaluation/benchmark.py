@@ -284,6 +284,9 @@ class BenchmarkSpec:
     controller: str | None = None
     #: density predictor of the density planner (``None``: the package default)
     density: str | None = None
+    #: digest of the loaded controller and predictor weights (:func:`component_digest`), so that records made with
+    #: other weights under the same name are never mixed
+    components: str = ""
 
     def __post_init__(self) -> None:
         if self.setting not in SETTINGS:
@@ -314,7 +317,34 @@ class BenchmarkSpec:
 
 def _config_payload(spec: BenchmarkSpec) -> dict[str, Any]:
     return {"schema": RECORD_SCHEMA, "setting": spec.setting, "run_config": to_dict(spec.run_config),
-            "controller": spec.controller, "density": spec.density}
+            "controller": spec.controller, "density": spec.density, "components": spec.components}
+
+
+def component_digest(*components: Any) -> str:
+    """Digest of the parameters of ``components`` (torch modules, or objects holding modules as attributes);
+    ``""`` when none has parameters (analytic controller, exact Liouville)."""
+    h = hashlib.sha256()
+    found = False
+    seen: set[int] = set()
+
+    def add(module: torch.nn.Module) -> None:
+        nonlocal found
+        if id(module) in seen:
+            return
+        seen.add(id(module))
+        for name, t in sorted(module.state_dict().items()):
+            h.update(name.encode())
+            h.update(t.detach().cpu().contiguous().numpy().tobytes())
+            found = True
+
+    for c in components:
+        if isinstance(c, torch.nn.Module):
+            add(c)
+        else:
+            for v in vars(c).values() if hasattr(c, "__dict__") else ():
+                if isinstance(v, torch.nn.Module):
+                    add(v)
+    return h.hexdigest()[:16] if found else ""
 
 
 def config_hash(spec: BenchmarkSpec) -> str:
