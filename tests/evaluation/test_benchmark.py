@@ -47,7 +47,7 @@ def test_records_resume_and_summary(tmp_path):
     records = load_records(tmp_path)
     assert [(r["planner"], r["variant"]) for r in records] == [("density", "biased"), ("density", "unbiased")]
     for r in records:
-        assert r["status"] == "success" and r["config_hash"] == config_hash(spec)
+        assert r["status"] == "success" and r["config_hash"] == config_hash(spec, "density")
         assert r["error"] is None and r["execution"] == "track"
         assert len(r["trajectory"]) == 101 and len(r["reference"]) == 101
         assert r["metrics"]["mc_samples"] == 8
@@ -78,6 +78,23 @@ def test_a_different_configuration_is_refused(tmp_path):
     assert config_hash(other) != config_hash(_spec())
     with pytest.raises(ValueError, match="different configuration"):
         run_benchmark(other, tmp_path, workers=1)
+    rep = run_benchmark(other, tmp_path, workers=1, redo_stale=True)
+    assert rep.written == 2
+    assert {r["config_hash"] for r in load_records(tmp_path)} == {config_hash(other, "density")}
+
+
+def test_mpc_records_do_not_depend_on_the_learned_components():
+    from dataclasses import replace
+
+    spec = _spec(planners=("density", "mpc"))
+    new = replace(spec, controller="c3m", components="0123")
+    assert config_hash(new, "mpc") == config_hash(spec, "mpc")
+    assert config_hash(new, "oracle") == config_hash(spec, "oracle")
+    assert config_hash(new, "density") != config_hash(spec, "density")
+    assert config_hash(new) != config_hash(spec)
+    tweaked = replace(spec, run_config=tiny_run_config(mpc={"max_iter": 7}))
+    assert config_hash(tweaked, "mpc") != config_hash(spec, "mpc")
+    assert config_hash(tweaked, "density") == config_hash(spec, "density")
 
 
 def test_planner_exception_becomes_a_recorded_failure(tmp_path):
@@ -233,3 +250,43 @@ def test_env_spec_roundtrip():
     env = EnvSpec("random", 3, 3, "random-3")
     assert env.as_dict() == {"kind": "random", "index": 3, "seed": 3, "name": "random-3"}
     assert math.isfinite(stable_seed(env.name))
+
+
+def test_component_digest_tracks_weights():
+    import torch
+
+    from density_planner.control.analytic import CarTrackingController
+    from density_planner.density.liouville import ExactLiouville
+    from density_planner.evaluation.benchmark import component_digest
+    from density_planner.systems.car import KinematicCar
+
+    ctrl = CarTrackingController()
+    # the exact predictor holds the same controller: counted once
+    assert component_digest(ctrl, ExactLiouville(KinematicCar(), ctrl)) == component_digest(ctrl)
+    assert component_digest(object()) == ""
+    net = torch.nn.Linear(3, 2)
+    d1 = component_digest(ctrl, net)
+    assert d1 and component_digest(ctrl, net) == d1
+
+    class Holder:
+        def __init__(self, module):
+            self.network = module
+
+    assert component_digest(Holder(net)) == component_digest(net)
+    with torch.no_grad():
+        net.weight.add_(1.0)
+    assert component_digest(net) != d1
+    spec = _spec()
+    from dataclasses import replace
+
+    assert config_hash(replace(spec, components="abc")) != config_hash(spec)
+
+
+@pytest.mark.slow
+def test_real_setting_on_a_shipped_commonroad_scenario(tmp_path):
+    spec = BenchmarkSpec("real", real_envs([1]), ("density",), ("unbiased",), tiny_run_config())
+    run_benchmark(spec, tmp_path, workers=1)
+    (r,) = load_records(tmp_path)
+    assert r["env"] == "cr-USA_US101-4_1_T-1-s0" and r["status"] == "success", r["error"]
+    assert r["env_spec"]["kind"] == "commonroad" and r["env_spec"]["file"].startswith("<shipped>/")
+    assert len(r["trajectory"]) == 101

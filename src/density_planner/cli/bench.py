@@ -45,6 +45,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_controller(p)
     add_config(p)
     p.add_argument("--retry-errors", action="store_true", help="re-run records whose run raised or whose worker died")
+    p.add_argument("--redo-stale", action="store_true",
+                   help="recompute records of --out made with another configuration (e.g. new controller weights; "
+                   "MPC and oracle records do not depend on the controller and predictor and are kept)")
     p.add_argument("--plot-envs", type=int, default=3, metavar="K",
                    help="trajectory figures for the first K environments (default 3)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -168,7 +171,7 @@ def run_bench(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     info = {"versions": versions(), "command": "density-planner " + " ".join(getattr(args, "argv", []) or [])}
     report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet,
-                           retry_errors=args.retry_errors, run_info=info)
+                           retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info)
     paths = write_report(out, args.plot_envs)
     print(f"bench {spec.setting}: {report.total} runs ({report.skipped} already done, {report.written} written, "
           f"{report.failed_runs} failed, {report.errors} errors) in {time.perf_counter() - t0:.1f} s; "

@@ -315,14 +315,36 @@ class BenchmarkSpec:
         return self.variants
 
 
-def _config_payload(spec: BenchmarkSpec) -> dict[str, Any]:
-    return {"schema": RECORD_SCHEMA, "setting": spec.setting, "run_config": to_dict(spec.run_config),
-            "controller": spec.controller, "density": spec.density, "components": spec.components}
+#: run-configuration sections that every record depends on (scenes, scoring, the reported cost)
+_COMMON_SECTIONS = ("random_scene", "commonroad", "ind", "evaluation")
+
+
+def _section_of(planner: str) -> str:
+    return _SECTIONS.get(planner) or ("tube_mpc" if planner.startswith("tube_mpc") else planner)
+
+
+def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str, Any]:
+    """What the records of ``planner`` depend on (all planners when ``None``): the scene and evaluation sections,
+    the reported cost, the planner's own section and, for planners that track a reference with the controller
+    (density, search, sampling), the Liouville numerics, the controller, the predictor and their weights. MPC and
+    oracle records therefore stay valid when only the learned components change."""
+    cfg = to_dict(spec.run_config)
+    payload: dict[str, Any] = {"schema": RECORD_SCHEMA, "setting": spec.setting}
+    if planner is None:
+        payload.update(run_config=cfg, controller=spec.controller, density=spec.density, components=spec.components)
+        return payload
+    payload.update({k: cfg.get(k) for k in _COMMON_SECTIONS})
+    payload["cost"] = (cfg.get("density_planner") or {}).get("cost")
+    payload["planner"] = {planner: cfg.get(_section_of(planner))}
+    if not _plans_from_true_state(planner):
+        payload.update(liouville=cfg.get("liouville"), controller=spec.controller, density=spec.density,
+                       components=spec.components)
+    return payload
 
 
 def component_digest(*components: Any) -> str:
-    """Digest of the parameters of ``components`` (torch modules, or objects holding modules as attributes);
-    ``""`` when none has parameters (analytic controller, exact Liouville)."""
+    """Digest of the state (parameters and buffers) of ``components``: torch modules, or objects holding modules as
+    attributes (each module counted once); ``""`` when there is none."""
     h = hashlib.sha256()
     found = False
     seen: set[int] = set()
@@ -347,9 +369,10 @@ def component_digest(*components: Any) -> str:
     return h.hexdigest()[:16] if found else ""
 
 
-def config_hash(spec: BenchmarkSpec) -> str:
-    """Hash of everything that changes the records' numbers (setting, run configuration, controller, predictor)."""
-    text = json.dumps(_config_payload(spec), sort_keys=True, default=str)
+def config_hash(spec: BenchmarkSpec, planner: str | None = None) -> str:
+    """Hash of everything that changes the numbers of ``planner``'s records (see :func:`_config_payload`); of the
+    whole sweep when ``planner`` is ``None``."""
+    text = json.dumps(_config_payload(spec, planner), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -397,7 +420,7 @@ def _map_path(out: str | Path, setting: str, env: str) -> Path:
 def make_jobs(spec: BenchmarkSpec, done: set[tuple[str, str, str]] = frozenset(),
               maps_done: set[str] = frozenset()) -> list[Job]:
     """Jobs for every run of ``spec`` not in ``done`` (keys ``(env, planner, variant)``); environment-major."""
-    h = config_hash(spec)
+    hashes = {p: config_hash(spec, p) for p in spec.planners}
     jobs: list[Job] = []
     for env in spec.envs:
         want_map = env.name not in maps_done
@@ -408,7 +431,7 @@ def make_jobs(spec: BenchmarkSpec, done: set[tuple[str, str, str]] = frozenset()
             groups = [(v,) for v in todo] if _plans_from_true_state(planner) else [todo]
             for variants in groups:
                 jobs.append(Job(spec.setting, env, planner, variants, spec.run_config, spec.controller, spec.density,
-                                h, want_map=want_map))
+                                hashes[planner], want_map=want_map))
                 want_map = False
     return jobs
 
@@ -458,7 +481,7 @@ _SECTIONS = {"density": "density_planner", "mpc": "mpc", "oracle": "oracle", "se
 
 def planner_run_config(run_config: Any, planner: str, variant: str | None, seed: int) -> Any:
     """``run_config`` with the planner's section seeded with ``seed`` and, for MPC, the measurement variant set."""
-    section = _SECTIONS.get(planner) or ("tube_mpc" if planner.startswith("tube_mpc") else planner)
+    section = _section_of(planner)
     cfg = getattr(run_config, section, None)
     if cfg is None or not dataclasses.is_dataclass(cfg):
         return run_config
@@ -740,25 +763,28 @@ class SweepReport:
     messages: list[str] = field(default_factory=list)
 
 
-def _existing(out: Path, spec: BenchmarkSpec, retry_errors: bool) -> tuple[set, set]:
-    h = config_hash(spec)
+def _existing(out: Path, spec: BenchmarkSpec, retry_errors: bool, redo_stale: bool) -> tuple[set, set]:
+    hashes = {p: config_hash(spec, p) for p in spec.planners}
     done: set[tuple[str, str, str]] = set()
     stale = []
     d = Path(out) / "records" / spec.setting
     for p in sorted(d.glob("*.json")) if d.is_dir() else []:
         r = _read_json(p)
-        if r is None:
+        if r is None or r.get("planner") not in hashes:
             continue
-        if r.get("config_hash") != h:
+        if r.get("config_hash") != hashes[r["planner"]]:
             stale.append(p.name)
             continue
         if retry_errors and r.get("status") == "error":
             continue
         done.add((r["env"], r["planner"], r["variant"]))
-    if stale:
+    if stale and not redo_stale:
         raise ValueError(
             f"--out {out} holds {len(stale)} {spec.setting} record(s) made with a different configuration (e.g. "
-            f"{stale[0]}); use another --out, or the same --config/--set/--controller/--density as before")
+            f"{stale[0]}); use another --out, the same --config/--set/--controller/--density as before, or "
+            "--redo-stale to recompute them")
+    if stale:
+        log.warning("recomputing %d record(s) made with a different configuration", len(stale))
     maps = {p.stem for p in (d / "maps").glob("*.npz")} if (d / "maps").is_dir() else set()
     return done, maps
 
@@ -771,18 +797,21 @@ def run_benchmark(
     scheduler: str | None = None,
     progress: bool = False,
     retry_errors: bool = False,
+    redo_stale: bool = False,
     run_info: dict[str, Any] | None = None,
     job_fn: Any = None,
 ) -> SweepReport:
     """Run every missing record of ``spec`` into ``out`` (serial, joblib ``workers`` or a Dask ``scheduler``).
 
     Records are written by this process as jobs finish; a job whose worker died (or that could not be run at all)
-    becomes failure records with the error. ``job_fn`` replaces :func:`run_job` (a picklable module-level function
+    becomes failure records with the error. Existing records are kept unless they are errors and ``retry_errors``,
+    or were made with another configuration (:func:`config_hash`): then the sweep refuses to start, or recomputes
+    them with ``redo_stale``. ``job_fn`` replaces :func:`run_job` (a picklable module-level function
     ``job -> JobResult``; for tests and instrumentation). Returns counts and the wall time.
     """
     out = Path(out)
     t0 = time.perf_counter()
-    done, maps_done = _existing(out, spec, retry_errors)
+    done, maps_done = _existing(out, spec, retry_errors, redo_stale)
     jobs = make_jobs(spec, done, maps_done)
     total = sum(len(spec.variants_of(p)) for p in spec.planners) * len(spec.envs)
     pending = sum(j.runs for j in jobs)
