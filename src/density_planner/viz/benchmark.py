@@ -40,6 +40,18 @@ def _colour(planner: str) -> str:
     return _EXTRA_COLOURS[sum(map(ord, planner)) % len(_EXTRA_COLOURS)]
 
 
+def _short(v: float) -> str:
+    """Compact bar label: 160, 12, 3.4, 0.91, 0.0039."""
+    a = abs(v)
+    if a == 0:
+        return "0"
+    if a >= 1e5 or a < 1e-3:
+        return f"{v:.0e}"
+    if a >= 10:
+        return f"{v:.0f}"
+    return f"{v:.2g}"
+
+
 def _bars(ax, rows: Sequence[Mapping[str, Any]], metric: str, *, annotate: bool = True) -> None:
     title, label, scale, log = BAR_METRICS[metric]
     names = [r["method"] for r in rows]
@@ -47,23 +59,23 @@ def _bars(ax, rows: Sequence[Mapping[str, Any]], metric: str, *, annotate: bool 
     vals = np.array([np.nan if v is None else float(v) * scale for v in values], dtype=float)
     x = np.arange(len(rows))
     finite = np.isfinite(vals)
-    if log:
-        positive = vals[finite & (vals > 0)]
-        floor = positive.min() / 3 if positive.size else 1e-3
-        heights = np.where(finite, np.maximum(vals, floor), np.nan)
-    else:
-        heights = vals
+    positive = vals[finite & (vals > 0)]
+    floor = positive.min() / 3 if positive.size else 1e-3
+    heights = np.where(finite, np.maximum(vals, floor), np.nan) if log else vals
     for i, r in enumerate(rows):
         biased = r.get("variant") == "biased"
-        ax.bar(x[i], 0 if not np.isfinite(heights[i]) else heights[i], color=_colour(r["planner"]),
-               alpha=0.55 if biased else 0.95, hatch="//" if biased else None, edgecolor="black", linewidth=0.5)
+        h = heights[i]
+        drawn = np.isfinite(h) and not (log and vals[i] <= 0)
+        ax.bar(x[i], h if drawn else 0, color=_colour(r["planner"]), alpha=0.55 if biased else 0.95,
+               hatch="//" if biased else None, edgecolor="black", linewidth=0.5)
         if annotate:
-            text = "n/a" if not finite[i] else (f"{vals[i]:.0f}" if metric == "failure_rate" else f"{vals[i]:.2g}")
-            y = heights[i] if np.isfinite(heights[i]) else 0
-            ax.annotate(text, (x[i], y if np.isfinite(y) else 0), textcoords="offset points", xytext=(0, 2),
-                        ha="center", va="bottom", fontsize=7)
-    if log and (finite & (vals > 0)).any():
+            text = "n/a" if not finite[i] else (f"{vals[i]:.0f}" if metric == "failure_rate" else _short(vals[i]))
+            y = h if drawn else (floor if log else 0)
+            ax.annotate(text, (x[i], y), textcoords="offset points", xytext=(0, 2), ha="center", va="bottom",
+                        fontsize=6.5)
+    if log and positive.size:
         ax.set_yscale("log")
+        ax.set_ylim(floor / 1.5, positive.max() * 4)
     elif log:
         ax.set_ylim(0, 1)
     elif metric == "failure_rate":
