@@ -131,21 +131,20 @@ def spec_from_args(args: argparse.Namespace, run_config):
 
 
 def _resolve_components(spec):
-    """Resolve the default controller and predictor names and load both once (a bad name fails before the sweep);
-    the spec gets the resolved names and the digest of their weights."""
+    """Load the controller and the density predictor once here (a bad name fails before the sweep, exactly as the
+    workers will resolve it) and put their names and the digest of their weights into the spec."""
     from dataclasses import replace
 
-    from ..control.registry import DEFAULT_CONTROLLER, load_controller
-    from ..density.registry import DEFAULT_PREDICTOR, load_predictor
+    from ..control.registry import load_controller
+    from ..density.registry import load_predictor
     from ..evaluation.benchmark import component_digest
     from ..systems.car import KinematicCar
 
-    controller_name = spec.controller or DEFAULT_CONTROLLER
-    density_name = spec.density or DEFAULT_PREDICTOR
-    controller = load_controller(controller_name)
-    predictor = load_predictor(density_name, KinematicCar(), controller, liouville=spec.run_config.liouville)
-    return replace(spec, controller=controller_name, density=density_name,
-                   components=component_digest(controller, predictor))
+    controller = load_controller(spec.controller)
+    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
+             f"{component_digest(controller, predictor) or '-'}")
+    return replace(spec, components=label)
 
 
 def write_report(out: Path, plot_envs: int = 3) -> list[Path]:

@@ -284,8 +284,8 @@ class BenchmarkSpec:
     controller: str | None = None
     #: density predictor of the density planner (``None``: the package default)
     density: str | None = None
-    #: digest of the loaded controller and predictor weights (:func:`component_digest`), so that records made with
-    #: other weights under the same name are never mixed
+    #: what the controller and predictor names resolved to, with the digest of their weights
+    #: (:func:`component_digest`), so that records made with other weights under the same name are never mixed
     components: str = ""
 
     def __post_init__(self) -> None:
@@ -390,6 +390,8 @@ class Job:
     config_hash: str
     #: also return the environment's map for the figures
     want_map: bool = False
+    #: the resolved controller / predictor and their digest (recorded)
+    components: str = ""
 
     @property
     def runs(self) -> int:
@@ -431,7 +433,7 @@ def make_jobs(spec: BenchmarkSpec, done: set[tuple[str, str, str]] = frozenset()
             groups = [(v,) for v in todo] if _plans_from_true_state(planner) else [todo]
             for variants in groups:
                 jobs.append(Job(spec.setting, env, planner, variants, spec.run_config, spec.controller, spec.density,
-                                hashes[planner], want_map=want_map))
+                                hashes[planner], want_map=want_map, components=spec.components))
                 want_map = False
     return jobs
 
@@ -541,6 +543,7 @@ def _base_record(job: Job, variant: str) -> dict[str, Any]:
         "config_hash": job.config_hash,
         "controller": job.controller,
         "density": job.density,
+        "components": job.components,
         "status": "error",
         "failed": True,
         "failure_reason": "no_solution",
