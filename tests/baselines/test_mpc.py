@@ -56,6 +56,14 @@ def test_empty_scene_reaches_goal(empty_run):
     assert np.abs(np.asarray(res.extras["applied_inputs"])).max() <= 3.0 + 1e-9
 
 
+def test_tube_mpc_on_an_empty_scene_reaches_goal():
+    scene = small_empty()
+    res = MPCPlanner(MPCConfig(tube_radius=0.5, max_iter=10)).plan(_problem(scene))
+    assert res.status == PlanStatus.SUCCESS
+    assert float(torch.linalg.norm(res.states[-1, :2] - torch.tensor(GOAL))) < 1.0
+    assert res.extras["tube_precomputed"] and res.extras["n_tube_offsets"] == 81
+
+
 def test_wall_stops_short_without_entering():
     scene = wall_scene()  # P = 1 for y in [-2, 0], ramp to 0 at y = -3
     res = MPCPlanner().plan(_problem(scene))

@@ -67,3 +67,31 @@ def test_missing_casadi_names_the_extra(monkeypatch, name):
     assert name in planner_names()  # listing the planners does not need casadi
     with pytest.raises(OptionalDependencyError, match=r"density-planner\[mpc\]"):
         make_planner(name, _context())
+
+
+def test_cli_names_the_extra_when_casadi_is_missing(monkeypatch, tmp_path, capsys):
+    from density_planner.cli import main
+
+    monkeypatch.setitem(sys.modules, "casadi", None)
+    rc = main(["plan", "--env", "random", "--seed", "0", "--planner", "mpc", "-q", "--no-gif",
+               "--out", str(tmp_path / "p")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "casadi" in err and "density-planner[mpc]" in err and len(err.strip().splitlines()) == 1
+
+
+def test_cli_plans_with_a_baseline(tmp_path, capsys):
+    """The plan command runs a baseline end to end (M0 here: writes plan.json with the per-step record)."""
+    pytest.importorskip("casadi", reason="the MPC baselines need the optional 'mpc' extra (casadi)")
+    import json
+
+    from density_planner.cli import main
+
+    out = tmp_path / "mpc"
+    rc = main(["plan", "--env", "random", "--seed", "1", "--planner", "mpc", "--set", "mpc.n_steps=5", "-q",
+               "--no-gif", "--out", str(out)])
+    assert rc == 0
+    data = json.loads((out / "plan.json").read_text())
+    assert data["planner"] == "mpc" and data["status"] == "success"
+    assert len(data["extras"]["step_times"]) == 5 and len(data["states"]) == 6
+    assert (out / "plan.png").stat().st_size > 0

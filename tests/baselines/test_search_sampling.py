@@ -101,6 +101,20 @@ def test_deterministic_per_seed(problem, planner_cls, config):
     assert a.cost == b.cost
 
 
+def test_nothing_acceptable_is_explained():
+    """A car at rest: its samples have v < 0.1 m/s (outside the planning box), so J_B > 0 for every child."""
+    import math
+
+    from density_planner.environment.scene import Scene
+
+    scene = corridor_empty()
+    scene = Scene(scene.grid, (0.0, -28.0, math.pi / 2, 0.01, 0.0), scene.goal, scene.planning_box)
+    res = SearchPlanner(_exact(), SearchConfig(n_samples=20)).plan(PlanningProblem.from_scene(scene, seed=0))
+    assert res.status == PlanStatus.FAILED and res.states is None
+    assert "'bounds' rule" in res.message
+    assert res.extras["rejections"]["bounds"] == 25
+
+
 def test_errors_become_status(problem):
     class Broken(DensityPredictor):
         def predict(self, x0, log_rho0, reference):

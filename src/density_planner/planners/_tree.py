@@ -46,7 +46,10 @@ from .base import Planner, PlanResult, PlanStatus
 from .density_planner import sample_initial_states
 from .problem import PlanningProblem
 
-__all__ = ["TreeConfig", "Node", "TreePlanner", "Scores"]
+__all__ = ["TreeConfig", "Node", "TreePlanner", "Scores", "REJECTION_REASONS"]
+
+#: acceptance rules, as counted in ``extras["rejections"]``
+REJECTION_REASONS = ("bounds", "goal_not_decreasing", "collision", "heading", "too_far")
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +150,8 @@ class _Context:
     t_start: float
     calls: int = 0
     nodes_scored: int = 0
+    #: candidates failing each acceptance rule (a candidate may fail several)
+    rejections: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REJECTION_REASONS, 0))
 
 
 class TreePlanner(Planner):
@@ -246,13 +251,17 @@ class TreePlanner(Planner):
         remaining = (S - depths).double() * par.segment_duration
         partial = depths < S
         speed_ok = dist <= cfg.max_required_speed * remaining
-        accept = (
-            (terms["bounds"] == 0)
-            & (terms["goal"] < parent_goal)
-            & (terms["collision"] < cfg.collision_threshold)
-            & (~partial | ((heading_err < cfg.max_heading_error) & speed_ok))
-            & torch.isfinite(cost)
-        )
+        rules = {
+            "bounds": terms["bounds"] == 0,
+            "goal_not_decreasing": terms["goal"] < parent_goal,
+            "collision": terms["collision"] < cfg.collision_threshold,
+            "heading": ~partial | (heading_err < cfg.max_heading_error),
+            "too_far": ~partial | speed_ok,
+        }
+        accept = torch.isfinite(cost)
+        for name, ok in rules.items():
+            accept = accept & ok
+            ctx.rejections[name] += int((~ok).sum())
         complete = accept & ~partial & (dist < cfg.goal_threshold)
         return Scores(accept=accept, complete=complete, goal=terms["goal"], cost=cost, terms=terms)
 
@@ -284,6 +293,8 @@ class TreePlanner(Planner):
         ``info["history"]`` (optional) is a list of path costs, stored as ``cost_history[name]["total"]``."""
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
+        """Run the search; never raises (the status says what happened). ``extras["rejections"]`` counts the
+        candidates failing each acceptance rule."""
         t_start = time.perf_counter()
         try:
             gen = torch.Generator().manual_seed(self.config.seed)
@@ -300,9 +311,14 @@ class TreePlanner(Planner):
                            f"{ctx.calls} predictor calls)")
             else:
                 status, message = PlanStatus.FAILED, "search space exhausted: no acceptable full-length plan"
+            if node is None:
+                worst = max(ctx.rejections, key=ctx.rejections.get)
+                message += (f"; no candidate was accepted ({ctx.nodes_scored} scored, most often rejected by the "
+                            f"'{worst}' rule)")
             if node is not None and solution is None:
                 message += f"; reporting the best partial plan ({node.depth} segments, zero inputs after)"
             history = info.pop("history", None)
+            info["rejections"] = dict(ctx.rejections)
             result = PlanResult(self.name, status, message=message,
                                 cost_history={self.name: {"total": list(history)}} if history else {},
                                 timings={"search": t_search},

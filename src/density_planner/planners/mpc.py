@@ -641,7 +641,6 @@ class MPCPlanner(Planner):
             x = torch.stack(states).to(**kw)
             u = torch.stack(inputs).to(**kw)
             result.states = x
-            result.extras["applied_inputs_plan"] = u.tolist()
             try:
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
                 result.extras["objective"] = mpc_objective(problem.scene.grid, x, u, problem.goal,

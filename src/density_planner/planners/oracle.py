@@ -16,10 +16,12 @@ calls on the same scene reuse it): the full grid is 101 x 241 x 401 values, too 
 every function evaluation.
 
 Restarts (``original.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
-``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every solution
-is re-simulated open loop and scored with the same ``J_MPC`` (:func:`~density_planner.planners.mpc.mpc_objective`);
-the best converged one is kept (the paper's code kept the lowest collision term). The reported planning time is the
-sum of all restarts plus the NLP construction.
+``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every returned
+iterate (converged or stopped by ``max_iter``: IPOPT returns its last iterate) is re-simulated open loop and scored
+with the same ``J_MPC`` (:func:`~density_planner.planners.mpc.mpc_objective`); the best one whose re-simulation
+respects the state bounds is kept (the paper's code kept the lowest collision term). Status SUCCESS when such a
+feasible plan exists (``extras["best_converged"]`` says whether IPOPT converged on it), FAILED otherwise (the best
+infeasible one is reported). The reported planning time is the sum of all restarts plus the NLP construction.
 """
 
 from __future__ import annotations
@@ -129,10 +131,21 @@ class _OracleProgram:
         lbx[0 : self.n_p : 2], ubx[0 : self.n_p : 2] = cfg.input_min[0], cfg.input_max[0]
         lbx[1 : self.n_p : 2], ubx[1 : self.n_p : 2] = cfg.input_min[1], cfg.input_max[1]
         xmin, xmax, ymin, ymax = grid.bounds
-        for i, (lo, hi) in enumerate([(xmin, xmax), (ymin, ymax), (cfg.state_min[THETA], cfg.state_max[THETA]),
-                                      (cfg.state_min[V], cfg.state_max[V])]):
+        boxes = [(xmin, xmax), (ymin, ymax), (cfg.state_min[THETA], cfg.state_max[THETA]),
+                 (cfg.state_min[V], cfg.state_max[V])]
+        for i, (lo, hi) in enumerate(boxes):
             lbx[self.n_p + i :: 4], ubx[self.n_p + i :: 4] = lo, hi
+        self.state_lo = [b[0] for b in boxes]
+        self.state_hi = [b[1] for b in boxes]
         self.limits = (cfg.input_min, cfg.input_max)
+
+    def feasible(self, x_plan: Tensor, tol: float = 1e-3) -> bool:
+        """Whether re-simulated states ``(T, >=4)`` respect the NLP's state bounds (positions, theta, v) within
+        ``tol`` (a non-converged iterate may violate the dynamics, so its re-simulation may leave them)."""
+        lo = torch.as_tensor(self.state_lo, dtype=x_plan.dtype)
+        hi = torch.as_tensor(self.state_hi, dtype=x_plan.dtype)
+        x = x_plan[1:, :4]
+        return bool(((x >= lo - tol) & (x <= hi + tol)).all())
 
     def params_of(self, sol: np.ndarray) -> np.ndarray:
         """``(2, n_segments)`` parameters of a solution vector."""
@@ -244,9 +257,11 @@ class OraclePlanner(Planner):
                 ref = make_reference(system, start, params, par)
                 obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
                                     dt=par.plan_dt)
+                feasible = prog.feasible(ref.x_plan)
                 entry["objective"] = obj["total"]
+                entry["feasible"] = feasible
                 entry["params"] = params
-                rank = (0 if info.success else 1, obj["total"])
+                rank = (0 if feasible else 1, obj["total"])
                 if math.isfinite(obj["total"]) and (best is None or rank < best):
                     best = rank
                     entry["best"] = True
@@ -263,20 +278,23 @@ class OraclePlanner(Planner):
                               message="no restart returned a finite iterate")
         i_best = max(i for i, e in enumerate(restarts) if e.get("best"))
         params = restarts[i_best]["params"]
-        converged = best[0] == 0
+        feasible = best[0] == 0
         kw = {"dtype": self.dtype, "device": self.device}
         ref = make_reference(system, start.to(**kw), params.to(**kw), par)
         cost, coll = evaluate_trajectory(problem, ref.x_plan, ref.u_plan, cost_config=self.evaluation_cost)
         extras["best_restart"] = i_best
+        extras["best_converged"] = bool(restarts[i_best]["success"])
         extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
                                             dt=par.plan_dt)
         n_conv = sum(1 for e in restarts if e["success"])
-        message = f"{n_conv} of {len(restarts)} restarts converged; best: restart {i_best}"
-        if not converged:
-            message = f"no restart converged; the best last iterate (restart {i_best}) is reported"
+        message = (f"{n_conv} of {len(restarts)} restarts converged; kept restart {i_best} "
+                   f"({restarts[i_best]['status']})")
+        if not feasible:
+            message = (f"no restart gave a plan within the state bounds; {message} is the best infeasible one "
+                       f"({n_conv} converged)")
         return PlanResult(
             planner=self.name,
-            status=PlanStatus.SUCCESS if converged else PlanStatus.FAILED,
+            status=PlanStatus.SUCCESS if feasible else PlanStatus.FAILED,
             params=params.to(**kw),
             reference=ref,
             states=ref.x_plan,
