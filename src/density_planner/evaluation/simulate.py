@@ -212,7 +212,12 @@ def _from_plan_from(planner: Planner, problem: PlanningProblem, true_state: Tens
                          offline_time=float(result.timings.get("total", float("nan"))), plan=result, ok=False,
                          message=result.message or "no trajectory")
     if mode == ExecutionMode.RECEDING:
-        inputs = torch.as_tensor(result.extras.get("applied_inputs_plan", []), dtype=states.dtype)
+        applied = result.extras.get("applied_inputs")
+        if applied is None:
+            applied = result.extras.get("applied_inputs_plan", [])  # older MPC results
+        inputs = torch.as_tensor(applied, dtype=states.dtype)
+        if inputs.numel() // nu != states.shape[0] - 1:
+            raise ValueError(f"{planner.name}: {inputs.numel() // nu} applied inputs for {states.shape[0]} states")
         step_times = np.asarray(result.extras.get("step_times", []), dtype=float)
         # per-scene precomputation (tube disc sums) is offline work; the one-time NLP construction is not counted
         offline = float(result.timings.get("tube_precompute", 0.0))
