@@ -19,7 +19,7 @@ from ..errors import DensityPlannerError
 __all__ = ["main", "build_parser"]
 
 #: command modules, in the order they appear in ``--help``
-COMMAND_MODULES = ("env", "density", "plan", "bench")
+COMMAND_MODULES = ("env", "density", "controller", "plan", "bench")
 
 #: command groups with sub-commands: name -> help
 GROUPS = {
@@ -65,6 +65,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     try:
+        from ._common import apply_threads
+
+        apply_threads(getattr(args, "threads", None))
         result = args.func(args)
     except KeyboardInterrupt:
         print("density-planner: interrupted", file=sys.stderr)

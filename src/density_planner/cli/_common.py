@@ -14,6 +14,8 @@ __all__ = [
     "add_seed",
     "add_device",
     "add_controller",
+    "add_threads",
+    "apply_threads",
     "add_config",
     "resolve_device",
     "resolve_dtype",
@@ -33,6 +35,23 @@ def add_seed(p: argparse.ArgumentParser, default: int = 0) -> None:
 def add_device(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N or auto")
     p.add_argument("--dtype", default="float32", choices=("float32", "float64"), help="floating point precision")
+    add_threads(p)
+
+
+def add_threads(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="torch CPU threads (default 1: the work is many small tensor operations, for which more "
+                   "OpenMP threads cost more than they gain and oversubscribe shared machines; 0 = torch's default)")
+
+
+def apply_threads(threads: int | None) -> None:
+    """Set torch's intra-op threads from ``--threads`` (None -> 1, 0 -> leave torch's default)."""
+    if threads is None:
+        threads = 1
+    if threads < 0:
+        raise ValueError(f"--threads must be >= 0, got {threads}")
+    if threads:
+        torch.set_num_threads(threads)
 
 
 def add_controller(p: argparse.ArgumentParser) -> None:

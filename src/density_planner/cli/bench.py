@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import add_config, add_controller, add_out, out_dir
+from ._common import add_config, add_controller, add_out, add_threads, out_dir
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
@@ -44,6 +44,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="density predictor of the density planner (default: the package default)")
     add_controller(p)
     add_config(p)
+    add_threads(p)
     p.add_argument("--retry-errors", action="store_true", help="re-run records whose run raised or whose worker died")
     p.add_argument("--redo-stale", action="store_true",
                    help="recompute records of --out made with another configuration (e.g. new controller weights; "
@@ -169,8 +170,15 @@ def run_bench(args: argparse.Namespace) -> int:
     out = out_dir(args.out)
     t0 = time.perf_counter()
     info = {"versions": versions(), "command": "density-planner " + " ".join(getattr(args, "argv", []) or [])}
+    if args.threads is not None:  # threads of every worker process (and of a serial run): not part of the records
+        if args.threads < 0:
+            raise ValueError(f"--threads must be >= 0, got {args.threads}")
+        threads = args.threads or None
+    else:
+        threads = spec.evaluation.threads_per_worker
     report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet,
-                           retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info)
+                           retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info,
+                           threads_per_worker=threads)
     paths = write_report(out, args.plot_envs)
     print(f"bench {spec.setting}: {report.total} runs ({report.skipped} already done, {report.written} written, "
           f"{report.failed_runs} failed, {report.errors} errors) in {time.perf_counter() - t0:.1f} s; "

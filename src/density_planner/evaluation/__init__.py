@@ -1,5 +1,6 @@
-"""Closed-loop evaluation and the paper's benchmarks (§V).
+"""Closed-loop evaluation: tracking checks of controllers and the paper's benchmarks of planners (§V).
 
+* :mod:`.controller`: closed-loop tracking accuracy of tracking controllers on random references;
 * :mod:`.simulate`: execute a plan from a true initial state (tracked reference, receding-horizon MPC, or the
   oracle's open-loop inputs), with online step times;
 * :mod:`.metrics`: per-run scores (J_G, J_I, J_B, J_C, collision probability, Monte-Carlo collision frequency,
@@ -23,10 +24,13 @@ from .benchmark import (
     run_benchmark,
 )
 from .config import EvaluationConfig
+from .controller import TrackingEvaluation, evaluate_tracking
 from .metrics import MethodSummary, cost_increase, failure_flags, monte_carlo_metrics, run_metrics, summarise
 from .simulate import Execution, ExecutionMode, execute, execution_mode, monte_carlo
 
 __all__ = [
+    "TrackingEvaluation",
+    "evaluate_tracking",
     "EvaluationConfig",
     "ExecutionMode",
     "Execution",

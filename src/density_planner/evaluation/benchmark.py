@@ -803,13 +803,15 @@ def run_benchmark(
     redo_stale: bool = False,
     run_info: dict[str, Any] | None = None,
     job_fn: Any = None,
+    threads_per_worker: int | None | Literal["config"] = "config",
 ) -> SweepReport:
     """Run every missing record of ``spec`` into ``out`` (serial, joblib ``workers`` or a Dask ``scheduler``).
 
     Records are written by this process as jobs finish; a job whose worker died (or that could not be run at all)
     becomes failure records with the error. Existing records are kept unless they are errors and ``retry_errors``,
     or were made with another configuration (:func:`config_hash`): then the sweep refuses to start, or recomputes
-    them with ``redo_stale``. ``job_fn`` replaces :func:`run_job` (a picklable module-level function
+    them with ``redo_stale``. ``threads_per_worker`` overrides ``evaluation.threads_per_worker`` (``None``: torch's
+    default). ``job_fn`` replaces :func:`run_job` (a picklable module-level function
     ``job -> JobResult``; for tests and instrumentation). Returns counts and the wall time.
     """
     out = Path(out)
@@ -827,11 +829,12 @@ def run_benchmark(
     atomic_write_json(out / f"sweep_{spec.setting}.json", sweep)
     from tqdm.auto import tqdm
 
+    threads = spec.evaluation.threads_per_worker if threads_per_worker == "config" else threads_per_worker
     written = failed = errors = 0
     bar = tqdm(total=pending, desc=f"bench {spec.setting}", unit="run", disable=not progress)
     try:
         outcomes: Iterator = run_tasks(job_fn or run_job, jobs, workers=workers, scheduler=scheduler,
-                                       threads_per_worker=spec.evaluation.threads_per_worker, progress=False)
+                                       threads_per_worker=threads, progress=False)
         for outcome in outcomes:
             job = jobs[outcome.index]
             if outcome.ok:

@@ -24,8 +24,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -107,7 +106,6 @@ class Execution:
     plan: PlanResult
     ok: bool = True
     message: str = ""
-    extras: dict[str, Any] = field(default_factory=dict)
 
 
 def _liouville_config(config: EvaluationConfig, problem: PlanningProblem) -> LiouvilleConfig:
