@@ -4,7 +4,10 @@
 distributed cluster (``scheduler="tcp://host:8786"``, extra ``dask``), and yields ``TaskOutcome`` objects as
 tasks finish. Exceptions inside a task are captured in its outcome (with the traceback) instead of aborting the
 batch. Each worker limits its own torch threads (one by default), so ``workers`` processes share the cores
-without oversubscription.
+without oversubscription. A worker process that dies (killed, out of memory) fails the tasks it was running and
+the batch goes on: with joblib the tasks in flight at that moment are reported failed and the rest run in fresh
+workers; Dask retries a task on other workers and reports ``KilledWorker`` after its ``allowed-failures``. (Serial
+runs execute in this process: nothing can survive its death.)
 """
 
 from __future__ import annotations
@@ -112,10 +115,55 @@ def _dispatch(call: _Call, tasks: list, workers: int | None, scheduler: str | No
             for i, task in enumerate(tasks):
                 yield call(i, task)
         return
+    yield from _joblib(call, tasks, workers)
+
+
+class _Marked:
+    """Picklable wrapper that touches ``<folder>/<index>`` before running the task (to know which tasks were in
+    flight when a worker process died)."""
+
+    def __init__(self, call: _Call, folder: str):
+        self.call = call
+        self.folder = folder
+
+    def __call__(self, index: int, task: Any) -> TaskOutcome:
+        try:
+            os.close(os.open(os.path.join(self.folder, str(index)), os.O_CREAT | os.O_WRONLY, 0o600))
+        except OSError:  # pragma: no cover - the marker is only a hint
+            pass
+        return self.call(index, task)
+
+
+def _joblib(call: _Call, tasks: list, workers: int) -> Iterator[TaskOutcome]:
+    """Local worker processes. When a worker process dies (killed, out of memory, ``os._exit``), joblib aborts the
+    whole batch: the tasks that had started and not returned are reported as failed, the others run again."""
+    import shutil
+    import tempfile
+    from concurrent.futures.process import BrokenProcessPool
+
     from joblib import Parallel, delayed
 
-    parallel = Parallel(n_jobs=min(workers, len(tasks)), return_as="generator_unordered")
-    yield from parallel(delayed(call)(i, task) for i, task in enumerate(tasks))
+    pending = dict(enumerate(tasks))
+    folder = tempfile.mkdtemp(prefix="density-planner-tasks-")
+    marked = _Marked(call, folder)
+    try:
+        while pending:
+            items = list(pending.items())
+            parallel = Parallel(n_jobs=min(workers, len(items)), return_as="generator_unordered")
+            try:
+                for outcome in parallel(delayed(marked)(i, task) for i, task in items):
+                    pending.pop(outcome.index, None)
+                    yield outcome
+            except BrokenProcessPool as exc:  # joblib's TerminatedWorkerError is a subclass
+                started = {int(name) for name in os.listdir(folder) if name.isdigit()} & set(pending)
+                lost = sorted(started) or sorted(pending)  # cannot tell which: fail all rather than loop forever
+                reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                for i in lost:
+                    pending.pop(i)
+                    yield TaskOutcome(i, error=f"WorkerDied: the worker process running this task died "
+                                               f"({type(exc).__name__}: {reason})")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _dask(call: _Call, tasks: list, scheduler: str) -> Iterator[TaskOutcome]:

@@ -22,6 +22,7 @@ from .density.liouville import LiouvilleConfig
 from .environment.commonroad import CommonRoadSceneConfig
 from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
+from .evaluation.config import EvaluationConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
@@ -56,3 +57,5 @@ class RunConfig:
     ind: IndSceneConfig = field(default_factory=IndSceneConfig)
     #: [commonroad]: scenes from CommonRoad scenarios
     commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
+    #: [evaluation]: closed-loop evaluation and benchmarks (Monte-Carlo samples, failure thresholds, execution)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)

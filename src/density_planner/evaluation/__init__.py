@@ -1,5 +1,55 @@
-"""Evaluation: closed-loop Monte-Carlo checks of controllers and planners."""
+"""Closed-loop evaluation: tracking checks of controllers and the paper's benchmarks of planners (§V).
 
+* :mod:`.controller`: closed-loop tracking accuracy of tracking controllers on random references;
+* :mod:`.simulate`: execute a plan from a true initial state (tracked reference, receding-horizon MPC, or the
+  oracle's open-loop inputs), with online step times;
+* :mod:`.metrics`: per-run scores (J_G, J_I, J_B, J_C, collision probability, Monte-Carlo collision frequency,
+  failure flags) and their aggregation (failure rate, CRI/GCI/ICI against the best valid method, time means over
+  valid runs);
+* :mod:`.benchmark`: the ``ablation``, ``artificial`` and ``real`` sweeps with one resumable JSON record per run,
+  serial, joblib or Dask;
+* :mod:`.report`: ``summary.csv`` / ``summary.md`` from the records alone (figures:
+  :mod:`density_planner.viz.benchmark`).
+"""
+
+from .benchmark import (
+    SETTINGS,
+    BenchmarkSpec,
+    EnvSpec,
+    Setting,
+    SweepReport,
+    artificial_envs,
+    load_records,
+    real_envs,
+    run_benchmark,
+)
+from .config import EvaluationConfig
 from .controller import TrackingEvaluation, evaluate_tracking
+from .metrics import MethodSummary, cost_increase, failure_flags, monte_carlo_metrics, run_metrics, summarise
+from .simulate import Execution, ExecutionMode, execute, execution_mode, monte_carlo
 
-__all__ = ["TrackingEvaluation", "evaluate_tracking"]
+__all__ = [
+    "TrackingEvaluation",
+    "evaluate_tracking",
+    "EvaluationConfig",
+    "ExecutionMode",
+    "Execution",
+    "execute",
+    "execution_mode",
+    "monte_carlo",
+    "run_metrics",
+    "monte_carlo_metrics",
+    "failure_flags",
+    "cost_increase",
+    "summarise",
+    "MethodSummary",
+    "Setting",
+    "SETTINGS",
+    "EnvSpec",
+    "BenchmarkSpec",
+    "SweepReport",
+    "artificial_envs",
+    "real_envs",
+    "run_benchmark",
+    "load_records",
+]

@@ -1,0 +1,197 @@
+"""``density-planner bench SETTING`` (the paper's comparisons) and ``density-planner report DIR``."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from ._common import add_config, add_controller, add_out, add_threads, out_dir
+
+
+def register(sub: argparse._SubParsersAction, groups: dict) -> None:
+    from ..evaluation.benchmark import SETTINGS
+
+    settings = "; ".join(
+        f"{s.name}: {s.description} (planners {', '.join(s.planners)}; variants {', '.join(s.variants)}; "
+        f"{s.default_envs} environments)" for s in SETTINGS.values()
+    )
+    p = sub.add_parser(
+        "bench",
+        help="run one of the paper's benchmarks (ablation, artificial, real)",
+        description="Run a benchmark sweep: every planner on every environment, one JSON record per run under "
+        "DIR/records/<setting>/ written as soon as it finishes; a re-run with the same --out skips finished records "
+        "and completes the rest. Then writes DIR/summary.csv, DIR/summary.md and the figures in DIR/figures/. "
+        f"Settings: {settings}.",
+    )
+    p.add_argument("setting", choices=tuple(SETTINGS), help="benchmark setting")
+    p.add_argument("--envs", type=int, default=None, metavar="N",
+                   help="number of environments (numbers 0..N-1; default: the setting's, 50 for artificial)")
+    p.add_argument("--seeds", default=None, metavar="A:B",
+                   help="environment numbers A..B-1 instead of --envs (random scene numbers; real: scenario and "
+                   "start/goal index)")
+    p.add_argument("--planners", default=None, metavar="LIST", help="comma-separated planners (default: the setting's)")
+    p.add_argument("--variants", default=None, metavar="LIST",
+                   help="comma-separated measurement variants: unbiased, biased (default: both; ablation: nominal)")
+    p.add_argument("--data-dir", type=Path, default=None, metavar="D",
+                   help="real: folder with inD recordings (NN_tracks.csv, ...) or CommonRoad scenarios (*.xml); "
+                   "default: the two shipped CommonRoad NGSIM scenarios")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local worker processes (default: the number of cores; 1 = serial in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run on a Dask distributed cluster at ADDRESS (e.g. tcp://host:8786; extra 'dask')")
+    p.add_argument("--density", default=None, metavar="NAME",
+                   help="density predictor of the density planner (default: the package default)")
+    add_controller(p)
+    add_config(p)
+    add_threads(p)
+    p.add_argument("--retry-errors", action="store_true", help="re-run records whose run raised or whose worker died")
+    p.add_argument("--redo-stale", action="store_true",
+                   help="recompute records of --out made with another configuration (e.g. new controller weights; "
+                   "MPC and oracle records do not depend on the controller and predictor and are kept)")
+    p.add_argument("--plot-envs", type=int, default=3, metavar="K",
+                   help="trajectory figures for the first K environments (default 3)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_out(p)
+    p.set_defaults(func=run_bench)
+
+    r = sub.add_parser(
+        "report",
+        help="regenerate the tables and figures of a benchmark directory from its records",
+        description="Read DIR/records/*/*.json and (re)write DIR/summary.csv, DIR/summary.md and DIR/figures/*.png.",
+    )
+    r.add_argument("dir", type=Path, metavar="DIR", help="benchmark output directory (the --out of bench)")
+    r.add_argument("--plot-envs", type=int, default=3, metavar="K",
+                   help="trajectory figures for the first K environments of each setting (default 3)")
+    r.set_defaults(func=run_report)
+
+
+def _list(text: str | None, what: str) -> tuple[str, ...] | None:
+    if text is None:
+        return None
+    items = tuple(s.strip() for s in text.split(",") if s.strip())
+    if not items:
+        raise ValueError(f"--{what} must name at least one entry")
+    if len(set(items)) != len(items):
+        raise ValueError(f"--{what} lists an entry twice: {text!r}")
+    return items
+
+
+def parse_seeds(text: str) -> range:
+    """``"A:B"`` -> ``range(A, B)`` with ``0 <= A < B``."""
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        a, b = int(parts[0]), int(parts[1])
+    except ValueError:
+        raise ValueError(f"--seeds must be A:B with integers A < B (e.g. 0:50), got {text!r}") from None
+    if a < 0 or b <= a:
+        raise ValueError(f"--seeds must be A:B with 0 <= A < B, got {text!r}")
+    return range(a, b)
+
+
+def spec_from_args(args: argparse.Namespace, run_config):
+    """The :class:`BenchmarkSpec` of the command line (validates every choice with a one-line error)."""
+    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec, artificial_envs, real_envs
+    from ..planners.registry import planner_names
+
+    setting = SETTINGS[args.setting]
+    if args.envs is not None and args.seeds is not None:
+        raise ValueError("give either --envs N or --seeds A:B, not both")
+    if args.envs is not None and args.envs < 1:
+        raise ValueError(f"--envs must be >= 1, got {args.envs}")
+    indices = parse_seeds(args.seeds) if args.seeds is not None else range(args.envs or setting.default_envs)
+    if args.data_dir is not None:
+        if args.setting != "real":
+            raise ValueError(f"--data-dir is only used by the real setting, not {args.setting}")
+        if not args.data_dir.is_dir():
+            raise ValueError(f"--data-dir {args.data_dir} does not exist or is not a directory")
+    planners = _list(args.planners, "planners") or setting.planners
+    known = planner_names()
+    for name in planners:
+        if name not in known:
+            raise ValueError(f"unknown planner {name!r} in --planners; valid choices: {', '.join(known)}")
+    variants = _list(args.variants, "variants") or setting.variants
+    allowed = setting.variants
+    for v in variants:
+        if v not in allowed:
+            raise ValueError(f"unknown variant {v!r} for {args.setting}; valid choices: {', '.join(allowed)}")
+    envs = real_envs(indices, args.data_dir) if args.setting == "real" else artificial_envs(indices)
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.scheduler is not None:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            from ..errors import OptionalDependencyError
+
+            raise OptionalDependencyError("distributed", "dask", "--scheduler (a Dask cluster)") from None
+    return BenchmarkSpec(args.setting, envs, planners, variants, run_config, controller=args.controller,
+                         density=args.density)
+
+
+def _resolve_components(spec):
+    """Load the controller and the density predictor once here (a bad name fails before the sweep, exactly as the
+    workers will resolve it) and put their names and the digest of their weights into the spec."""
+    from dataclasses import replace
+
+    from ..control.registry import load_controller
+    from ..density.registry import load_predictor
+    from ..evaluation.benchmark import component_digest
+    from ..systems.car import KinematicCar
+
+    controller = load_controller(spec.controller)
+    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
+             f"{component_digest(controller, predictor) or '-'}")
+    return replace(spec, components=label)
+
+
+def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
+    """Tables and figures of ``out`` from its records."""
+    from ..evaluation.report import write_tables
+    from ..viz.benchmark import write_figures
+
+    records, rows, paths = write_tables(out)
+    return paths + write_figures(out, rows, records, plot_envs=plot_envs)
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..evaluation.benchmark import run_benchmark
+    from ..settings import RunConfig
+    from .plan import versions
+
+    run_config = load_config(RunConfig, args.config, args.overrides)
+    spec = _resolve_components(spec_from_args(args, run_config))
+    if args.plot_envs < 0:
+        raise ValueError(f"--plot-envs must be >= 0, got {args.plot_envs}")
+    out = out_dir(args.out)
+    t0 = time.perf_counter()
+    info = {"versions": versions(), "command": "density-planner " + " ".join(getattr(args, "argv", []) or [])}
+    if args.threads is not None:  # threads of every worker process (and of a serial run): not part of the records
+        if args.threads < 0:
+            raise ValueError(f"--threads must be >= 0, got {args.threads}")
+        threads = args.threads or None
+    else:
+        threads = spec.evaluation.threads_per_worker
+    report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet,
+                           retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info,
+                           threads_per_worker=threads)
+    paths = write_report(out, args.plot_envs)
+    print(f"bench {spec.setting}: {report.total} runs ({report.skipped} already done, {report.written} written, "
+          f"{report.failed_runs} failed, {report.errors} errors) in {time.perf_counter() - t0:.1f} s; "
+          f"wrote {out / 'summary.md'}, {out / 'summary.csv'} and {len(paths) - 2} figures in {out / 'figures'}")
+    return 0
+
+
+def run_report(args: argparse.Namespace) -> int:
+    if not args.dir.is_dir():
+        raise ValueError(f"benchmark directory {args.dir} does not exist")
+    if args.plot_envs < 0:
+        raise ValueError(f"--plot-envs must be >= 0, got {args.plot_envs}")
+    paths = write_report(args.dir, args.plot_envs)
+    print(f"report: wrote {args.dir / 'summary.md'}, {args.dir / 'summary.csv'} and {len(paths) - 2} figures in "
+          f"{args.dir / 'figures'}")
+    return 0

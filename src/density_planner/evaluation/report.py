@@ -1,0 +1,142 @@
+"""Tables of a benchmark directory, computed from its records alone: ``summary.csv`` and ``summary.md``.
+
+The figures are drawn by :mod:`density_planner.viz.benchmark` from the same rows; ``density-planner report DIR``
+regenerates both.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..io.atomic import atomic_write_text
+from .benchmark import SETTINGS, load_records
+from .metrics import summarise
+
+__all__ = ["PLANNER_LABELS", "method_label", "summary_rows", "write_tables", "summary_markdown", "CSV_COLUMNS"]
+
+#: short names of the planners in tables and figures (the paper's)
+PLANNER_LABELS = {
+    "density": "DP",
+    "mpc": "M0",
+    "tube_mpc_0.3": "M1",
+    "tube_mpc_0.5": "M2",
+    "tube_mpc_1.0": "M3",
+    "oracle": "O",
+    "search": "Search",
+    "sampling": "Sampling",
+}
+
+#: columns of ``summary.csv``
+CSV_COLUMNS = (
+    "setting", "method", "planner", "variant", "runs", "valid", "failures", "errors", "failure_rate", "cri", "gci",
+    "ici", "final_distance", "goal_cost", "collision_cost", "input_cost", "collision_probability_max",
+    "offline_time", "online_time", "mc_collision_mean", "mc_collision_frequency", "mc_runs", "failure_reasons",
+)
+
+
+def method_label(planner: str, variant: str) -> str:
+    """``DP``, ``DP-b`` (biased measurement), ``M2``, ``O``, ..."""
+    base = PLANNER_LABELS.get(planner, planner)
+    return f"{base}-b" if variant == "biased" else base
+
+
+def _order(s) -> tuple:
+    settings = list(SETTINGS)
+    setting = SETTINGS.get(s.setting)
+    planners = list(setting.planners) if setting else []
+    variants = ["nominal", "unbiased", "biased"]
+    return (settings.index(s.setting) if s.setting in settings else len(settings), s.setting,
+            planners.index(s.planner) if s.planner in planners else len(planners), s.planner,
+            variants.index(s.variant) if s.variant in variants else len(variants), s.variant)
+
+
+def summary_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (setting, planner, variant), in the order of :data:`CSV_COLUMNS`."""
+    rows = []
+    for s in sorted(summarise(records), key=_order):
+        row: dict[str, Any] = s.as_dict()
+        row["method"] = method_label(s.planner, s.variant)
+        row["failure_reasons"] = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_reasons.items()))
+        rows.append({k: row[k] for k in CSV_COLUMNS})
+    return rows
+
+
+def _csv_value(v: Any) -> Any:
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.6g}"
+    return v
+
+
+def _fmt(v: Any, digits: int = 3, scale: float = 1.0, percent: bool = False) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if percent:
+        return f"{100 * v:.0f} %"
+    v = float(v) * scale
+    if v == 0:
+        return "0"
+    if abs(v) >= 10 ** digits or abs(v) < 10 ** -(digits - 1):
+        return f"{v:.{digits - 1}e}"
+    return f"{v:.{digits}g}"
+
+
+def summary_markdown(rows: Sequence[Mapping[str, Any]], records: Sequence[Mapping[str, Any]] = ()) -> str:
+    """Markdown tables, one per setting (rows from :func:`summary_rows`)."""
+    out = io.StringIO()
+    out.write("# Benchmark summary\n\n")
+    out.write(
+        "Failure: no solution, collision cost J_C > 10, final distance > 4.5 m, or bounds cost J_B > 1e-4 (ablation: "
+        "no solution within the time limit). CRI / GCI / ICI: mean excess of the collision cost J_C, goal cost J_G "
+        "[m²] and input cost J_I over the best valid method of each environment, over the method's valid runs. "
+        "Final distance, P_coll max (occupancy probability met along the executed trajectory), offline and online "
+        "times: means over valid runs. MC: Monte-Carlo initial states from the planner's initial distribution; "
+        "mean of max_t P_occ and the fraction of samples with max_t P_occ > 0.5, over all runs that have them.\n\n"
+    )
+    settings = []
+    for r in rows:
+        if r["setting"] not in settings:
+            settings.append(r["setting"])
+    for setting in settings:
+        envs = sorted({r["env"] for r in records if r["setting"] == setting})
+        desc = SETTINGS[setting].description if setting in SETTINGS else ""
+        out.write(f"## {setting}\n\n{desc}" + (f"; {len(envs)} environments" if envs else "") + ".\n\n")
+        out.write("| Method | Runs | Failure rate | CRI | GCI [m²] | ICI | Final dist. [m] | Offline [s] | "
+                  "Online / step [ms] | P_coll max | MC max P_occ | MC coll. freq. | Failures |\n")
+        out.write("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+        for r in rows:
+            if r["setting"] != setting:
+                continue
+            out.write(
+                f"| {r['method']} | {r['runs']} | {_fmt(r['failure_rate'], percent=True)} | {_fmt(r['cri'])} | "
+                f"{_fmt(r['gci'])} | {_fmt(r['ici'])} | {_fmt(r['final_distance'])} | {_fmt(r['offline_time'])} | "
+                f"{_fmt(r['online_time'], scale=1e3)} | {_fmt(r['collision_probability_max'])} | "
+                f"{_fmt(r['mc_collision_mean'])} | {_fmt(r['mc_collision_frequency'], percent=True)} | "
+                f"{r['failure_reasons'] or '–'} |\n"
+            )
+        out.write("\n")
+    return out.getvalue()
+
+
+def write_tables(out: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[Path]]:
+    """Write ``DIR/summary.csv`` and ``DIR/summary.md`` from the records under ``DIR``.
+
+    Returns ``(records, rows, paths)``. Raises ``ValueError`` if ``DIR`` has no records."""
+    out = Path(out)
+    records = load_records(out)
+    if not records:
+        raise ValueError(f"no benchmark records under {out / 'records'} (run `density-planner bench ... --out {out}`)")
+    rows = summary_rows(records)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(CSV_COLUMNS), lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: _csv_value(v) for k, v in r.items()})
+    paths = [atomic_write_text(out / "summary.csv", buf.getvalue()),
+             atomic_write_text(out / "summary.md", summary_markdown(rows, records))]
+    return records, rows, paths
+
