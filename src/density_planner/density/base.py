@@ -15,11 +15,34 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from ..checks import broadcast_shape, check_tensor
 from ..control.reference import Reference
 
-__all__ = ["DensityTrajectory", "DensityPredictor", "sample_weights", "WeightMode"]
+__all__ = ["DensityTrajectory", "DensityPredictor", "sample_weights", "expand_samples", "WeightMode"]
 
 WeightMode = Literal["density", "mass"]
+
+
+def expand_samples(x0: Tensor, reference: Reference, nx: int) -> Tensor:
+    """Check initial samples ``x0 (*batch, N, nx)`` against ``reference`` and expand them to its batch shape.
+
+    ``x0`` takes the reference's dtype and device; its batch shape must broadcast with the reference's.
+
+    Raises:
+        ValueError: ``reference`` is not a :class:`Reference`, ``x0`` has the wrong shape or non-finite values,
+            or the batch shapes do not broadcast.
+    """
+    if not isinstance(reference, Reference):
+        raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
+    x0 = check_tensor("x0", x0, last_dims=(None, nx), dtype=reference.x.dtype, device=reference.x.device)
+    try:
+        batch = broadcast_shape(x0.shape[:-2], reference.batch_shape)
+    except ValueError:
+        raise ValueError(
+            f"batch shape of x0 {tuple(x0.shape[:-2])} (samples are the second-to-last axis) does not broadcast "
+            f"with the reference batch shape {tuple(reference.batch_shape)}"
+        ) from None
+    return x0.expand(*batch, *x0.shape[-2:])
 
 
 @dataclass

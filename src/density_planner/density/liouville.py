@@ -19,11 +19,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import broadcast_shape, check_choice, check_positive, check_tensor
+from ..checks import check_choice, check_positive, check_tensor
 from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..systems.base import System
-from .base import DensityPredictor, DensityTrajectory
+from .base import DensityPredictor, DensityTrajectory, expand_samples
 from .closed_loop import ClosedLoop, DivergenceMethod
 from .integrators import get_integrator
 
@@ -64,17 +64,7 @@ class LiouvilleConfig:
 
 
 def _check_inputs(system: System, x0: Tensor, reference: Reference) -> Tensor:
-    if not isinstance(reference, Reference):
-        raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
-    x0 = check_tensor("x0", x0, last_dims=(None, system.nx), dtype=reference.x.dtype, device=reference.x.device)
-    try:
-        batch = broadcast_shape(x0.shape[:-2], reference.batch_shape)
-    except ValueError:
-        raise ValueError(
-            f"batch shape of x0 {tuple(x0.shape[:-2])} (samples are the second-to-last axis) does not broadcast "
-            f"with the reference batch shape {tuple(reference.batch_shape)}"
-        ) from None
-    return x0.expand(*batch, *x0.shape[-2:])
+    return expand_samples(x0, reference, system.nx)
 
 
 def _integrate(

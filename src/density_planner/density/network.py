@@ -54,11 +54,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..checks import broadcast_shape, check_tensor
+from ..checks import check_tensor
 from ..control.reference import Reference
 from ..errors import CheckpointError
 from ..systems.car import BIAS, THETA, V
-from .base import DensityPredictor, DensityTrajectory
+from .base import DensityPredictor, DensityTrajectory, expand_samples
 
 __all__ = [
     "ARCHITECTURES",
@@ -390,15 +390,7 @@ class LearnedDensity(DensityPredictor):
     def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
         self._check_reference(reference)
         dtype, device = reference.x.dtype, reference.x.device
-        x0 = check_tensor("x0", x0, last_dims=(None, N_ERR), dtype=dtype, device=device)
-        try:
-            batch = broadcast_shape(x0.shape[:-2], reference.batch_shape)
-        except ValueError:
-            raise ValueError(
-                f"batch shape of x0 {tuple(x0.shape[:-2])} does not broadcast with the reference batch shape "
-                f"{tuple(reference.batch_shape)}"
-            ) from None
-        x0 = x0.expand(*batch, *x0.shape[-2:])
+        x0 = expand_samples(x0, reference, N_ERR)
         log_rho0 = check_tensor("log_rho0", log_rho0, dtype=dtype, device=device)
         try:
             log_rho0 = log_rho0.expand(x0.shape[:-1])
