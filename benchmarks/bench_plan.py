@@ -8,12 +8,13 @@ Targets: stage 1 <= 0.5 s (issue 5); whole plan <= 3 s median with the learned p
 The paper reports ~131 s per plan on a GPU workstation.
 
     python benchmarks/bench_plan.py [--density exact|learned|NAME] [--controller c3m|analytic] [--seed 0]
-                                    [--repeats 3] [--threads N]
+                                    [--repeats 3] [--threads 1]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -27,20 +28,21 @@ from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.car import KinematicCar
 
 
-def make_predictor(name: str, controller_name: str | None):
+def make_predictor(name: str | None, controller_name: str | None):
     car = KinematicCar()
     return load_predictor(name, car, load_controller(controller_name))
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--density", default="exact")
+    p.add_argument("--density", default=None, help="density predictor (default: the package default, the learned "
+                   "trajectory head; exact for exact Liouville)")
     p.add_argument("--controller", default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--stage1-repeats", type=int, default=5)
     p.add_argument("--epochs-density", type=int, default=100)
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's default)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the CLI; 0 = torch's default)")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -50,10 +52,11 @@ def main() -> None:
     predictor = make_predictor(args.density, args.controller)
     config = DensityPlannerConfig(epochs_density=args.epochs_density)
     planner = DensityPlanner(predictor, config)
+    load = os.getloadavg()[0]
     print(f"density planner on random scene {args.seed}: {config.n_candidates} candidates x {config.epochs_init} "
           f"epochs, then {config.epochs_density} epochs x {config.n_samples} samples; predictor "
           f"{getattr(predictor, 'name', type(predictor).__name__)}; torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads")
+          f"{torch.get_num_threads()} threads; load average {load:.2f} on {os.cpu_count()} cores")
 
     planner.initialise(problem, torch.Generator().manual_seed(0))  # warm-up (lazy imports, allocator)
     s1 = []
