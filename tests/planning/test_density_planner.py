@@ -83,6 +83,23 @@ def test_stage1_rollout_matches_fine_reference():
     torch.testing.assert_close(u_plan, ref.u_plan)
 
 
+def test_stage1_rollout_gradient_matches_fine_reference():
+    """The segment-wise rollout of the first stage has the gradient of the fine-grid reference (float64)."""
+    from density_planner.control.reference import make_reference, plan_grid_reference
+
+    car = KinematicCar()
+    p = torch.randn(3, 2, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(1)).clamp(-3, 3)
+    start = torch.tensor([1.0, 2.0, 0.3, 4.0, 0.0], dtype=torch.float64)
+    w = torch.randn(3, 101, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    pa, pb = p.clone().requires_grad_(True), p.clone().requires_grad_(True)
+    (ga,) = torch.autograd.grad((plan_grid_reference(car, start, pa)[0] * w).sum(), pa)
+    (gb,) = torch.autograd.grad((make_reference(car, start, pb).x_plan * w).sum(), pb)
+    torch.testing.assert_close(ga, gb, atol=1e-9, rtol=1e-9)
+    # a start with its own batch shape broadcasts like the fine rollout
+    starts = start.expand(3, 5) + torch.linspace(0, 1, 3, dtype=torch.float64)[:, None]
+    torch.testing.assert_close(plan_grid_reference(car, starts, p)[0], make_reference(car, starts, p).x_plan,
+                               atol=1e-10, rtol=0)
+
 def test_bad_problems_are_rejected():
     scene = empty_scene()
     with pytest.raises(ValueError, match="goal"):

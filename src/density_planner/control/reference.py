@@ -207,9 +207,18 @@ def plan_grid_reference(
     par = parameterization or PiecewiseConstantInputs()
     params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
     start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
-    u = par.inputs(params)
-    x_plan = system.rollout_strided(start, u, par.dt, par.plan_stride)
-    u_plan = u[..., :: par.plan_stride, :]
+    piecewise = getattr(system, "rollout_piecewise_strided", None)
+    if par.steps_per_segment % par.plan_stride == 0:
+        # every segment spans whole planning steps: no fine input sequence needed
+        u_plan = torch.repeat_interleave(params, par.steps_per_segment // par.plan_stride, dim=-1).transpose(-1, -2)
+        if piecewise is not None:
+            x_plan = piecewise(start, params, par.dt, par.steps_per_segment, par.plan_stride)
+        else:
+            x_plan = system.rollout_strided(start, par.inputs(params), par.dt, par.plan_stride)
+    else:
+        u = par.inputs(params)
+        x_plan = system.rollout_strided(start, u, par.dt, par.plan_stride)
+        u_plan = u[..., :: par.plan_stride, :]
     return x_plan, u_plan.expand(*x_plan.shape[:-2], *u_plan.shape[-2:])
 
 

@@ -156,6 +156,39 @@ class KinematicCar(ControlAffineSystem):
         return torch.stack([px, py, theta, v, bias], dim=-1)
 
 
+    def rollout_piecewise_strided(self, x0: Tensor, params: Tensor, dt: float, steps_per_segment: int,
+                                  stride: int) -> Tensor:
+        """:meth:`rollout_strided` for piecewise-constant inputs ``params (*batch, nu, S)``, each held for
+        ``steps_per_segment`` Euler steps, without building the fine input sequence.
+
+        Within a segment theta and v are linear in the step index, so they are formed by broadcasting from their
+        values at the segment starts (no cumulative sum over the fine steps, and a backward pass of broadcasts
+        instead of scatters into the fine grid). Equal to ``rollout_strided(x0, inputs(params), dt, stride)`` up to
+        floating-point rounding. Returns ``(*batch, S * steps_per_segment // stride + 1, nx)``.
+        """
+        n = steps_per_segment
+        if n % stride:
+            raise ValueError(f"steps_per_segment ({n}) must be a multiple of stride ({stride})")
+        batch = broadcast_shape(x0.shape[:-1], params.shape[:-2])
+        x0 = x0.expand(*batch, x0.shape[-1])
+        params = params.expand(*batch, *params.shape[-2:])
+        omega, acc = params[..., OMEGA, :], params[..., ACC, :]
+        j = dt * torch.arange(n, dtype=params.dtype, device=params.device)
+        theta_seg = _exclusive_cumsum(n * dt * omega, x0[..., THETA])  # (*batch, S + 1)
+        v_seg = _exclusive_cumsum(n * dt * acc, x0[..., V])
+        theta = theta_seg[..., :-1, None] + omega[..., None] * j  # (*batch, S, n)
+        v = v_seg[..., :-1, None] + acc[..., None] * j
+        blocks = (*theta.shape[:-1], n // stride, stride)
+        vc = (dt * v * torch.cos(theta)).reshape(blocks).sum(-1).flatten(-2)
+        vs = (dt * v * torch.sin(theta)).reshape(blocks).sum(-1).flatten(-2)
+        px = _exclusive_cumsum(vc, x0[..., PX])
+        py = _exclusive_cumsum(vs, x0[..., PY])
+        theta = torch.cat([theta[..., ::stride].flatten(-2), theta_seg[..., -1:]], dim=-1)
+        v = torch.cat([v[..., ::stride].flatten(-2), v_seg[..., -1:]], dim=-1)
+        bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
+        return torch.stack([px, py, theta, v, bias], dim=-1)
+
+
 def _exclusive_cumsum(increments: Tensor, start: Tensor) -> Tensor:
     """``[start, start + d0, start + d0 + d1, ...]`` along the last axis (length K + 1)."""
     csum = torch.cumsum(increments, dim=-1)
