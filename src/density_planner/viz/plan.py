@@ -52,9 +52,25 @@ def plot_plan(
     """
     grid = scene.grid
     n_snap = len(snapshot_times)
-    fig = plt.figure(figsize=(4.2 + 2.3 * ((n_snap + 1) // 2), 7.2))
-    gs = fig.add_gridspec(2, 1 + (n_snap + 1) // 2, width_ratios=[1.8] + [1] * ((n_snap + 1) // 2))
-    ax = fig.add_subplot(gs[:, 0])
+    ncol = (n_snap + 1) // 2
+    x0, x1, y0, y1 = _extent(scene)
+    aspect = (x1 - x0) / max(y1 - y0, 1e-9)
+    if aspect > 1.3:  # wide map (e.g. a recorded intersection): overview on top, snapshots in two rows below
+        width = 13.0
+        row = width / ncol / aspect + 0.6
+        fig = plt.figure(figsize=(width, width / aspect + 0.9 + 2 * row))
+        gs = fig.add_gridspec(3, ncol, height_ratios=[width / aspect + 0.9, row, row])
+        ax = fig.add_subplot(gs[0, :])
+
+        def snapshot_cell(j: int):
+            return gs[1 + j // ncol, j % ncol]
+    else:  # tall or square map: overview on the left, snapshots in two rows on the right
+        fig = plt.figure(figsize=(4.2 + 2.3 * ncol, 7.2))
+        gs = fig.add_gridspec(2, 1 + ncol, width_ratios=[1.8] + [1] * ncol)
+        ax = fig.add_subplot(gs[:, 0])
+
+        def snapshot_cell(j: int):
+            return gs[j // ncol, 1 + j % ncol]
     occ = grid.max_over_time().detach().cpu().float().numpy()
     ax.imshow(occ.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
               interpolation="nearest", alpha=0.85)
@@ -74,8 +90,7 @@ def plot_plan(
         if k_time >= grid.n_slices:
             continue
         k = min(k_time, states.shape[0] - 1)  # an executed trajectory that stopped early stays where it stopped
-        ncol = (n_snap + 1) // 2
-        a = fig.add_subplot(gs[j // ncol, 1 + j % ncol])
+        a = fig.add_subplot(snapshot_cell(j))
         sl = grid.slice(int(grid.slice_index(k_time * plan_dt))).detach().cpu().float().numpy()
         a.imshow(sl.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
                  interpolation="nearest")
