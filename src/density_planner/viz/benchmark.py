@@ -206,6 +206,8 @@ def write_figures(out: str | Path, rows: Sequence[Mapping[str, Any]], records: S
             if not trajs:
                 continue
             smap = load_scene_map(out, setting, env)
+            # the ablation scores the planned references from the mean start, the other settings closed loops
+            what = "planned references" if setting == "ablation" else "executed trajectories"
             paths.append(plot_env_trajectories(smap, trajs, fig_dir / f"plans_{setting}_{env}.png", references=refs,
-                                               title=f"{setting} / {env}: executed trajectories (✗ = failed)"))
+                                               title=f"{setting} / {env}: {what} (✗ = failed)"))
     return paths
