@@ -18,7 +18,7 @@ from torch import Tensor
 from ..checks import broadcast_shape, check_tensor
 from ..control.reference import Reference
 
-__all__ = ["DensityTrajectory", "DensityPredictor", "sample_weights", "expand_samples", "WeightMode"]
+__all__ = ["DensityTrajectory", "DensityPredictor", "sample_weights", "expand_samples", "expand_log_rho0", "WeightMode"]
 
 WeightMode = Literal["density", "mass"]
 
@@ -43,6 +43,21 @@ def expand_samples(x0: Tensor, reference: Reference, nx: int) -> Tensor:
             f"with the reference batch shape {tuple(reference.batch_shape)}"
         ) from None
     return x0.expand(*batch, *x0.shape[-2:])
+
+
+def expand_log_rho0(log_rho0: Tensor, x0: Tensor) -> Tensor:
+    """Check initial log-densities against samples ``x0 (*batch, N, nx)`` and expand them to ``(*batch, N)``.
+
+    Raises:
+        ValueError: ``log_rho0`` has non-finite values or does not broadcast to one value per sample.
+    """
+    log_rho0 = check_tensor("log_rho0", log_rho0, dtype=x0.dtype, device=x0.device)
+    try:
+        return log_rho0.expand(x0.shape[:-1])
+    except RuntimeError:
+        raise ValueError(
+            f"log_rho0 must have shape {tuple(x0.shape[:-1])} (one value per sample), got {tuple(log_rho0.shape)}"
+        ) from None
 
 
 @dataclass

@@ -19,11 +19,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_positive, check_tensor
+from ..checks import check_choice, check_positive
 from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..systems.base import System
-from .base import DensityPredictor, DensityTrajectory, expand_samples
+from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 from .closed_loop import ClosedLoop, DivergenceMethod
 from .integrators import get_integrator
 
@@ -151,13 +151,7 @@ def propagate_density(
     if log_rho0 is None:
         log_rho0 = torch.zeros(x0.shape[:-1], dtype=x0.dtype, device=x0.device)
     else:
-        log_rho0 = check_tensor("log_rho0", log_rho0, dtype=x0.dtype, device=x0.device)
-        try:
-            log_rho0 = log_rho0.expand(x0.shape[:-1])
-        except RuntimeError:
-            raise ValueError(
-                f"log_rho0 must have shape {tuple(x0.shape[:-1])} (one value per sample), got {tuple(log_rho0.shape)}"
-            ) from None
+        log_rho0 = expand_log_rho0(log_rho0, x0)
     closed_loop = ClosedLoop(system, controller)
     t, saved = _integrate(closed_loop, (x0, log_rho0), reference, config, True, all_steps)
     x = torch.stack(saved[0], dim=-2)

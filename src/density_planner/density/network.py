@@ -54,11 +54,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..checks import check_tensor
 from ..control.reference import Reference
 from ..errors import CheckpointError
 from ..systems.car import BIAS, THETA, V
-from .base import DensityPredictor, DensityTrajectory, expand_samples
+from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 
 __all__ = [
     "ARCHITECTURES",
@@ -391,13 +390,7 @@ class LearnedDensity(DensityPredictor):
         self._check_reference(reference)
         dtype, device = reference.x.dtype, reference.x.device
         x0 = expand_samples(x0, reference, N_ERR)
-        log_rho0 = check_tensor("log_rho0", log_rho0, dtype=dtype, device=device)
-        try:
-            log_rho0 = log_rho0.expand(x0.shape[:-1])
-        except RuntimeError:
-            raise ValueError(
-                f"log_rho0 must have shape {tuple(x0.shape[:-1])} (one value per sample), got {tuple(log_rho0.shape)}"
-            ) from None
+        log_rho0 = expand_log_rho0(log_rho0, x0)
         p = next(self.model.parameters())
         if p.dtype != dtype or p.device != device:
             self.model = self.model.to(device=device, dtype=dtype)

@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from .style import OCCUPANCY_CMAP, plt, save_figure
+from .occupancy import show_occupancy
+from .style import plt, save_figure
 
 __all__ = ["BAR_METRICS", "plot_metric_bars", "plot_summary", "plot_env_trajectories", "write_figures"]
 
@@ -135,8 +136,7 @@ def plot_env_trajectories(
         h = float(scene_map["cell_size"])
         nx, ny = occ.shape
         extent = (ox - h / 2, ox + (nx - 0.5) * h, oy - h / 2, oy + (ny - 0.5) * h)
-        ax.imshow(occ.T, origin="lower", extent=extent, cmap=OCCUPANCY_CMAP, vmin=0, vmax=1, interpolation="nearest",
-                  alpha=0.85)
+        show_occupancy(ax, occ, extent, alpha=0.85)
         bx0, bx1, by0, by1 = (float(v) for v in scene_map["planning_box"])
         ax.plot([bx0, bx1, bx1, bx0, bx0], [by0, by0, by1, by1, by0], ls="--", lw=0.7, color="tab:blue", alpha=0.6)
         start = start if start is not None else scene_map["start"]

@@ -12,7 +12,7 @@ from density_planner.io.atomic import _atomic
 
 from .style import OCCUPANCY_CMAP, plt, save_figure
 
-__all__ = ["plot_occupancy", "animate_occupancy"]
+__all__ = ["plot_occupancy", "animate_occupancy", "show_occupancy"]
 
 #: longest side [cells] of the image drawn per GIF frame (larger grids are strided for display only)
 _GIF_MAX_CELLS = 400
@@ -46,6 +46,15 @@ def _extent(scene: Scene) -> tuple[float, float, float, float]:
     xmin, xmax, ymin, ymax = scene.grid.bounds
     h = scene.grid.cell_size / 2
     return (xmin - h, xmax + h, ymin - h, ymax + h)
+
+
+def show_occupancy(ax, probs, extent: tuple[float, float, float, float], **kwargs):
+    """Draw occupancy probabilities ``probs (X, Y)`` (array or tensor, index order x, y) on ``ax`` over
+    ``extent = (xmin, xmax, ymin, ymax)`` with the package's occupancy colours; returns the image."""
+    if hasattr(probs, "detach"):
+        probs = probs.detach().cpu().float().numpy()
+    return ax.imshow(np.asarray(probs).T, origin="lower", extent=extent, cmap=OCCUPANCY_CMAP, vmin=0.0, vmax=1.0,
+                     interpolation="nearest", **kwargs)
 
 
 def _figsize(scene: Scene, width: float = 6.0) -> tuple[float, float]:
@@ -98,15 +107,7 @@ def plot_occupancy(scene: Scene, path: str | Path, *, title: str | None = None) 
     w, h = _figsize(scene)
     fig, axes = plt.subplots(1, 2, figsize=(2 * w, h))
     for ax, (data, label, bar) in zip(axes, panels, strict=True):
-        im = ax.imshow(
-            data.detach().cpu().float().numpy().T,
-            origin="lower",
-            extent=_extent(scene),
-            cmap=OCCUPANCY_CMAP,
-            vmin=0.0,
-            vmax=1.0,
-            interpolation="nearest",
-        )
+        im = show_occupancy(ax, data, _extent(scene))
         _decorate(ax, scene)
         ax.set_title(label)
         fig.colorbar(im, ax=ax, label=bar, shrink=0.8)
@@ -137,15 +138,7 @@ def animate_occupancy(
     stride = max(1, math.ceil(max(probs.shape[1:]) / _GIF_MAX_CELLS))
     shown = probs[:, ::stride, ::stride]
     fig, ax = plt.subplots(figsize=_figsize(scene, width=5.0), dpi=80)
-    im = ax.imshow(
-        shown[0].T,
-        origin="lower",
-        extent=_extent(scene),
-        cmap=OCCUPANCY_CMAP,
-        vmin=0.0,
-        vmax=1.0,
-        interpolation="nearest",
-    )
+    im = show_occupancy(ax, shown[0], _extent(scene))
     _decorate(ax, scene)
     fig.colorbar(im, ax=ax, label=r"$P_{occ}$", shrink=0.8)
     label = title or scene.name

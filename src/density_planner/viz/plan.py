@@ -10,8 +10,8 @@ import numpy as np
 
 from ..environment.scene import Scene
 from ..io.atomic import _atomic
-from .occupancy import _decorate, _extent
-from .style import DENSITY_CMAP, OCCUPANCY_CMAP, plt, save_figure
+from .occupancy import _decorate, _extent, show_occupancy
+from .style import DENSITY_CMAP, plt, save_figure
 
 __all__ = ["plot_plan", "animate_plan", "plot_costs", "plot_plans"]
 
@@ -71,9 +71,7 @@ def plot_plan(
 
         def snapshot_cell(j: int):
             return gs[j // ncol, 1 + j % ncol]
-    occ = grid.max_over_time().detach().cpu().float().numpy()
-    ax.imshow(occ.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
-              interpolation="nearest", alpha=0.85)
+    show_occupancy(ax, grid.max_over_time(), _extent(scene), alpha=0.85)
     sc = None
     if samples_x is not None and samples_log_rho is not None:
         for k in range(0, states.shape[0], 10):
@@ -91,9 +89,7 @@ def plot_plan(
             continue
         k = min(k_time, states.shape[0] - 1)  # an executed trajectory that stopped early stays where it stopped
         a = fig.add_subplot(snapshot_cell(j))
-        sl = grid.slice(int(grid.slice_index(k_time * plan_dt))).detach().cpu().float().numpy()
-        a.imshow(sl.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
-                 interpolation="nearest")
+        show_occupancy(a, grid.slice(int(grid.slice_index(k_time * plan_dt))), _extent(scene))
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
         if samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
@@ -108,10 +104,8 @@ def plot_plan(
 
 def plot_plans(scene: Scene, plans: Mapping[str, np.ndarray], path: str | Path, *, title: str | None = None) -> Path:
     """Several planners' nominal trajectories ``name -> (T, >=2)`` over the time-max occupancy of one scene."""
-    occ = scene.grid.max_over_time().detach().cpu().float().numpy()
     fig, ax = plt.subplots(figsize=(6, 8))
-    ax.imshow(occ.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
-              interpolation="nearest", alpha=0.85)
+    show_occupancy(ax, scene.grid.max_over_time(), _extent(scene), alpha=0.85)
     for (name, states), colour in zip(plans.items(), _PLANNER_COLOURS):
         ax.plot(states[:, 0], states[:, 1], "-", color=colour, lw=1.5, label=name, zorder=4)
     _decorate(ax, scene)
@@ -141,9 +135,7 @@ def animate_plan(
     fig, ax = plt.subplots(figsize=(4.6, 6.2), dpi=72)
     for k in range(0, states.shape[0], every):
         ax.clear()
-        sl = grid.slice(int(grid.slice_index(k * plan_dt))).detach().cpu().float().numpy()
-        ax.imshow(sl.T, origin="lower", extent=_extent(scene), cmap=OCCUPANCY_CMAP, vmin=0, vmax=1,
-                  interpolation="nearest")
+        show_occupancy(ax, grid.slice(int(grid.slice_index(k * plan_dt))), _extent(scene))
         ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.8)
         ax.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.5)
         if samples_x is not None and samples_log_rho is not None:
