@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from ..environment.scene import Scene
+from .road import RoadCostConfig, with_road_terms
 from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, InputCost
 
 __all__ = ["CostWeights", "CostConfig", "CostBreakdown", "WeightedCost", "build_cost", "TERM_NAMES"]
@@ -65,6 +66,8 @@ class CostConfig:
     theta_max: float = 3 * _PI - 0.2
     v_min: float = 0.1
     v_max: float = 9.9
+    #: road terms on scenes with a road (goal region in time, road barrier); unused on random scenes
+    road: RoadCostConfig = field(default_factory=RoadCostConfig)
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.beta) or self.beta < 0:
@@ -136,7 +139,9 @@ def build_cost(
 ) -> WeightedCost:
     """The four cost terms for ``scene``: goal, input, bounds (planning box) and collision.
 
-    With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``).
+    With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``). On scenes
+    with a road (``scene.road``) the goal term is the goal region in time and the road barrier ``"road"`` is added
+    (:func:`~density_planner.cost.road.with_road_terms`).
     """
     config = config or CostConfig()
     xmin, xmax, ymin, ymax = scene.planning_box
@@ -151,4 +156,6 @@ def build_cost(
     )
     grid = scene.grid if device is None else scene.grid.to(device)
     collision = CollisionCost(grid, beta=config.beta, plateau_scales=config.plateau_scales)
-    return WeightedCost([goal, InputCost(), bounds, collision], config.weights.as_dict())
+    terms, weights = with_road_terms(scene, config, [goal, InputCost(), bounds, collision], config.weights.as_dict(),
+                                     optimisation=optimisation, device=device)
+    return WeightedCost(terms, weights)

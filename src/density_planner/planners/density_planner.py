@@ -21,6 +21,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -36,6 +37,7 @@ from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
 from .registry import PlannerContext, register_planner
+from .routes import RouteSeedConfig, route_seed_parameters
 
 __all__ = ["DensityPlannerConfig", "DensityPlanner", "sample_initial_states"]
 
@@ -73,6 +75,8 @@ class DensityPlannerConfig:
     seed: int = 0
     #: cost terms and weights
     cost: CostConfig = field(default_factory=CostConfig)
+    #: route-seeded stage-1 candidates on scenes with lanes (they join the n_candidates random ones)
+    routes: RouteSeedConfig = field(default_factory=RouteSeedConfig)
 
     def __post_init__(self) -> None:
         for name in ("n_candidates", "epochs_init", "epochs_density", "n_samples"):
@@ -130,11 +134,15 @@ class DensityPlanner(Planner):
         dtype: torch.dtype = torch.float32,
         device: torch.device | str = "cpu",
         progress: bool = False,
+        candidate_seeds: Callable[[PlanningProblem], Tensor | None] | None = None,
     ):
         """
         Args:
             predictor: density predictor used in stage 2 (exact Liouville or a learned network).
             config: planner settings.
+            candidate_seeds: ``problem -> (K, nu, n_segments)`` parameters (or ``None``) that join the random
+                stage-1 candidates; default: the route-seeded candidates of :mod:`.routes` (``config.routes``),
+                which are ``None`` on scenes without lanes.
             exact_check: if given (and different from ``predictor``), the final plan is re-evaluated with it and
                 both figures are reported (``extras["exact_check"]``).
             progress: show a progress bar over the iterations.
@@ -145,6 +153,7 @@ class DensityPlanner(Planner):
         self.dtype = dtype
         self.device = torch.device(device)
         self.progress = progress
+        self.candidate_seeds = candidate_seeds
 
     # ----------------------------------------------------------------- helpers
     def _bounds(self, problem: PlanningProblem) -> tuple[Tensor, Tensor]:
@@ -170,6 +179,15 @@ class DensityPlanner(Planner):
         for k, v in cost.terms.items():
             history.setdefault(k, []).append(float(v.detach().reshape(())))
 
+    def seed_candidates(self, problem: PlanningProblem) -> Tensor | None:
+        """Extra stage-1 candidates ``(K, nu, n_segments)`` (see ``candidate_seeds``), or ``None``."""
+        if self.candidate_seeds is not None:
+            return self.candidate_seeds(problem)
+        cost = self.config.cost
+        seeds = route_seed_parameters(problem, self.config.routes, v_limits=(cost.v_min, cost.v_max),
+                                      dtype=self.dtype, device=self.device)
+        return None if seeds is None else seeds.params
+
     # ------------------------------------------------------------------ stage 1
     def initialise(self, problem: PlanningProblem, generator: torch.Generator) -> tuple[Tensor, dict, int]:
         """Stage 1: returns the best parameters ``(nu, S)``, the cost history of the best candidate, iterations."""
@@ -183,8 +201,15 @@ class DensityPlanner(Planner):
         p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
                                         generator=generator)
         params = torch.maximum(torch.minimum(p0.to(self.dtype).to(self.device), high), low)
+        t_seed = time.perf_counter()
+        seeds = self.seed_candidates(problem)
+        n_seeds = 0 if seeds is None else int(seeds.shape[0])
+        if seeds is not None:
+            seeds = seeds.to(dtype=self.dtype, device=self.device)
+            params = torch.cat([torch.maximum(torch.minimum(seeds, high), low), params])
+        t_seed = time.perf_counter() - t_seed
         opt = BatchedAdam(params, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high)
-        m = cfg.n_candidates
+        m = params.shape[0]
         bounds_on = torch.zeros(m, dtype=torch.bool, device=self.device)
         coll_on = torch.zeros(m, dtype=torch.bool, device=self.device)
         totals = []
@@ -220,6 +245,10 @@ class DensityPlanner(Planner):
         for k, vals in per_candidate.items():
             history[k] = [float(v[best]) for v in vals]
         history["candidates_with_collision_term"] = [float(coll_on.sum())]
+        if n_seeds:
+            history["seed_candidates"] = [float(n_seeds)]
+            history["seed_seconds"] = [t_seed]
+            history["best_is_seed"] = [float(best < n_seeds)]
         log.info("stage 1: best candidate %d of %d, full cost %.4g", best, m, float(total[best]))
         return params[best].detach().clone(), history, cfg.epochs_init
 

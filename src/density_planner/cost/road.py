@@ -1,0 +1,155 @@
+"""Road-aware cost terms: the road as a hard limit (barrier on the signed distance to the road's edge) and the goal
+region in time, switched in by :func:`with_road_terms` on scenes that carry a road (``scene.road``, CommonRoad);
+on the paper's random scenes nothing changes.
+
+The barrier ``J_R`` [m-ish] evaluates the vehicle's outline, not only its centre: points on the rectangle's
+perimeter (``vehicle_length x vehicle_width`` of the scene, at most ``footprint_spacing`` apart, corners
+included) at every sample's pose, and the road SDF (:class:`~density_planner.environment.road_sdf.RoadSDF`,
+negative on the road) there::
+
+    J_R = sum_{i,k} w_i(t_k) sum_{q in outline} phi(sdf(q_i(t_k)) + margin),   phi(s) = s_+ + s_+^2 / (1 m)
+
+``phi`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
+everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default
+weight ``alpha_R = 1000`` one outline point on the road's edge costs ``1000 * (0.1 + 0.01) = 110`` per state,
+more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= 0.1 * (beta * h / 2)^2``: 2.5 at
+0.1-m cells, 10 at 0.2 m, with the default ``beta = 100`` cells), so leaving the road never pays for avoiding an
+obstacle. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
+into it by more than ``margin`` between two points.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..environment.road_sdf import RoadSDF, road_sdf_for_scene
+from .goal_region import GoalRegionCost
+from .terms import CostInputs, CostTerm
+
+__all__ = ["RoadCostConfig", "RoadBarrierCost", "vehicle_outline", "with_road_terms"]
+
+
+@dataclass(frozen=True)
+class RoadCostConfig:
+    """``[*.cost.road]``: the road terms on scenes with a road (ignored elsewhere)."""
+
+    #: use the goal region in time (position, time, velocity, orientation) instead of the goal point
+    goal_region: bool = True
+    #: weight of the squared speed distance in the goal-region cost [m^2 / (m/s)^2]
+    goal_velocity_weight: float = 1.0
+    #: weight of the squared heading distance in the goal-region cost [m^2 / rad^2]
+    goal_orientation_weight: float = 25.0
+    #: add the road barrier J_R
+    barrier: bool = True
+    #: alpha_R, weight of J_R [1/m]
+    weight: float = 1000.0
+    #: the barrier starts this far inside the road's edge [m]
+    margin: float = 0.1
+    #: largest spacing of the outline points checked [m]
+    footprint_spacing: float = 1.0
+    #: cell size of the road's signed distance field [m] (grows to respect sdf_max_cells)
+    sdf_cell_size: float = 0.2
+    #: largest number of lattice points of the signed distance field
+    sdf_max_cells: int = 4_000_000
+
+    def __post_init__(self) -> None:
+        for name in ("goal_velocity_weight", "goal_orientation_weight", "weight", "margin"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"cost.road.{name} must be a finite number >= 0, got {v!r}")
+        for name in ("footprint_spacing", "sdf_cell_size"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"cost.road.{name} must be a finite number > 0, got {v!r}")
+        if isinstance(self.sdf_max_cells, bool) or not isinstance(self.sdf_max_cells, int) or self.sdf_max_cells < 4:
+            raise ValueError(f"cost.road.sdf_max_cells must be an integer >= 4, got {self.sdf_max_cells!r}")
+
+
+def vehicle_outline(length: float, width: float, spacing: float = 1.0) -> np.ndarray:
+    """``(P, 2)`` points on the perimeter of a ``length x width`` rectangle centred at the origin, heading +x
+    [m]: the corners and evenly spaced points at most ``spacing`` apart."""
+    hl, hw = 0.5 * length, 0.5 * width
+    corners = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw], [hl, hw]])
+    pts = []
+    for a, b in zip(corners[:-1], corners[1:]):
+        n = max(1, math.ceil(np.linalg.norm(b - a) / spacing))
+        pts.append(a + (b - a) * (np.arange(n)[:, None] / n))
+    return np.concatenate(pts)
+
+
+class RoadBarrierCost(CostTerm):
+    """``J_R``, the road barrier (see the module docstring); term name ``"road"``."""
+
+    name = "road"
+
+    def __init__(self, sdf: RoadSDF, *, length: float = 4.5, width: float = 1.8, margin: float = 0.1,
+                 spacing: float = 1.0):
+        if not (length > 0 and width > 0):
+            raise ValueError(f"vehicle length and width must be > 0, got {length}, {width}")
+        self.sdf = sdf
+        self.margin = float(margin)
+        self.outline = torch.as_tensor(vehicle_outline(length, width, spacing))
+
+    def outline_points(self, x: Tensor) -> Tensor:
+        """``(..., P, 2)`` outline points [m] of the poses ``x (..., nx)`` (``x, y, theta`` first)."""
+        c, s = torch.cos(x[..., 2:3]), torch.sin(x[..., 2:3])
+        o = self.outline.to(x)
+        px = x[..., 0:1] + c * o[:, 0] - s * o[:, 1]
+        py = x[..., 1:2] + s * o[:, 0] + c * o[:, 1]
+        return torch.stack([px, py], dim=-1)
+
+    def penetration(self, x: Tensor) -> Tensor:
+        """Largest signed distance [m] of the outline points of ``x (..., nx)`` (> 0: off the road)."""
+        return self.sdf(self.outline_points(x)).max(-1).values
+
+    def per_state(self, x: Tensor) -> Tensor:
+        """``sum_q phi(sdf(q) + margin)`` per state ``x (..., nx)``."""
+        s = torch.relu(self.sdf(self.outline_points(x)) + self.margin)
+        return (s + s * s).sum(-1)
+
+    def __call__(self, inputs: CostInputs) -> Tensor:
+        return (inputs.weights * self.per_state(inputs.x)).sum(dim=(-1, -2))
+
+
+def with_road_terms(
+    scene: Any,
+    config: Any,
+    terms: list[CostTerm],
+    weights: dict[str, float],
+    *,
+    optimisation: bool = True,
+    device: torch.device | str | None = None,
+) -> tuple[list[CostTerm], dict[str, float]]:
+    """The cost terms for ``scene`` with the road terms switched in where ``scene.road`` is set: the ``"goal"``
+    term becomes :class:`~density_planner.cost.goal_region.GoalRegionCost` and :class:`RoadBarrierCost` (weight
+    ``config.road.weight``) is added. ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
+    Scenes without a road get ``terms`` and ``weights`` back unchanged."""
+    road = getattr(scene, "road", None)
+    rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
+    if road is None:
+        return terms, weights
+    terms, weights = list(terms), dict(weights)
+    goal = getattr(road, "goal", None)
+    if rc.goal_region and goal is not None:
+        region = GoalRegionCost(
+            goal, t0=scene.grid.t0, dt=scene.grid.dt,
+            velocity_weight=rc.goal_velocity_weight, orientation_weight=rc.goal_orientation_weight,
+            far_factor=config.goal_far_factor if optimisation else 1.0, close_threshold=config.goal_close_threshold,
+        )
+        terms = [region if t.name == "goal" else t for t in terms]
+    if rc.barrier and getattr(road, "drivable", None) is not None and rc.weight > 0:
+        sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+        if sdf is not None:
+            if device is not None:
+                sdf = sdf.to(device)
+            terms.append(RoadBarrierCost(sdf, length=road.vehicle_length, width=road.vehicle_width,
+                                         margin=rc.margin, spacing=rc.footprint_spacing))
+            weights["road"] = rc.weight
+    return terms, weights

@@ -1,0 +1,247 @@
+"""The lane graph of a road map: lanelets with their centre lines, successors and same-direction neighbours.
+
+A :class:`LaneGraph` is the part of a CommonRoad ``LaneletNetwork`` that route search needs (and nothing else), so
+that routes can be planned on hand-made maps in tests and on any map a user builds, without commonroad-io:
+
+* :class:`Lane`: one lanelet, its left / centre / right polylines [m], its length, its successors and its
+  adjacent lanelets *in the same driving direction* (the lane changes a vehicle may make);
+* :meth:`LaneGraph.from_lanelet_network` reads a commonroad-io ``LaneletNetwork`` (any object with the same
+  attributes works: ``lanelets``, ``lanelet_id``, ``left_vertices``, ``center_vertices``, ``right_vertices``,
+  ``successor``, ``adj_left``, ``adj_left_same_direction``, ``adj_right``, ``adj_right_same_direction``,
+  ``lanelet_type``), keeping only lanelets a car may drive on (sidewalks, crosswalks, bicycle lanes and
+  borders are left out, as in the drivable area);
+* :func:`lane_graph_from_file` reads it from a CommonRoad XML file once per file (cached by path and
+  modification time), which is how planners find the lanes of a scene loaded from a file
+  (``scene.meta["file"]``).
+
+Queries are vectorised with shapely 2 (``contains_xy``, ``line_locate_point``).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Lane", "LaneGraph", "lane_graph_from_file", "NON_DRIVABLE_LANELET_TYPES"]
+
+log = logging.getLogger(__name__)
+
+#: CommonRoad lanelet types (``LaneletType`` values) a car does not drive on
+NON_DRIVABLE_LANELET_TYPES = frozenset({"sidewalk", "crosswalk", "bicycleLane", "border", "restricted"})
+
+
+def _shapely() -> Any:
+    import shapely
+
+    return shapely
+
+
+def _polyline(name: str, value: Any) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 2 or not np.isfinite(arr).all():
+        raise ValueError(f"{name} must be a finite (K >= 2, 2) polyline, got shape {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Lane:
+    """One lanelet.
+
+    Attributes:
+        lane_id: the lanelet id.
+        left, center, right: ``(K, 2)`` polylines [m] in driving direction (``center`` defaults to the mean of
+            ``left`` and ``right`` when they have equal length).
+        successors: ids of the lanelets that continue this one.
+        left_same, right_same: id of the adjacent lanelet to the left / right that runs in the same direction
+            (a lane change), or ``None``.
+    """
+
+    lane_id: int
+    left: np.ndarray
+    right: np.ndarray
+    center: np.ndarray | None = None
+    successors: tuple[int, ...] = ()
+    left_same: int | None = None
+    right_same: int | None = None
+
+    def __post_init__(self) -> None:
+        left = _polyline(f"lane {self.lane_id} left", self.left)
+        right = _polyline(f"lane {self.lane_id} right", self.right)
+        if self.center is None:
+            if left.shape != right.shape:
+                raise ValueError(f"lane {self.lane_id}: give center when left and right differ in length")
+            center = 0.5 * (left + right)
+        else:
+            center = _polyline(f"lane {self.lane_id} center", self.center)
+        for name, arr in (("left", left), ("right", right), ("center", center)):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "lane_id", int(self.lane_id))
+        object.__setattr__(self, "successors", tuple(int(s) for s in self.successors))
+        for name in ("left_same", "right_same"):
+            v = getattr(self, name)
+            object.__setattr__(self, name, None if v is None else int(v))
+
+    @functools.cached_property
+    def polygon(self) -> Any:
+        """The lanelet's area (shapely polygon: left bound, then the reversed right bound)."""
+        shapely = _shapely()
+        poly = shapely.Polygon(np.vstack([self.left, self.right[::-1]]))
+        return poly if poly.is_valid else poly.buffer(0)
+
+    @functools.cached_property
+    def centerline(self) -> Any:
+        """The centre line as a shapely ``LineString``."""
+        return _shapely().LineString(self.center)
+
+    @property
+    def length(self) -> float:
+        """Length of the centre line [m]."""
+        return float(np.linalg.norm(np.diff(self.center, axis=0), axis=1).sum())
+
+    def heading_at(self, s: np.ndarray) -> np.ndarray:
+        """Heading [rad] of the centre line at arc lengths ``s`` [m] (of the segment containing each)."""
+        seg = np.diff(self.center, axis=0)
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
+        idx = np.clip(np.searchsorted(cum, np.asarray(s, dtype=np.float64), side="right") - 1, 0, len(seg) - 1)
+        return np.arctan2(seg[idx, 1], seg[idx, 0])
+
+
+class LaneGraph:
+    """Lanes keyed by id, with the successor / lane-change structure (see the module docstring)."""
+
+    def __init__(self, lanes: list[Lane] | tuple[Lane, ...]):
+        self.lanes: dict[int, Lane] = {}
+        for lane in lanes:
+            if lane.lane_id in self.lanes:
+                raise ValueError(f"duplicate lane id {lane.lane_id}")
+            self.lanes[lane.lane_id] = lane
+        if not self.lanes:
+            raise ValueError("a LaneGraph needs at least one lane")
+        # references to lanes that are not kept (e.g. sidewalks) are dropped
+        for lane in self.lanes.values():
+            object.__setattr__(lane, "successors", tuple(s for s in lane.successors if s in self.lanes))
+            for name in ("left_same", "right_same"):
+                if getattr(lane, name) not in self.lanes:
+                    object.__setattr__(lane, name, None)
+
+    def __len__(self) -> int:
+        return len(self.lanes)
+
+    def __getitem__(self, lane_id: int) -> Lane:
+        return self.lanes[int(lane_id)]
+
+    @property
+    def ids(self) -> list[int]:
+        return list(self.lanes)
+
+    # ------------------------------------------------------------------ queries
+    def lanes_at(self, xy: tuple[float, float], heading: float | None = None, *, max_heading_error: float = 1.0,
+                 search_radius: float = 5.0) -> list[int]:
+        """Ids of the lanes containing the point ``xy`` whose direction at that point is within
+        ``max_heading_error`` [rad] of ``heading`` (any direction when ``heading`` is None). Where no lane
+        contains the point, the nearest lanes within ``search_radius`` [m] (same heading test) are returned,
+        nearest first."""
+        shapely = _shapely()
+        ids = self.ids
+        polys = np.asarray([self.lanes[i].polygon for i in ids], dtype=object)
+        point = shapely.Point(float(xy[0]), float(xy[1]))
+        dist = np.asarray(shapely.distance(polys, point), dtype=np.float64)
+        order = np.argsort(dist, kind="stable")
+        inside = [ids[k] for k in order if dist[k] <= 1e-9]
+        near = [ids[k] for k in order if dist[k] <= search_radius]
+        out = []
+        for cand in (inside, near):
+            for lane_id in cand:
+                if heading is None or abs(_wrap(self._heading_near(lane_id, xy) - heading)) <= max_heading_error:
+                    out.append(lane_id)
+            if out:
+                return out
+        return out
+
+    def _heading_near(self, lane_id: int, xy: tuple[float, float]) -> float:
+        lane = self.lanes[lane_id]
+        s = float(lane.centerline.project(_shapely().Point(float(xy[0]), float(xy[1]))))
+        return float(lane.heading_at(np.array([s]))[0])
+
+    def lanes_touching(self, shapes: Any) -> list[int]:
+        """Ids of the lanes whose area intersects ``shapes`` (a shapely geometry) with positive area, or that
+        contain it where it has no area (points, lines)."""
+        shapely = _shapely()
+        ids = self.ids
+        polys = np.asarray([self.lanes[i].polygon for i in ids], dtype=object)
+        hit = np.asarray(shapely.intersects(polys, shapes), dtype=bool)
+        if getattr(shapes, "area", 0.0) > 0:
+            area = np.asarray(shapely.area(shapely.intersection(polys[hit], shapes)), dtype=np.float64)
+            keep = np.zeros(len(ids), dtype=bool)
+            keep[np.flatnonzero(hit)] = area > 1e-6
+            hit = keep
+        return [ids[k] for k in np.flatnonzero(hit)]
+
+    def to_networkx(self, *, lane_change_cost: float = 0.0) -> Any:
+        """Directed graph: edge ``a -> b`` for every successor (``kind="successor"``, ``weight`` = length of
+        ``a``) and every same-direction lane change (``kind="change"``, ``weight = lane_change_cost``)."""
+        import networkx as nx
+
+        g = nx.DiGraph()
+        for lane in self.lanes.values():
+            g.add_node(lane.lane_id)
+        for lane in self.lanes.values():
+            for s in lane.successors:
+                g.add_edge(lane.lane_id, s, kind="successor", weight=lane.length)
+            for n in (lane.left_same, lane.right_same):
+                if n is not None and not g.has_edge(lane.lane_id, n):
+                    g.add_edge(lane.lane_id, n, kind="change", weight=float(lane_change_cost))
+        return g
+
+    # ----------------------------------------------------------------- builders
+    @classmethod
+    def from_lanelet_network(cls, network: Any, *, exclude_types: frozenset[str] = NON_DRIVABLE_LANELET_TYPES
+                             ) -> LaneGraph:
+        """The drivable lanes of a commonroad-io ``LaneletNetwork`` (or an object with the same attributes)."""
+        lanes = []
+        for ll in getattr(network, "lanelets", ()):
+            types = {getattr(t, "value", str(t)) for t in (getattr(ll, "lanelet_type", None) or ())}
+            if types and types <= exclude_types:
+                continue
+            try:
+                lane = Lane(
+                    lane_id=ll.lanelet_id,
+                    left=ll.left_vertices,
+                    right=ll.right_vertices,
+                    center=getattr(ll, "center_vertices", None),
+                    successors=tuple(getattr(ll, "successor", None) or ()),
+                    left_same=ll.adj_left if getattr(ll, "adj_left_same_direction", False) else None,
+                    right_same=ll.adj_right if getattr(ll, "adj_right_same_direction", False) else None,
+                )
+            except ValueError as exc:
+                log.warning("lanelet %s left out of the lane graph: %s", getattr(ll, "lanelet_id", "?"), exc)
+                continue
+            lanes.append(lane)
+        if not lanes:
+            raise ValueError("the lanelet network has no drivable lanelets")
+        return cls(lanes)
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_graph(path: str, mtime_ns: int) -> LaneGraph:
+    from .commonroad import read_commonroad
+
+    scenario, _ = read_commonroad(path)
+    return LaneGraph.from_lanelet_network(scenario.lanelet_network)
+
+
+def lane_graph_from_file(path: str | Path) -> LaneGraph:
+    """The :class:`LaneGraph` of a CommonRoad XML file (read once per file and modification time)."""
+    p = Path(path).resolve()
+    return _cached_graph(str(p), p.stat().st_mtime_ns)

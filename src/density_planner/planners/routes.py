@@ -1,0 +1,595 @@
+"""Route-seeded candidates for the density planner's first stage: references that follow the road.
+
+On a road map the planner's random stage-1 candidates rarely find the road's shape (a T-junction, a lane change,
+a long bend); this module gives it candidates that do, built in four steps:
+
+1. **Routes** (:func:`find_routes`): lane sequences through the :class:`~density_planner.environment.lanes.LaneGraph`
+   from the lanes under the start (heading-aligned) to the lanes touching the goal region, over successors and
+   same-direction lane changes, the ``max_routes`` shortest by length plus ``lane_change_cost`` per change
+   (networkx ``shortest_simple_paths``, Yen's algorithm). A goal without a position gives the lanes ahead.
+2. **Paths** (:func:`route_path`): the routes' centre lines joined into one polyline each; a lane change blends
+   from one centre line to the next over ``lane_change_length`` (smoothstep, so heading stays continuous).
+3. **Speed profiles** (:func:`speed_profiles`): arc length over time for *keep* (the start speed),
+   *accelerate* / *decelerate* (ramp at ``acceleration`` to the cruise speed that puts the vehicle at a target
+   point of the goal region at a target time of its interval) and *stop* (reach the goal's centre at the start
+   of its time interval, then brake and hold), within the speed limits.
+4. **Fit** (:func:`fit_reference_parameters`): the target positions and speeds become piecewise-constant reference
+   inputs ``(M, nu, n_segments)`` by a batched Adam fit through the differentiable reference roll-out
+   (:func:`~density_planner.control.reference.plan_grid_reference`), started from the inputs read off the target
+   (turn rate from the heading change, acceleration from the speed change per segment) and projected onto the
+   input bounds after every step.
+
+:func:`route_seed_parameters` runs all four for a :class:`~density_planner.planners.problem.PlanningProblem`
+and returns ``None`` on scenes without a lane map (the paper's random scenes), so the planner then behaves
+exactly as without seeds.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..control.reference import PiecewiseConstantInputs, plan_grid_reference
+from ..environment.lanes import LaneGraph, lane_graph_from_file
+from ..systems.base import System
+from .optim import BatchedAdam
+
+__all__ = [
+    "RouteSeedConfig",
+    "Route",
+    "RouteSeeds",
+    "find_routes",
+    "route_path",
+    "speed_profiles",
+    "fit_reference_parameters",
+    "route_seed_parameters",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RouteSeedConfig:
+    """``[density_planner.routes]``: route-seeded stage-1 candidates (used only on scenes with a lane map)."""
+
+    #: add route-following candidates to the random ones where the scene has lanes
+    enabled: bool = True
+    #: routes kept (the shortest by length plus lane-change cost)
+    max_routes: int = 4
+    #: extra route length charged per lane change [m] (prefers staying in lane when lengths are equal)
+    lane_change_cost: float = 30.0
+    #: distance over which a lane change blends from one centre line to the next [m] (at least; longer at speed:
+    #: ``max(lane_change_length, lane_change_time * v0)``)
+    lane_change_length: float = 25.0
+    #: duration of a lane change at the start speed [s]
+    lane_change_time: float = 4.0
+    #: comfortable acceleration / deceleration of the speed profiles [m/s^2]
+    acceleration: float = 1.5
+    #: at most this many route candidates join the random ones
+    max_candidates: int = 32
+    #: Adam iterations of the fit through the reference roll-out
+    fit_iterations: int = 120
+    #: Adam learning rate of the fit [input units per step]
+    fit_lr: float = 0.05
+    #: weight of the squared speed error against the squared position error in the fit [m^2 / (m/s)^2]
+    fit_speed_weight: float = 1.0
+    #: radius [m] of the goal disc around the scene's goal point where the scene has no goal region
+    goal_point_radius: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("max_routes", "max_candidates", "fit_iterations"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"routes.{name} must be a positive integer, got {v!r}")
+        for name in ("lane_change_length", "lane_change_time", "acceleration", "fit_lr", "goal_point_radius"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"routes.{name} must be a finite number > 0, got {v!r}")
+        for name in ("lane_change_cost", "fit_speed_weight"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"routes.{name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class Route:
+    """A lane sequence and its path.
+
+    Attributes:
+        lane_ids: the lanes in driving order.
+        kinds: ``len(lane_ids) - 1`` edge kinds, ``"successor"`` or ``"change"``.
+        path: ``(K, 2)`` polyline [m] from the start's projection onto the first lane to the end of the last.
+    """
+
+    lane_ids: tuple[int, ...]
+    kinds: tuple[str, ...]
+    path: np.ndarray = field(repr=False)
+
+    @property
+    def n_changes(self) -> int:
+        return sum(k == "change" for k in self.kinds)
+
+    @property
+    def length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.path, axis=0), axis=1).sum())
+
+
+@dataclass
+class RouteSeeds:
+    """What :func:`route_seed_parameters` produced.
+
+    Attributes:
+        params: ``(M, nu, n_segments)`` fitted reference parameters (inside the input bounds).
+        targets: ``(M, T, 2)`` target positions on the planning grid [m].
+        speeds: ``(M, T)`` target speeds [m/s].
+        labels: one ``"route i: keep|accelerate|decelerate|stop"`` per candidate.
+        fit_rms: ``(M,)`` root-mean-square position error of the fit [m].
+        routes: the routes.
+        seconds: wall time of route search, profiles and fit [s].
+    """
+
+    params: Tensor
+    targets: Tensor
+    speeds: Tensor
+    labels: list[str]
+    fit_rms: Tensor
+    routes: list[Route]
+    seconds: float
+
+    def info(self) -> dict[str, Any]:
+        """JSON summary (for ``extras`` / logs)."""
+        return {
+            "n_routes": len(self.routes),
+            "routes": [list(r.lane_ids) for r in self.routes],
+            "n_candidates": int(self.params.shape[0]),
+            "fit_rms_median": float(self.fit_rms.median()) if self.fit_rms.numel() else None,
+            "fit_rms_max": float(self.fit_rms.max()) if self.fit_rms.numel() else None,
+            "seconds": self.seconds,
+        }
+
+
+# ----------------------------------------------------------------------------------------------- route search
+def find_routes(
+    graph: LaneGraph,
+    start_xy: tuple[float, float],
+    start_heading: float | None,
+    goal_shapes: Any | None,
+    *,
+    max_routes: int = 4,
+    lane_change_cost: float = 30.0,
+    reach: float = 200.0,
+    lane_change_length: float = 25.0,
+) -> list[Route]:
+    """The ``max_routes`` shortest lane routes from the start to the goal (see the module docstring).
+
+    Args:
+        graph: the lanes.
+        start_xy, start_heading: start position [m] and heading [rad] (None: any direction).
+        goal_shapes: shapely geometry of the goal positions; ``None`` (a goal without a position): routes along
+            the lanes ahead, up to ``reach`` [m] beyond the start.
+        reach: path length [m] to cover for goals without a position.
+
+    Returns an empty list when no lane lies under the start or no route reaches the goal lanes.
+    """
+    import networkx as nx
+
+    starts = graph.lanes_at(start_xy, start_heading)
+    if not starts:
+        return []
+    g = graph.to_networkx(lane_change_cost=lane_change_cost)
+    src, dst = ("source",), ("sink",)
+    for s in starts:
+        g.add_edge(src, s, kind="start", weight=0.0)
+    if goal_shapes is not None:
+        goals = graph.lanes_touching(goal_shapes)
+        if not goals:
+            return []
+        for lane_id in goals:
+            g.add_edge(lane_id, dst, kind="goal", weight=0.0)
+    else:
+        _add_reach_sinks(graph, g, starts, start_xy, reach, dst)
+    routes: list[Route] = []
+    try:
+        paths = nx.shortest_simple_paths(g, src, dst, weight="weight")
+        for nodes in paths:
+            lane_ids = tuple(int(n) for n in nodes[1:-1])
+            kinds = tuple(g.edges[a, b]["kind"] for a, b in zip(lane_ids[:-1], lane_ids[1:]))
+            routes.append(Route(lane_ids, kinds, route_path(graph, lane_ids, kinds, start_xy,
+                                                            lane_change_length=lane_change_length)))
+            if len(routes) >= max_routes:
+                break
+    except nx.NetworkXNoPath:
+        pass
+    return routes
+
+
+def _add_reach_sinks(graph: LaneGraph, g: Any, starts: list[int], start_xy, reach: float, dst) -> None:
+    """Goal without a position: every lane where the distance driven from the start reaches ``reach`` becomes a
+    sink (breadth-first over successors; lanes without successors too)."""
+    shapely = __import__("shapely")
+    frontier = []
+    for s in starts:
+        lane = graph[s]
+        done = float(lane.centerline.project(shapely.Point(*start_xy)))
+        frontier.append((s, lane.length - done))
+    seen = set()
+    while frontier:
+        lane_id, covered = frontier.pop()
+        if lane_id in seen:
+            continue
+        seen.add(lane_id)
+        lane = graph[lane_id]
+        if covered >= reach or not lane.successors:
+            g.add_edge(lane_id, dst, kind="goal", weight=0.0)
+            continue
+        for nxt in lane.successors:
+            frontier.append((nxt, covered + graph[nxt].length))
+
+
+def _resample(line: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """Points of the polyline ``line (K, 2)`` at arc-length ``fractions`` in [0, 1]."""
+    seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    s = np.clip(fractions, 0.0, 1.0) * cum[-1]
+    return np.stack([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])], axis=-1)
+
+
+def _smoothstep(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def route_path(
+    graph: LaneGraph,
+    lane_ids: tuple[int, ...],
+    kinds: tuple[str, ...],
+    start_xy: tuple[float, float],
+    *,
+    lane_change_length: float = 25.0,
+    spacing: float = 0.5,
+) -> np.ndarray:
+    """``(K, 2)`` path [m] of a lane route: from the start's projection onto the first lane along the centre
+    lines; lanes joined by lane changes form one section in which the path blends from the first lane's centre
+    line to the last one's over ``lane_change_length`` (measured on the first lane), as a smoothstep."""
+    shapely = __import__("shapely")
+    sections: list[list[int]] = [[lane_ids[0]]]
+    for kind, lane_id in zip(kinds, lane_ids[1:]):
+        if kind == "change":
+            sections[-1].append(lane_id)
+        else:
+            sections.append([lane_id])
+    pieces = []
+    for j, section in enumerate(sections):
+        first = graph[section[0]]
+        length = max(first.length, 1e-6)
+        phi_in = 0.0
+        if j == 0:
+            phi_in = float(first.centerline.project(shapely.Point(*start_xy))) / length
+            phi_in = min(phi_in, 1.0)
+        n = max(2, int(math.ceil((1.0 - phi_in) * length / spacing)) + 1)
+        phi = np.linspace(phi_in, 1.0, n)
+        centres = np.stack([_resample(graph[i].center, phi) for i in section])  # (k, n, 2)
+        if len(section) == 1:
+            pts = centres[0]
+        else:
+            k = len(section) - 1
+            span = min(1.0 - phi_in, k * lane_change_length / length)
+            c = k * _smoothstep((phi - phi_in) / max(span, 1e-9))
+            lo = np.clip(np.floor(c).astype(int), 0, k - 1)
+            frac = (c - lo)[:, None]
+            idx = np.arange(n)
+            pts = (1.0 - frac) * centres[lo, idx] + frac * centres[lo + 1, idx]
+        pieces.append(pts if not pieces else pts[1:] if np.allclose(pts[0], pieces[-1][-1]) else pts)
+    path = np.concatenate(pieces)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(path, axis=0), axis=1) > 1e-6])
+    path = path[keep]
+    if path.shape[0] < 2:  # degenerate: the start sits at the very end of a lane without successors
+        lane = graph[lane_ids[-1]]
+        d = lane.center[-1] - lane.center[-2]
+        path = np.vstack([path[:1], path[:1] + d / max(np.linalg.norm(d), 1e-9)])
+    return path
+
+
+# --------------------------------------------------------------------------------------------- speed profiles
+def _arc(path: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+
+
+def path_points(path: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points [m] at arc lengths ``s`` along ``path``; beyond its ends the path continues straight."""
+    cum = _arc(path)
+    s = np.asarray(s, dtype=np.float64)
+    pts = np.stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])], axis=-1)
+    d0 = (path[1] - path[0]) / max(np.linalg.norm(path[1] - path[0]), 1e-9)
+    d1 = (path[-1] - path[-2]) / max(np.linalg.norm(path[-1] - path[-2]), 1e-9)
+    before, after = s < 0, s > cum[-1]
+    pts[before] = path[0] + s[before, None] * d0
+    pts[after] = path[-1] + (s[after, None] - cum[-1]) * d1
+    return pts
+
+
+def _ramp_hold(v0: float, v_c: np.ndarray, tau: np.ndarray, acc: float) -> np.ndarray:
+    """Speeds ``(C, T)``: from ``v0`` ramp at ``acc`` to ``v_c (C,)``, then hold."""
+    dv = v_c[:, None] - v0
+    return v0 + np.sign(dv) * np.minimum(np.abs(dv), acc * tau[None, :])
+
+
+def _integrate(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Arc length ``(C, T)`` from speeds on the grid ``tau`` (trapezoid rule, starting at 0)."""
+    dt = np.diff(tau)
+    return np.concatenate([np.zeros((v.shape[0], 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * dt, axis=1)], axis=1)
+
+
+def speed_profiles(
+    s0: float,
+    v0: float,
+    tau: np.ndarray,
+    goal_arc: tuple[float, float] | None,
+    goal_time: tuple[float, float],
+    *,
+    v_limits: tuple[float, float],
+    acceleration: float,
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Arc-length profiles along a path (see the module docstring).
+
+    Args:
+        s0: arc length of the start [m]; v0: start speed [m/s].
+        tau: ``(T,)`` planning times relative to the start [s], increasing from 0.
+        goal_arc: ``(s_lo, s_hi)`` arc lengths [m] where the path is inside the goal region (None: no
+            position goal; only keep / accelerate / decelerate to the speed limits are made).
+        goal_time: ``(t_lo, t_hi)`` goal time interval relative to the start [s], already clipped to
+            ``[0, tau[-1]]``.
+        v_limits: ``(v_min, v_max)`` [m/s]; acceleration: ramp rate [m/s^2].
+
+    Returns:
+        ``s (P, T)`` arc lengths [m], ``v (P, T)`` speeds [m/s] and one label per profile.
+    """
+    v_lo, v_hi = float(v_limits[0]), float(v_limits[1])
+    v0 = float(np.clip(v0, v_lo, v_hi))
+    tl, th = goal_time
+    cruise = np.linspace(v_lo, v_hi, 129)
+    v_all = _ramp_hold(v0, cruise, tau, acceleration)
+    s_all = s0 + _integrate(v_all, tau)
+    profiles: list[np.ndarray] = [np.full_like(tau, v0)[None]]
+    labels = ["keep"]
+
+    def reach(s_target: float, t_target: float) -> np.ndarray:
+        k = int(np.clip(np.searchsorted(tau, t_target - 1e-9), 0, tau.size - 1))
+        best = int(np.argmin(np.abs(s_all[:, k] - s_target)))
+        return v_all[best]
+
+    if goal_arc is None:
+        for v_c, label in ((v_hi, "accelerate"), (0.5 * (v0 + v_lo), "decelerate")):
+            profiles.append(_ramp_hold(v0, np.array([v_c]), tau, acceleration))
+            labels.append(label)
+    else:
+        s_lo, s_hi = goal_arc
+        width = s_hi - s_lo
+        s_mid = 0.5 * (s_lo + s_hi)
+        targets = [(s_mid, tl), (s_mid, 0.5 * (tl + th)), (s_mid, th),
+                   (s_lo + 0.2 * width, tl), (s_hi - 0.2 * width, th)]
+        for s_t, t_t in targets:
+            v = reach(s_t, t_t)
+            profiles.append(v[None])
+            labels.append("accelerate" if v[-1] > v0 + 0.25 else "decelerate" if v[-1] < v0 - 0.25 else "keep")
+        # stop: head for the goal's centre, brake at `acceleration` so as to stand still there, and hold
+        v = reach(s_mid, max(tl, tau[min(1, tau.size - 1)])).copy()
+        s = s0 + _integrate(v[None], tau)[0]
+        brake_now = s + v * v / (2.0 * acceleration) >= s_mid
+        if brake_now.any():
+            k = int(np.argmax(brake_now))
+            v = np.where(tau >= tau[k], np.maximum(v[k] - acceleration * (tau - tau[k]), v_lo), v)
+        profiles.append(v[None])
+        labels.append("stop")
+    v = np.concatenate(profiles)
+    s = s0 + _integrate(v, tau)
+    return s, v, labels
+
+
+# --------------------------------------------------------------------------------------------------------- fit
+def _unwrap_from(theta0: float, headings: np.ndarray) -> np.ndarray:
+    """Headings ``(M, T)`` unwrapped along time and shifted so the first lies within pi of ``theta0``."""
+    h = np.unwrap(headings, axis=-1)
+    shift = np.round((theta0 - h[..., :1]) / (2 * math.pi)) * 2 * math.pi
+    return h + shift
+
+
+def fit_reference_parameters(
+    system: System,
+    start: Tensor,
+    parameterization: PiecewiseConstantInputs,
+    targets: Tensor,
+    speeds: Tensor,
+    headings: Tensor | None = None,
+    *,
+    iterations: int = 120,
+    lr: float = 0.05,
+    speed_weight: float = 1.0,
+) -> tuple[Tensor, Tensor]:
+    """Reference parameters whose roll-out follows the targets (batched over ``M`` candidates).
+
+    Minimises ``mean_k ||p_k - p*_k||^2 + speed_weight * mean_k (v_k - v*_k)^2`` per candidate by Adam over the
+    parameters through :func:`~density_planner.control.reference.plan_grid_reference`, projected onto the input
+    bounds after every step. Works for the kinematic car (state ``x, y, theta, v, ...``, inputs
+    ``omega, a``); the initial guess reads the turn rate and acceleration off the targets per segment (needs
+    ``headings (M, T)`` [rad], else they are taken from the target positions).
+
+    Args:
+        start: ``(nx,)`` reference start state.
+        targets: ``(M, T, 2)`` positions [m] on the planning grid (``T = parameterization.n_plan``).
+        speeds: ``(M, T)`` speeds [m/s].
+
+    Returns:
+        ``params (M, nu, n_segments)`` and the root-mean-square position error ``(M,)`` [m] of the fit.
+    """
+    par = parameterization
+    m, t = targets.shape[0], targets.shape[1]
+    if t != par.n_plan or speeds.shape != (m, t):
+        raise ValueError(f"targets must be (M, {par.n_plan}, 2) and speeds (M, {par.n_plan}), got "
+                         f"{tuple(targets.shape)} and {tuple(speeds.shape)}")
+    dtype, device = targets.dtype, targets.device
+    lo, hi = system.input_bounds
+    low = torch.tensor(lo, dtype=dtype, device=device)[:, None]
+    high = torch.tensor(hi, dtype=dtype, device=device)[:, None]
+    stride = par.steps_per_segment // par.plan_stride if par.steps_per_segment % par.plan_stride == 0 else None
+    # initial guess: per-segment heading and speed changes of the target
+    if headings is None:
+        d = targets[:, 1:] - targets[:, :-1]
+        h = torch.atan2(d[..., 1], d[..., 0])
+        headings = torch.cat([h, h[:, -1:]], dim=1)
+    theta = torch.as_tensor(_unwrap_from(float(start[2]), headings.detach().cpu().double().numpy()))
+    theta[:, 0] = float(start[2])  # the reference starts at the vehicle's own heading
+    theta = theta.to(dtype=dtype, device=device)
+    seg_t = torch.linspace(0, t - 1, par.n_segments + 1, device=device).round().long()
+    if stride is not None:
+        seg_t = torch.arange(par.n_segments + 1, device=device) * stride
+    dur = par.segment_duration
+    omega = (theta[:, seg_t[1:]] - theta[:, seg_t[:-1]]) / dur
+    acc = (speeds[:, seg_t[1:]] - speeds[:, seg_t[:-1]]) / dur
+    acc = acc.clone()
+    acc[:, 0] = acc[:, 0] + (speeds[:, 0] - start[3]) / dur  # start speed differs from the profile's
+    params = torch.stack([omega, acc], dim=1)
+    params = torch.maximum(torch.minimum(params, high), low).contiguous()
+    opt = BatchedAdam(params, lr=lr, update_clip=None, low=low, high=high)
+    start = start.to(dtype=dtype, device=device)
+
+    def loss_of(p: Tensor) -> tuple[Tensor, Tensor]:
+        x, _ = plan_grid_reference(system, start, p, par)
+        pos = (x[..., :2] - targets).pow(2).sum(-1).mean(-1)
+        spd = (x[..., 3] - speeds).pow(2).mean(-1)
+        return pos + speed_weight * spd, pos
+
+    for _ in range(iterations):
+        p = params.detach().requires_grad_(True)
+        loss, _ = loss_of(p)
+        (grad,) = torch.autograd.grad(loss.sum(), p)
+        opt.step(grad)
+    with torch.no_grad():
+        _, pos = loss_of(params)
+    return params.detach(), pos.sqrt()
+
+
+# ------------------------------------------------------------------------------------------------ for a problem
+def _goal_of(problem: Any, radius: float) -> tuple[Any | None, tuple[float, float] | None]:
+    """``(goal shapes, absolute goal time interval or None)`` of the problem's scene."""
+    import shapely
+
+    road = getattr(problem.scene, "road", None)
+    goal = getattr(road, "goal", None)
+    if goal is not None:
+        return goal.shapes, tuple(goal.time_interval)
+    gx, gy = problem.scene.goal
+    return shapely.Point(gx, gy).buffer(radius), None
+
+
+def scene_lane_graph(scene: Any) -> LaneGraph | None:
+    """The lane graph of a scene: ``scene.lane_graph`` where set, else read from the CommonRoad file named in
+    ``scene.meta["file"]`` (cached); ``None`` for scenes without one (random, inD)."""
+    graph = getattr(scene, "lane_graph", None)
+    if graph is not None:
+        return graph
+    meta = getattr(scene, "meta", {}) or {}
+    path = meta.get("file")
+    if meta.get("source") != "commonroad" or not path:
+        return None
+    try:
+        return lane_graph_from_file(path)
+    except (OSError, ValueError) as exc:
+        log.warning("no lane graph for %s (%s): no route-seeded candidates", getattr(scene, "name", "?"), exc)
+        return None
+
+
+def route_seed_parameters(
+    problem: Any,
+    config: RouteSeedConfig | None = None,
+    *,
+    lane_graph: LaneGraph | None = None,
+    v_limits: tuple[float, float] | None = None,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> RouteSeeds | None:
+    """Route-following candidate parameters for ``problem`` (see the module docstring), or ``None`` where the
+    scene has no lane map, the seeds are disabled, no lane lies under the start, or no route reaches the goal.
+
+    Args:
+        lane_graph: the lanes (default: :func:`scene_lane_graph` of the problem's scene).
+        v_limits: ``(v_min, v_max)`` [m/s] of the speed profiles (default: the system's speed bounds).
+    """
+    cfg = config or RouteSeedConfig()
+    if not cfg.enabled:
+        return None
+    graph = lane_graph if lane_graph is not None else scene_lane_graph(problem.scene)
+    if graph is None:
+        return None
+    t0 = time.perf_counter()
+    system, par = problem.system, problem.parameterization
+    start = problem.reference_start(torch.float64)
+    sx, sy, sth, sv = (float(v) for v in start[:4])
+    if v_limits is None:
+        lo, hi = system.state_bounds
+        v_limits = (max(float(lo[3]), 0.0), float(hi[3]))
+    tau = np.arange(par.n_plan) * par.plan_dt
+    horizon = float(tau[-1])
+    shapes, interval = _goal_of(problem, cfg.goal_point_radius)
+    reach = max(sv, v_limits[1]) * horizon + 10.0
+    routes = find_routes(graph, (sx, sy), sth, shapes, max_routes=cfg.max_routes,
+                         lane_change_cost=cfg.lane_change_cost, reach=reach,
+                         lane_change_length=max(cfg.lane_change_length, cfg.lane_change_time * sv))
+    if not routes:
+        log.info("route seeds: no route from the start to the goal on the lane map")
+        return None
+    t_start = float(getattr(problem.scene, "t_start", None) or getattr(getattr(problem.scene, "road", None),
+                                                                       "t_start", 0.0) or 0.0)
+    if interval is None:
+        goal_time = (horizon, horizon)
+    else:
+        rel = (interval[0] - t_start, interval[1] - t_start)
+        goal_time = (float(np.clip(rel[0], 0.0, horizon)), float(np.clip(rel[1], 0.0, horizon)))
+        if rel[0] > horizon or rel[1] < 0:
+            goal_time = (horizon, horizon)
+    import shapely
+
+    all_s, all_v, all_xy, all_h, labels = [], [], [], [], []
+    for r, route in enumerate(routes):
+        cum = _arc(route.path)
+        goal_arc = None
+        if shapes is not None:
+            s_grid = np.arange(0.0, cum[-1] + 1e-9, 0.5)
+            pts = path_points(route.path, s_grid)
+            inside = np.asarray(shapely.intersects_xy(shapes, pts[:, 0], pts[:, 1]), dtype=bool)
+            if inside.any():
+                goal_arc = (float(s_grid[inside].min()), float(s_grid[inside].max()))
+            else:
+                d = np.asarray(shapely.distance(shapes, shapely.points(pts)), dtype=np.float64)
+                s_near = float(s_grid[int(np.argmin(d))])
+                goal_arc = (s_near, s_near)
+        s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
+                                   acceleration=cfg.acceleration)
+        xy = path_points(route.path, s)  # (P, T, 2)
+        ahead = path_points(route.path, s + 0.5)
+        h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
+        all_s.append(s)
+        all_v.append(v)
+        all_xy.append(xy)
+        all_h.append(h)
+        labels += [f"route {r}: {x}" for x in lab]
+    xy = np.concatenate(all_xy)[: cfg.max_candidates]
+    v = np.concatenate(all_v)[: cfg.max_candidates]
+    h = np.concatenate(all_h)[: cfg.max_candidates]
+    labels = labels[: cfg.max_candidates]
+    kw = {"dtype": dtype, "device": device}
+    targets, speeds = torch.tensor(xy, **kw), torch.tensor(v, **kw)
+    params, rms = fit_reference_parameters(system, start.to(**kw), par, targets, speeds, torch.tensor(h, **kw),
+                                           iterations=cfg.fit_iterations, lr=cfg.fit_lr,
+                                           speed_weight=cfg.fit_speed_weight)
+    seeds = RouteSeeds(params, targets, speeds, labels, rms, routes, time.perf_counter() - t0)
+    log.info("route seeds: %d routes, %d candidates, fit rms median %.2f m, %.2f s", len(routes),
+             params.shape[0], float(rms.median()), seeds.seconds)
+    return seeds
