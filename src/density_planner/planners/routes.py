@@ -327,6 +327,18 @@ def _integrate(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return np.concatenate([np.zeros((v.shape[0], 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * dt, axis=1)], axis=1)
 
 
+def _brake_to(v: np.ndarray, s: np.ndarray, tau: np.ndarray, s_stop: float, acc: float, v_lo: float) -> np.ndarray:
+    """The profiles ``v (C, T)`` (arc lengths ``s``) with a brake at ``acc`` from the first time the braking
+    distance reaches ``s_stop``, down to ``v_lo``."""
+    trigger = s + v * v / (2.0 * acc) >= s_stop
+    has = trigger.any(axis=1)
+    k = np.where(has, trigger.argmax(axis=1), tau.size - 1)
+    t_k = tau[k][:, None]
+    v_k = v[np.arange(v.shape[0]), k][:, None]
+    brake = np.maximum(v_k - acc * (tau[None, :] - t_k), v_lo)
+    return np.where(tau[None, :] >= t_k, np.minimum(v, brake), v)
+
+
 def speed_profiles(
     s0: float,
     v0: float,
@@ -336,6 +348,7 @@ def speed_profiles(
     *,
     v_limits: tuple[float, float],
     acceleration: float,
+    max_acceleration: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Arc-length profiles along a path (see the module docstring).
 
@@ -347,6 +360,8 @@ def speed_profiles(
         goal_time: ``(t_lo, t_hi)`` goal time interval relative to the start [s], already clipped to
             ``[0, tau[-1]]``.
         v_limits: ``(v_min, v_max)`` [m/s]; acceleration: ramp rate [m/s^2].
+        max_acceleration: a harder ramp [m/s^2] used where ``acceleration`` cannot reach a target (it must
+            miss by more than 1 m at the comfortable rate).
 
     Returns:
         ``s (P, T)`` arc lengths [m], ``v (P, T)`` speeds [m/s] and one label per profile.
@@ -355,14 +370,17 @@ def speed_profiles(
     v0 = float(np.clip(v0, v_lo, v_hi))
     tl, th = goal_time
     cruise = np.linspace(v_lo, v_hi, 129)
-    v_all = _ramp_hold(v0, cruise, tau, acceleration)
+    rates = [acceleration] if max_acceleration is None or max_acceleration <= acceleration else \
+        [acceleration, float(max_acceleration)]
+    v_all = np.concatenate([_ramp_hold(v0, cruise, tau, a) for a in rates])
     s_all = s0 + _integrate(v_all, tau)
+    hard = np.repeat(np.arange(len(rates)) > 0, cruise.size)  # profiles at the harder rate
     profiles: list[np.ndarray] = [np.full_like(tau, v0)[None]]
     labels = ["keep"]
 
     def reach(s_target: float, t_target: float) -> np.ndarray:
         k = int(np.clip(np.searchsorted(tau, t_target - 1e-9), 0, tau.size - 1))
-        best = int(np.argmin(np.abs(s_all[:, k] - s_target)))
+        best = int(np.argmin(np.abs(s_all[:, k] - s_target) + 1.0 * hard))
         return v_all[best]
 
     if goal_arc is None:
@@ -379,14 +397,12 @@ def speed_profiles(
             v = reach(s_t, t_t)
             profiles.append(v[None])
             labels.append("accelerate" if v[-1] > v0 + 0.25 else "decelerate" if v[-1] < v0 - 0.25 else "keep")
-        # stop: head for the goal's centre, brake at `acceleration` so as to stand still there, and hold
-        v = reach(s_mid, max(tl, tau[min(1, tau.size - 1)])).copy()
-        s = s0 + _integrate(v[None], tau)[0]
-        brake_now = s + v * v / (2.0 * acceleration) >= s_mid
-        if brake_now.any():
-            k = int(np.argmax(brake_now))
-            v = np.where(tau >= tau[k], np.maximum(v[k] - acceleration * (tau - tau[k]), v_lo), v)
-        profiles.append(v[None])
+        # stop: cruise, then brake at `acceleration` so as to stand still at the goal's centre, and hold; the
+        # cruise speed that puts the vehicle nearest to that point at the start of the interval is chosen
+        v_stop = _brake_to(v_all, s_all, tau, s_mid, acceleration, v_lo)
+        s_stop = s0 + _integrate(v_stop, tau)
+        k = int(np.clip(np.searchsorted(tau, tl - 1e-9), 0, tau.size - 1))
+        profiles.append(v_stop[int(np.argmin(np.abs(s_stop[:, k] - s_mid) + 1.0 * hard))][None])
         labels.append("stop")
     v = np.concatenate(profiles)
     s = s0 + _integrate(v, tau)
@@ -536,6 +552,7 @@ def route_seed_parameters(
         lo, hi = system.state_bounds
         v_limits = (max(float(lo[3]), 0.0), float(hi[3]))
     tau = np.arange(par.n_plan) * par.plan_dt
+    a_max = 0.9 * min(abs(float(system.input_bounds[0][-1])), abs(float(system.input_bounds[1][-1])))
     horizon = float(tau[-1])
     shapes, interval = _goal_of(problem, cfg.goal_point_radius)
     reach = max(sv, v_limits[1]) * horizon + 10.0
@@ -571,7 +588,7 @@ def route_seed_parameters(
                 s_near = float(s_grid[int(np.argmin(d))])
                 goal_arc = (s_near, s_near)
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
-                                   acceleration=cfg.acceleration)
+                                   acceleration=cfg.acceleration, max_acceleration=a_max)
         xy = path_points(route.path, s)  # (P, T, 2)
         ahead = path_points(route.path, s + 0.5)
         h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
