@@ -1,0 +1,112 @@
+"""The road barrier: zero on the road, more than any collision cost off it, a gradient back everywhere, and
+consistent with the verdict's on-road test (the rectangle covered by the drivable area)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+import torch
+
+from density_planner.cost.composite import CostConfig, build_cost
+from density_planner.cost.road import RoadBarrierCost, vehicle_outline
+from density_planner.cost.terms import CollisionCost, CostInputs
+from density_planner.environment.grid import OccupancyGrid
+from density_planner.environment.road import GoalRegion
+from density_planner.environment.road_sdf import RoadSDF
+
+from road_helpers import drivable, lane_graph, road_scene
+
+ROAD = shapely.box(0, 0, 100, 7)  # two 3.5-m lanes
+
+
+@pytest.fixture(scope="module")
+def barrier() -> RoadBarrierCost:
+    sdf = RoadSDF.from_geometry(ROAD, (-20, 120, -20, 27), cell_size=0.2, dtype=torch.float64)
+    return RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.1)
+
+
+def _poses(xy_theta):
+    p = torch.as_tensor(xy_theta, dtype=torch.float64).reshape(-1, 3)
+    x = torch.zeros(p.shape[0], 5, dtype=torch.float64)
+    x[:, :3] = p
+    x[:, 3] = 5.0
+    return x
+
+
+def test_outline_has_corners_and_bounded_spacing():
+    pts = vehicle_outline(4.5, 1.8, 1.0)
+    for c in ([2.25, 0.9], [-2.25, 0.9], [-2.25, -0.9], [2.25, -0.9]):
+        assert np.min(np.linalg.norm(pts - np.array(c), axis=1)) < 1e-12
+    ring = np.vstack([pts, pts[:1]])
+    assert np.linalg.norm(np.diff(ring, axis=0), axis=1).max() <= 1.0 + 1e-12
+
+
+def test_zero_in_lane_positive_at_the_edge_and_off_road(barrier):
+    x = _poses([[50, 1.75, 0.0], [50, 5.25, 0.0], [50, 6.5, 0.0], [50, 12.0, 0.0], [50, 1.75, 1.2]])
+    c = barrier.per_state(x)
+    assert float(c[0]) == 0.0 and float(c[1]) == 0.0  # centred in either lane
+    assert float(c[2]) > 0 and float(c[3]) > float(c[2])  # over the edge, then fully off
+    assert float(c[4]) > 0  # turned across the lane: the corners leave the road
+
+
+def test_off_road_costs_more_than_any_collision(barrier):
+    """One state whose rectangle crosses the road's edge costs (weighted) more than the largest collision cost
+    one state can have: P_occ = 1 with the steepest occupancy gradient the grid allows (0.5 per cell)."""
+    cfg = CostConfig()
+    for cell in (0.1, 0.2):
+        n = 41
+        probs = torch.zeros(1, n, n, dtype=torch.float64)
+        probs[0, n // 2 + 1:, :] = 1.0  # a step: gradient 0.5 per cell at the cell next to it
+        probs[0, n // 2, :] = 1.0
+        grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=cell, dt=0.1)
+        coll = CollisionCost(grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+        xs = torch.zeros(n, n, 5, dtype=torch.float64)
+        xs[..., 0] = grid.xs[:, None]
+        xs[..., 1] = grid.ys[None, :]
+        worst = cfg.weights.collision * coll(CostInputs.single(xs.reshape(-1, 1, 5),
+                                                               torch.zeros(n * n, 0, 2, dtype=torch.float64),
+                                                               torch.zeros(1, dtype=torch.long))).max()
+        assert float(worst) > 0
+        # the car 0.05 m over the edge with one corner
+        edge = _poses([[50, 7.0 - 0.9 + 0.05, 0.0]])
+        assert float(cfg.road.weight * barrier.per_state(edge)[0]) > float(worst)
+
+
+def test_gradient_points_back_to_the_road_everywhere_off_it(barrier):
+    for y in (8.0, 15.0, 40.0, 200.0):  # beyond the edge, deep off the road, outside the SDF's lattice
+        x = _poses([[50, y, 0.0]]).requires_grad_(True)
+        (g,) = torch.autograd.grad(barrier.per_state(x).sum(), x)
+        assert float(g[0, 1]) > 1.0, y  # descending moves the car towards the road (-y)
+
+
+def test_consistent_with_the_verdicts_on_road():
+    """Where every outline point is at least the margin inside the road the rectangle is on the road (shapely
+    ``covers``); where the largest outline SDF is positive it is not."""
+    graph = lane_graph()
+    area = drivable(graph)
+    sdf = RoadSDF.from_geometry(area, (-10, 160, -30, 20), cell_size=0.2, dtype=torch.float64)
+    barrier = RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.1)
+    gen = np.random.default_rng(1)
+    poses = np.column_stack([gen.uniform(0, 150, 3000), gen.uniform(-25, 10, 3000), gen.uniform(-np.pi, np.pi, 3000)])
+    x = _poses(poses)
+    pen = barrier.penetration(x).numpy()
+    hl, hw = 2.25, 0.9
+    corners = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    px = poses[:, None, 0] + c[:, None] * corners[:, 0] - s[:, None] * corners[:, 1]
+    py = poses[:, None, 1] + s[:, None] * corners[:, 0] + c[:, None] * corners[:, 1]
+    on_road = shapely.covers(area, shapely.polygons(np.stack([px, py], axis=-1)))
+    assert (pen <= -0.1).sum() > 100 and (pen > 0).sum() > 100  # both kinds are tested
+    assert on_road[pen <= -0.1].all()
+    assert not on_road[pen > 0.05].any()
+
+
+def test_build_cost_barrier_on_road_scene():
+    goal = GoalRegion(shapely.box(85, 0.5, 95, 3.0), (9.0, 10.0))
+    cost = build_cost(road_scene(goal), CostConfig())
+    x = _poses([[20, 1.75, 0.0], [20, 12.0, 0.0]]).float()
+    inp = CostInputs.single(x[:, None, :].expand(2, 11, 5).contiguous(), torch.zeros(2, 10, 2))
+    out = cost(inp)
+    assert float(out.terms["road"][0]) == 0.0 and float(out.terms["road"][1]) > 0
+    assert cost.weights["road"] == CostConfig().road.weight
