@@ -24,6 +24,11 @@ Times are those of the occupancy slices the cost inputs name (``t_k = grid.t0 + 
 clock as the collision term), so the term needs no extra inputs. Like :class:`~density_planner.cost.terms.GoalCost`
 it takes a ``far_factor`` applied while ``J_G >= close_threshold`` during optimisation.
 
+``margin`` shrinks the region for the cost (not for the verdict): shapes are eroded by up to ``margin`` [m] (less
+where a shape is too thin to keep a core), and speed / heading intervals by up to a quarter of their width (at
+most ``margin`` m/s and ``margin / 10`` rad), so that a plan the optimiser brings to zero cost lies inside the
+true region with room for the vehicle's tracking error rather than on its boundary.
+
 Distances to polygons are exact and differentiable (point-to-segment distances to every edge of the goal's
 outline, batched; inside by the even-odd rule), so the gradient of ``d_G^2`` is ``2 (p - q)`` with ``q`` the
 nearest boundary point.
@@ -94,6 +99,18 @@ def distance_to_polygons(p: Tensor, edges: Tensor) -> Tensor:
     return torch.where(inside, torch.zeros_like(d2), d2.clamp_min(1e-12).sqrt())
 
 
+def _erode(shapes: Any, margin: float) -> Any:
+    """``shapes`` eroded by ``margin`` [m], halving it until a non-empty core with at least a quarter of the
+    area remains (the shapes themselves when none does)."""
+    m = float(margin)
+    while m > 0.02:
+        core = shapes.buffer(-m)
+        if not core.is_empty and core.area >= 0.25 * shapes.area:
+            return core
+        m *= 0.5
+    return shapes
+
+
 def _wrap(a: Tensor) -> Tensor:
     return torch.atan2(torch.sin(a), torch.cos(a))
 
@@ -108,13 +125,14 @@ class GoalRegionCost(CostTerm):
         velocity_weight: ``w_v`` [m^2 / (m/s)^2]; orientation_weight: ``w_th`` [m^2 / rad^2].
         far_factor, close_threshold: as :class:`~density_planner.cost.terms.GoalCost`.
         simplify: tolerance [m] of the outline simplification (fewer edges, faster).
+        margin: shrink the region by up to this much [m] (see the module docstring).
     """
 
     name = "goal"
 
     def __init__(self, goal: Any, *, t0: float, dt: float, velocity_weight: float = 1.0,
                  orientation_weight: float = 25.0, far_factor: float = 1.0, close_threshold: float = 3.0,
-                 simplify: float = 0.05):
+                 simplify: float = 0.05, margin: float = 0.0):
         if not (math.isfinite(t0) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"GoalRegionCost needs a finite t0 and dt > 0, got {t0}, {dt}")
         for name, v in (("velocity_weight", velocity_weight), ("orientation_weight", orientation_weight)):
@@ -127,15 +145,23 @@ class GoalRegionCost(CostTerm):
         self.close_threshold = float(close_threshold)
         alternatives = tuple(getattr(goal, "alternatives", ()) or ()) or (goal,)
         self._alts = []
+        if not math.isfinite(margin) or margin < 0:
+            raise ValueError(f"margin must be a finite number >= 0, got {margin}")
         for alt in alternatives:
             shapes = getattr(alt, "shapes", None)
+            if shapes is not None and margin > 0:
+                shapes = _erode(shapes, margin)
             edges = None if shapes is None else torch.as_tensor(polygon_edges(shapes, simplify=simplify))
             vel = getattr(alt, "velocity", None)
+            if vel is not None and margin > 0:
+                m = min(margin, 0.25 * (float(vel[1]) - float(vel[0])))
+                vel = (float(vel[0]) + m, float(vel[1]) - m)
             ori = getattr(alt, "orientation", None)
             if ori is not None:
                 lo, hi = float(ori[0]), float(ori[1])
                 width = (hi - lo) % (2 * math.pi) if hi < lo else hi - lo
-                ori = None if width >= 2 * math.pi - 1e-9 else (lo + 0.5 * width, 0.5 * width)  # centre, half
+                half = 0.5 * width - min(0.1 * margin, 0.125 * width)
+                ori = None if width >= 2 * math.pi - 1e-9 else (lo + 0.5 * width, half)  # centre, half-width
             self._alts.append((edges, tuple(float(v) for v in alt.time_interval),
                                None if vel is None else (float(vel[0]), float(vel[1])), ori))
 

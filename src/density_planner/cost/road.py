@@ -42,6 +42,12 @@ class RoadCostConfig:
 
     #: use the goal region in time (position, time, velocity, orientation) instead of the goal point
     goal_region: bool = True
+    #: alpha_G of the goal-region cost [1/m^2] (replaces cost.weights.goal on road scenes: the region cost is
+    #: zero inside, so a weight that dominates near the goal only decides *whether* the plan ends inside)
+    goal_weight: float = 1.0
+    #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
+    #: most), so that plans end inside with room for tracking errors
+    goal_margin: float = 0.5
     #: weight of the squared speed distance in the goal-region cost [m^2 / (m/s)^2]
     goal_velocity_weight: float = 1.0
     #: weight of the squared heading distance in the goal-region cost [m^2 / rad^2]
@@ -60,7 +66,8 @@ class RoadCostConfig:
     sdf_max_cells: int = 4_000_000
 
     def __post_init__(self) -> None:
-        for name in ("goal_velocity_weight", "goal_orientation_weight", "weight", "margin"):
+        for name in ("goal_weight", "goal_margin", "goal_velocity_weight", "goal_orientation_weight", "weight",
+                     "margin"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"cost.road.{name} must be a finite number >= 0, got {v!r}")
@@ -142,8 +149,10 @@ def with_road_terms(
             goal, t0=scene.grid.t0, dt=scene.grid.dt,
             velocity_weight=rc.goal_velocity_weight, orientation_weight=rc.goal_orientation_weight,
             far_factor=config.goal_far_factor if optimisation else 1.0, close_threshold=config.goal_close_threshold,
+            margin=rc.goal_margin,
         )
         terms = [region if t.name == "goal" else t for t in terms]
+        weights["goal"] = rc.goal_weight
     if rc.barrier and getattr(road, "drivable", None) is not None and rc.weight > 0:
         sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
         if sdf is not None:
