@@ -6,10 +6,10 @@ Two lanes (3.5 m wide) running +x, each in two 50-m lanelets, then a junction::
             |  (left lanes)          |                       |
     y = 3.5 +---------- 1 ----------+---------- 2 ----------+---------- 5 ----------+   (straight on)
             |  (right lanes)         |                       |\\
-    y = 0   +------------------------+-----------------------+ \\ 6: right turn, centre (100, -10)
-            x = 0                    50                     100
+    y = 0   +------------------------+-----------------------+ \\ 6: right turn, centre (100, -10),
+            x = 0                    50                     100    then 7 straight down to y = -28
 
-1 -> 2 -> {5, 6}, 3 -> 4, with 1 <-> 3 and 2 <-> 4 adjacent in the same direction (lane changes).
+1 -> 2 -> {5, 6}, 6 -> 7, 3 -> 4, with 1 <-> 3 and 2 <-> 4 adjacent in the same direction (lane changes).
 """
 
 from __future__ import annotations
@@ -50,13 +50,17 @@ def lane_graph() -> LaneGraph:
     l4, r4 = _straight(50, 100, W)
     l5, r5 = _straight(100, 150, 0.0)
     l6, r6 = _right_turn()
+    ys = np.linspace(-10.0, -28.0, 7)
+    l7 = np.stack([np.full(7, 113.5), ys], axis=1)
+    r7 = np.stack([np.full(7, 110.0), ys], axis=1)
     return LaneGraph([
         Lane(1, l1, r1, successors=(2,), left_same=3),
         Lane(2, l2, r2, successors=(5, 6), left_same=4),
         Lane(3, l3, r3, successors=(4,), right_same=1),
         Lane(4, l4, r4, right_same=2),
         Lane(5, l5, r5),
-        Lane(6, l6, r6),
+        Lane(6, l6, r6, successors=(7,)),
+        Lane(7, l7, r7),
     ])
 
 

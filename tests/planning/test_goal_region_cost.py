@@ -127,3 +127,19 @@ def test_build_cost_uses_the_region_on_road_scenes_and_the_point_elsewhere():
 
     off = build_cost(road_scene(goal), CostConfig(road=RoadCostConfig(goal_region=False, barrier=False)))
     assert isinstance(off.terms["goal"], GoalCost) and "road" not in off.terms
+
+
+def test_margin_keeps_plans_off_the_regions_edge():
+    goal = GoalRegion(BOX, (0.0, 1.0), velocity=(2.0, 6.0))
+    term = GoalRegionCost(goal, t0=0.0, dt=0.1, margin=0.5)
+    on_edge = _traj(torch.full((11,), 10.1), v=4.0)  # inside the true region, 0.1 m from its edge
+    assert float(term(_inputs(on_edge[None]))[0]) == pytest.approx(0.4**2, rel=1e-4)
+    centre = _traj(torch.full((11,), 12.0), v=4.0)
+    assert float(term(_inputs(centre[None]))[0]) == 0.0
+    slow = _traj(torch.full((11,), 12.0), v=2.2)  # inside the speed interval, within its margin (0.5 m/s)
+    assert float(term(_inputs(slow[None]))[0]) == pytest.approx(0.3**2, rel=1e-4)
+    # a region too thin for the full margin keeps a core
+    thin = GoalRegionCost(GoalRegion(shapely.box(0, 0, 10, 0.6), (0.0, 1.0)), t0=0.0, dt=0.1, margin=0.5)
+    mid = _traj(torch.full((11,), 5.0))
+    mid[:, 1] = 0.3
+    assert float(thin(_inputs(mid[None]))[0]) == 0.0
