@@ -75,7 +75,7 @@ class RouteSeedConfig:
     #: at most this many route candidates join the random ones
     max_candidates: int = 32
     #: Adam iterations of the fit through the reference roll-out
-    fit_iterations: int = 120
+    fit_iterations: int = 80
     #: Adam learning rate of the fit [input units per step]
     fit_lr: float = 0.05
     #: weight of the squared speed error against the squared position error in the fit [m^2 / (m/s)^2]
@@ -425,7 +425,7 @@ def fit_reference_parameters(
     speeds: Tensor,
     headings: Tensor | None = None,
     *,
-    iterations: int = 120,
+    iterations: int = 80,
     lr: float = 0.05,
     speed_weight: float = 1.0,
 ) -> tuple[Tensor, Tensor]:
