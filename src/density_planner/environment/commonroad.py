@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -210,7 +211,9 @@ def read_commonroad(path: str | Path) -> tuple[Any, Any]:
             f"{path} is not a CommonRoad scenario (root element <{root.tag}>, expected <commonRoad>)"
         )
     try:
-        return reader_cls(str(path)).open()
+        with warnings.catch_warnings():  # NaN coordinates: shapely warns inside commonroad-io; checked below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return reader_cls(str(path)).open()
     except Exception as exc:  # commonroad-io raises many kinds of errors on malformed content
         raise DataError(f"{path}: cannot read the CommonRoad scenario ({type(exc).__name__}: {exc})") from exc
 
