@@ -617,10 +617,13 @@ def _choose_cell(area: tuple[float, float, float, float], n_slices: int, cfg: Co
     budget_cells = cfg.memory_budget_gib * _GIB / 4.0 / n_slices
     need = math.sqrt(w * h / budget_cells) if budget_cells > 0 else math.inf
     cell = cfg.cell_size
-    if need > cell:
-        cell = math.ceil(need / 0.05 - 1e-9) * 0.05
-        # the rounded cell may still overshoot by the +1 lattice points; step up until it fits
-        while (w / cell + 2) * (h / cell + 2) > budget_cells and cell <= cfg.max_cell_size:
+
+    def fits(c: float) -> bool:  # the lattice adds up to 5 points per axis (ends, snapping, whole coarse cells)
+        return (w / c + 5) * (h / c + 5) <= budget_cells
+
+    if not fits(cell):
+        cell = max(cell, math.ceil(need / 0.05 - 1e-9) * 0.05)
+        while not fits(cell) and cell <= cfg.max_cell_size:
             cell += 0.05
         cell = round(cell, 6)
     if cell > cfg.max_cell_size + 1e-9:
@@ -766,6 +769,10 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
              cfg.cell_size, n_slices, cfg.memory_budget_gib)
     area = _snap(area, cell)
     nx, ny = lattice_size(area[0], area[1], cell), lattice_size(area[2], area[3], cell)
+    factor = int(round(cfg.footprint.coarse_cell / cell)) if cfg.footprint.coarse_cell > 0 else 1
+    if factor >= 2:  # whole coarse cells: the footprints' coarse lattice then upsamples without a cropping copy
+        nx, ny = nx + (-(nx - 1)) % factor, ny + (-(ny - 1)) % factor
+        area = (area[0], round(area[0] + (nx - 1) * cell, 9), area[2], round(area[2] + (ny - 1) * cell, 9))
     origin = (area[0], area[2])
     times = t_start + cfg.dt * np.arange(n_slices)
 
