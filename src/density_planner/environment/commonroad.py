@@ -36,8 +36,8 @@ and recorded in ``scene.meta`` (``scene.json``).
    :mod:`.footprints`. Set-based predictions (``occupancySet``) are occupied (1) over every time step they
    cover; past their last set the last set moves on at the initial velocity. A missing velocity is taken from
    the positions' finite differences; a missing orientation from the direction of motion.
-7. **Map**: the region the car can reach within the horizon (start speed, the system's speed and acceleration
-   bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
+7. **Map**: the region the car can reach within the grid's duration (the horizon, at least ``min_duration``;
+   start speed, the system's speed and acceleration bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
    size is ``cell_size`` unless the grid (``T x NX x NY`` float32) would exceed ``memory_budget_gib``; then the
    smallest multiple of 0.05 m that fits (up to ``max_cell_size``, else an error naming the keys to change).
 """
@@ -749,7 +749,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         area = tuple(float(v) for v in cfg.area)
         region_rule = "configured area"
     elif start is not None and not cfg.sample_start_goal:
-        reach = reach_distance(start[3], v_max, a_max, horizon)
+        span = (n_slices - 1) * cfg.dt  # the grid's duration (>= the horizon: today's planners plan min_duration)
+        reach = reach_distance(start[3], v_max, a_max, span)
         disc = shapely.Point(start[0], start[1]).buffer(reach + cfg.area_margin, quad_segs=16)
         parts = [disc.intersection(drivable.buffer(cfg.area_margin)), shapely.Point(start[0], start[1])]
         if goal is not None and goal.shapes is not None:
@@ -757,7 +758,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         bx0, by0, bx1, by1 = shapely.union_all([p for p in parts if not p.is_empty]).bounds
         m = cfg.area_margin
         area = (bx0 - m, bx1 + m, by0 - m, by1 + m)
-        region_rule = (f"reachable in {horizon:g} s from {start[3]:.1f} m/s (v <= {v_max:g} m/s, |a| <= "
+        region_rule = (f"reachable in {span:g} s from {start[3]:.1f} m/s (v <= {v_max:g} m/s, |a| <= "
                        f"{a_max:g} m/s^2: {reach:.0f} m) on the road, plus the goal region and {m:g} m")
     else:
         m = cfg.area_margin
