@@ -19,6 +19,7 @@ Queries are vectorised with shapely 2 (``contains_xy``, ``line_locate_point``).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -117,19 +118,22 @@ class LaneGraph:
     """Lanes keyed by id, with the successor / lane-change structure (see the module docstring)."""
 
     def __init__(self, lanes: list[Lane] | tuple[Lane, ...]):
-        self.lanes: dict[int, Lane] = {}
-        for lane in lanes:
-            if lane.lane_id in self.lanes:
-                raise ValueError(f"duplicate lane id {lane.lane_id}")
-            self.lanes[lane.lane_id] = lane
-        if not self.lanes:
+        ids = [lane.lane_id for lane in lanes]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"duplicate lane ids {sorted(i for i in set(ids) if ids.count(i) > 1)}")
+        if not ids:
             raise ValueError("a LaneGraph needs at least one lane")
+        known = set(ids)
         # references to lanes that are not kept (e.g. sidewalks) are dropped
-        for lane in self.lanes.values():
-            object.__setattr__(lane, "successors", tuple(s for s in lane.successors if s in self.lanes))
-            for name in ("left_same", "right_same"):
-                if getattr(lane, name) not in self.lanes:
-                    object.__setattr__(lane, name, None)
+        self.lanes: dict[int, Lane] = {
+            lane.lane_id: dataclasses.replace(
+                lane,
+                successors=tuple(s for s in lane.successors if s in known),
+                left_same=lane.left_same if lane.left_same in known else None,
+                right_same=lane.right_same if lane.right_same in known else None,
+            )
+            for lane in lanes
+        }
 
     def __len__(self) -> int:
         return len(self.lanes)

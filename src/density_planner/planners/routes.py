@@ -213,7 +213,8 @@ def find_routes(
 def _add_reach_sinks(graph: LaneGraph, g: Any, starts: list[int], start_xy, reach: float, dst) -> None:
     """Goal without a position: every lane where the distance driven from the start reaches ``reach`` becomes a
     sink (breadth-first over successors; lanes without successors too)."""
-    shapely = __import__("shapely")
+    import shapely
+
     frontier = []
     for s in starts:
         lane = graph[s]
@@ -258,7 +259,8 @@ def route_path(
     """``(K, 2)`` path [m] of a lane route: from the start's projection onto the first lane along the centre
     lines; lanes joined by lane changes form one section in which the path blends from the first lane's centre
     line to the last one's over ``lane_change_length`` (measured on the first lane), as a smoothstep."""
-    shapely = __import__("shapely")
+    import shapely
+
     sections: list[list[int]] = [[lane_ids[0]]]
     for kind, lane_id in zip(kinds, lane_ids[1:]):
         if kind == "change":
