@@ -23,7 +23,7 @@ ROAD = shapely.box(0, 0, 100, 7)  # two 3.5-m lanes
 @pytest.fixture(scope="module")
 def barrier() -> RoadBarrierCost:
     sdf = RoadSDF.from_geometry(ROAD, (-20, 120, -20, 27), cell_size=0.2, dtype=torch.float64)
-    return RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.1)
+    return RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5)
 
 
 def _poses(xy_theta):
@@ -86,7 +86,7 @@ def test_consistent_with_the_verdicts_on_road():
     graph = lane_graph()
     area = drivable(graph)
     sdf = RoadSDF.from_geometry(area, (-10, 160, -30, 20), cell_size=0.2, dtype=torch.float64)
-    barrier = RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.1)
+    barrier = RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5)
     gen = np.random.default_rng(1)
     poses = np.column_stack([gen.uniform(0, 150, 3000), gen.uniform(-25, 10, 3000), gen.uniform(-np.pi, np.pi, 3000)])
     x = _poses(poses)
@@ -97,8 +97,8 @@ def test_consistent_with_the_verdicts_on_road():
     px = poses[:, None, 0] + c[:, None] * corners[:, 0] - s[:, None] * corners[:, 1]
     py = poses[:, None, 1] + s[:, None] * corners[:, 0] + c[:, None] * corners[:, 1]
     on_road = shapely.covers(area, shapely.polygons(np.stack([px, py], axis=-1)))
-    assert (pen <= -0.1).sum() > 100 and (pen > 0).sum() > 100  # both kinds are tested
-    assert on_road[pen <= -0.1].all()
+    assert (pen <= -0.15).sum() > 100 and (pen > 0).sum() > 100  # both kinds are tested
+    assert on_road[pen <= -0.15].all()
     assert not on_road[pen > 0.05].any()
 
 

@@ -11,10 +11,11 @@ negative on the road) there::
 
 ``phi`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
 everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default
-weight ``alpha_R = 1000`` one outline point on the road's edge costs ``1000 * (0.1 + 0.01) = 110`` per state,
+weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state,
 more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= 0.1 * (beta * h / 2)^2``: 2.5 at
 0.1-m cells, 10 at 0.2 m, with the default ``beta = 100`` cells), so leaving the road never pays for avoiding an
-obstacle. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
+0.1``, times the goal-far factor 10 while far), so the optimiser does not trade road for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
 into it by more than ``margin`` between two points.
 """
@@ -44,7 +45,7 @@ class RoadCostConfig:
     goal_region: bool = True
     #: alpha_G of the goal-region cost [1/m^2] (replaces cost.weights.goal on road scenes: the region cost is
     #: zero inside, so a weight that dominates near the goal only decides *whether* the plan ends inside)
-    goal_weight: float = 1.0
+    goal_weight: float = 0.1
     #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
     #: most), so that plans end inside with room for tracking errors
     goal_margin: float = 0.5
@@ -55,11 +56,11 @@ class RoadCostConfig:
     #: add the road barrier J_R
     barrier: bool = True
     #: alpha_R, weight of J_R [1/m]
-    weight: float = 1000.0
+    weight: float = 10000.0
     #: the barrier starts this far inside the road's edge [m]
-    margin: float = 0.1
+    margin: float = 0.15
     #: largest spacing of the outline points checked [m]
-    footprint_spacing: float = 1.0
+    footprint_spacing: float = 0.5
     #: cell size of the road's signed distance field [m] (grows to respect sdf_max_cells)
     sdf_cell_size: float = 0.2
     #: largest number of lattice points of the signed distance field
@@ -96,8 +97,8 @@ class RoadBarrierCost(CostTerm):
 
     name = "road"
 
-    def __init__(self, sdf: RoadSDF, *, length: float = 4.5, width: float = 1.8, margin: float = 0.1,
-                 spacing: float = 1.0):
+    def __init__(self, sdf: RoadSDF, *, length: float = 4.5, width: float = 1.8, margin: float = 0.15,
+                 spacing: float = 0.5):
         if not (length > 0 and width > 0):
             raise ValueError(f"vehicle length and width must be > 0, got {length}, {width}")
         self.sdf = sdf

@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -430,10 +431,15 @@ def fit_reference_parameters(
     iterations: int = 80,
     lr: float = 0.05,
     speed_weight: float = 1.0,
+    road_cost: Callable[[Tensor], Tensor] | None = None,
+    road_weight: float = 10.0,
 ) -> tuple[Tensor, Tensor]:
     """Reference parameters whose roll-out follows the targets (batched over ``M`` candidates).
 
-    Minimises ``mean_k ||p_k - p*_k||^2 + speed_weight * mean_k (v_k - v*_k)^2`` per candidate by Adam over the
+    Minimises ``mean_k ||p_k - p*_k||^2 + speed_weight * mean_k (v_k - v*_k)^2`` (plus
+    ``road_weight * mean_k road_cost(x_k)`` where a road cost is given: the centre lines of a tight corner cannot
+    be followed exactly with one turn rate per segment, and the fit then errs towards the inside of the road rather
+    than across its edge) per candidate by Adam over the
     parameters through :func:`~density_planner.control.reference.plan_grid_reference`, projected onto the input
     bounds after every step. Works for the kinematic car (state ``x, y, theta, v, ...``, inputs
     ``omega, a``); the initial guess reads the turn rate and acceleration off the targets per segment (needs
@@ -482,7 +488,10 @@ def fit_reference_parameters(
         x, _ = plan_grid_reference(system, start, p, par)
         pos = (x[..., :2] - targets).pow(2).sum(-1).mean(-1)
         spd = (x[..., 3] - speeds).pow(2).mean(-1)
-        return pos + speed_weight * spd, pos
+        loss = pos + speed_weight * spd
+        if road_cost is not None:
+            loss = loss + road_weight * road_cost(x).mean(-1)
+        return loss, pos
 
     for _ in range(iterations):
         p = params.detach().requires_grad_(True)
@@ -505,6 +514,23 @@ def _goal_of(problem: Any, radius: float) -> tuple[Any | None, tuple[float, floa
         return goal.shapes, tuple(goal.time_interval)
     gx, gy = problem.scene.goal
     return shapely.Point(gx, gy).buffer(radius), None
+
+
+def _scene_road_cost(scene: Any, device: torch.device | str) -> Callable[[Tensor], Tensor] | None:
+    """The per-state road barrier of ``scene`` (default settings), or ``None`` without a drivable area."""
+    road = getattr(scene, "road", None)
+    if getattr(road, "drivable", None) is None:
+        return None
+    from ..cost.road import RoadBarrierCost, RoadCostConfig
+    from ..environment.road_sdf import road_sdf_for_scene
+
+    rc = RoadCostConfig()
+    sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+    if sdf is None:
+        return None
+    barrier = RoadBarrierCost(sdf.to(device), length=road.vehicle_length, width=road.vehicle_width,
+                              margin=rc.margin, spacing=rc.footprint_spacing)
+    return barrier.per_state
 
 
 def scene_lane_graph(scene: Any) -> LaneGraph | None:
@@ -530,6 +556,7 @@ def route_seed_parameters(
     *,
     lane_graph: LaneGraph | None = None,
     v_limits: tuple[float, float] | None = None,
+    road_cost: Callable[[Tensor], Tensor] | None | str = "scene",
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> RouteSeeds | None:
@@ -539,6 +566,9 @@ def route_seed_parameters(
     Args:
         lane_graph: the lanes (default: :func:`scene_lane_graph` of the problem's scene).
         v_limits: ``(v_min, v_max)`` [m/s] of the speed profiles (default: the system's speed bounds).
+        road_cost: per-state road penalty ``x (..., nx) -> (...)`` added to the fit; ``"scene"`` (default): the
+            road barrier of the scene's road with default settings (:class:`~density_planner.cost.road.RoadBarrierCost`)
+            where it has one; ``None``: none.
     """
     cfg = config or RouteSeedConfig()
     if not cfg.enabled:
@@ -605,9 +635,13 @@ def route_seed_parameters(
     labels = labels[: cfg.max_candidates]
     kw = {"dtype": dtype, "device": device}
     targets, speeds = torch.tensor(xy, **kw), torch.tensor(v, **kw)
+    if isinstance(road_cost, str):
+        if road_cost != "scene":
+            raise ValueError(f"road_cost must be a callable, None or 'scene', got {road_cost!r}")
+        road_cost = _scene_road_cost(problem.scene, device)
     params, rms = fit_reference_parameters(system, start.to(**kw), par, targets, speeds, torch.tensor(h, **kw),
                                            iterations=cfg.fit_iterations, lr=cfg.fit_lr,
-                                           speed_weight=cfg.fit_speed_weight)
+                                           speed_weight=cfg.fit_speed_weight, road_cost=road_cost)
     seeds = RouteSeeds(params, targets, speeds, labels, rms, routes, time.perf_counter() - t0)
     log.info("route seeds: %d routes, %d candidates, fit rms median %.2f m, %.2f s", len(routes),
              params.shape[0], float(rms.median()), seeds.seconds)
