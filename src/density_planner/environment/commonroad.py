@@ -67,6 +67,7 @@ from .footprints import (
     resample_tracks,
 )
 from .grid import OccupancyGrid, lattice_size
+from .lanes import remember_lane_graph
 from .road import GoalRegion, ObstacleTrack, RoadScene
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene, wrap_heading
@@ -676,6 +677,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
 
     path = Path(path)
     scenario, problem_set = read_commonroad(path)
+    remember_lane_graph(path, scenario.lanelet_network)  # the planners' route seeds reuse it
     bench_id = str(getattr(scenario, "scenario_id", path.stem))
     where = path.name if bench_id == path.stem else f"{path.name} ({bench_id})"
     dt_src = float(scenario.dt)

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Lane", "LaneGraph", "lane_graph_from_file", "NON_DRIVABLE_LANELET_TYPES"]
+__all__ = ["Lane", "LaneGraph", "lane_graph_from_file", "remember_lane_graph", "NON_DRIVABLE_LANELET_TYPES"]
 
 log = logging.getLogger(__name__)
 
@@ -237,15 +237,41 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-@functools.lru_cache(maxsize=8)
-def _cached_graph(path: str, mtime_ns: int) -> LaneGraph:
-    from .commonroad import read_commonroad
+#: lane graphs by (resolved path, modification time); a handful of files at most
+_GRAPHS: dict[tuple[str, int], LaneGraph] = {}
+_MAX_GRAPHS = 8
 
-    scenario, _ = read_commonroad(path)
-    return LaneGraph.from_lanelet_network(scenario.lanelet_network)
+
+def _key(path: str | Path) -> tuple[str, int]:
+    p = Path(path).resolve()
+    return str(p), p.stat().st_mtime_ns
+
+
+def _store(key: tuple[str, int], graph: LaneGraph) -> LaneGraph:
+    if len(_GRAPHS) >= _MAX_GRAPHS:
+        _GRAPHS.pop(next(iter(_GRAPHS)))
+    _GRAPHS[key] = graph
+    return graph
+
+
+def remember_lane_graph(path: str | Path, network: Any) -> None:
+    """Keep the lane graph of the ``LaneletNetwork`` just read from ``path`` (called by the CommonRoad importer, so
+    that planners do not read the file a second time). Never raises: a network without drivable lanes is skipped."""
+    try:
+        key = _key(path)
+        if key not in _GRAPHS:
+            _store(key, LaneGraph.from_lanelet_network(network))
+    except (OSError, ValueError) as exc:
+        log.info("no lane graph kept for %s: %s", path, exc)
 
 
 def lane_graph_from_file(path: str | Path) -> LaneGraph:
-    """The :class:`LaneGraph` of a CommonRoad XML file (read once per file and modification time)."""
-    p = Path(path).resolve()
-    return _cached_graph(str(p), p.stat().st_mtime_ns)
+    """The :class:`LaneGraph` of a CommonRoad XML file (read once per file and modification time; free when the
+    importer already read it, see :func:`remember_lane_graph`)."""
+    key = _key(path)
+    if key not in _GRAPHS:
+        from .commonroad import read_commonroad
+
+        scenario, _ = read_commonroad(key[0])
+        _store(key, LaneGraph.from_lanelet_network(scenario.lanelet_network))
+    return _GRAPHS[key]
