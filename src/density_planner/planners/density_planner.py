@@ -184,11 +184,7 @@ class DensityPlanner(Planner):
         if self.candidate_seeds is not None:
             return self.candidate_seeds(problem)
         cost = self.config.cost
-        if not self.config.routes.enabled:
-            return None
-        road = build_cost(problem.scene, cost, optimisation=True, device=self.device).terms.get("road")
         seeds = route_seed_parameters(problem, self.config.routes, v_limits=(cost.v_min, cost.v_max),
-                                      road_cost=None if road is None else road.per_state,
                                       dtype=self.dtype, device=self.device)
         return None if seeds is None else seeds.params
 
