@@ -21,6 +21,7 @@ __all__ = [
     "resolve_dtype",
     "load_params_file",
     "out_dir",
+    "check_out",
 ]
 
 
@@ -29,7 +30,7 @@ def add_out(p: argparse.ArgumentParser, required: bool = True) -> None:
 
 
 def add_seed(p: argparse.ArgumentParser, default: int = 0) -> None:
-    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default})")
+    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default}; 0 <= S < 2^63)")
 
 
 def add_device(p: argparse.ArgumentParser) -> None:
@@ -93,11 +94,23 @@ def resolve_dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
-def out_dir(path: Path) -> Path:
+def check_out(path: Path) -> Path:
+    """Validate ``--out`` without creating it (commands create it only once every input is valid)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"--out {path} exists and is not a directory")
-    path.mkdir(parents=True, exist_ok=True)
+    parent = next((p for p in path.absolute().parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise ValueError(f"--out {path}: {parent} is not a directory")
+    return path
+
+
+def out_dir(path: Path) -> Path:
+    path = check_out(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {path}: cannot create the directory ({exc.strerror or exc})") from exc
     return path
 
 

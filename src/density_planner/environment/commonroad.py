@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from density_planner.config import to_dict
+from density_planner.checks import check_seed
 from density_planner.errors import DataError, OptionalDependencyError
 
 from .footprints import (
@@ -115,8 +116,7 @@ class CommonRoadSceneConfig:
             )
         if self.area_margin < 0 or self.lanelet_buffer < 0:
             raise ValueError("CommonRoadSceneConfig.area_margin and lanelet_buffer must be >= 0")
-        if self.seed < 0:
-            raise ValueError(f"CommonRoadSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("CommonRoadSceneConfig.seed", self.seed)
 
 
 def _require() -> tuple[Any, Any]:

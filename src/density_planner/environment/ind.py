@@ -55,6 +55,7 @@ import numpy as np
 import torch
 
 from density_planner.config import to_dict
+from density_planner.checks import check_seed
 from density_planner.errors import DataError
 
 from .footprints import (
@@ -171,8 +172,7 @@ class IndSceneConfig:
             raise ValueError(
                 f"IndSceneConfig.background_threshold must be <= 1, got {self.background_threshold}"
             )
-        if self.seed < 0:
-            raise ValueError(f"IndSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("IndSceneConfig.seed", self.seed)
 
 
 # ---------------------------------------------------------------------------------------------------- CSV

@@ -256,7 +256,7 @@ def build_scene(env: EnvSpec, run_config: Any):
         if env.seed > 0:
             start, goal = sample_start_goal(scene.grid, scene.planning_box, seed=env.seed, config=cfg.start_goal)
             meta = dict(scene.meta, start_goal_sampled=True, start_goal_seed=env.seed)
-            scene = Scene(scene.grid, start, goal, scene.planning_box, name=env.name, meta=meta)
+            scene = Scene(scene.grid, start, goal, scene.planning_box, name=env.name, meta=meta, t_start=scene.t_start)
     elif env.kind == "ind":
         from ..environment.ind import load_ind_scene
 
@@ -265,7 +265,8 @@ def build_scene(env: EnvSpec, run_config: Any):
     else:
         raise ValueError(f"unknown environment kind {env.kind!r}; valid choices: random, commonroad, ind")
     if scene.name != env.name:
-        scene = Scene(scene.grid, scene.start, scene.goal, scene.planning_box, name=env.name, meta=scene.meta)
+        scene = Scene(scene.grid, scene.start, scene.goal, scene.planning_box, name=env.name, meta=scene.meta,
+                      t_start=scene.t_start)
     return scene
 
 
@@ -336,6 +337,10 @@ def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str
     payload.update({k: cfg.get(k) for k in _COMMON_SECTIONS})
     payload["cost"] = (cfg.get("density_planner") or {}).get("cost")
     payload["planner"] = {planner: cfg.get(_section_of(planner))}
+    from ..planners.problem import PlanningConfig
+
+    if cfg.get("planning") not in (None, to_dict(PlanningConfig())):  # default time axis: hashes of older records
+        payload["planning"] = cfg["planning"]
     if not _plans_from_true_state(planner):
         payload.update(liouville=cfg.get("liouville"), controller=spec.controller, density=spec.density,
                        components=spec.components)
@@ -444,13 +449,13 @@ _CONTEXTS: dict[Any, Any] = {}
 _SCENES: dict[Any, Any] = {}
 
 
-def _context(job: Job):
+def _context(job: Job, parameterization=None):
     from ..control.registry import load_controller
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
-    key = (job.controller, job.density, job.run_config.liouville)
+    key = (job.controller, job.density, job.run_config.liouville, parameterization)
     if key not in _CONTEXTS:
         car = KinematicCar()
         controller = load_controller(job.controller)
@@ -458,7 +463,8 @@ def _context(job: Job):
 
         def factory():
             if not predictor:
-                predictor.append(load_predictor(job.density, car, controller, liouville=job.run_config.liouville))
+                predictor.append(load_predictor(job.density, car, controller, liouville=job.run_config.liouville,
+                                                parameterization=parameterization))
             return predictor[0]
 
         _CONTEXTS.clear()
@@ -672,9 +678,9 @@ def run_job(job: Job) -> JobResult:
     torch.manual_seed(stable_seed("job", job.env.name, job.planner))
     try:
         scene = _scene(job)
-        problem = PlanningProblem.from_scene(scene, seed=job.env.index)
+        problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning)
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
-        ctx = _context(job)
+        ctx = _context(job, problem.parameterization)
     except Exception:  # noqa: BLE001 - recorded, the sweep goes on
         tb = traceback.format_exc()
         return JobResult([error_record(job, v, tb, "environment") for v in job.variants])
@@ -826,16 +832,21 @@ def run_benchmark(
              "density": spec.density, "config": to_dict(spec.run_config), "workers": workers, "scheduler": scheduler,
              "run_info": info, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs_total": total,
              "runs_pending": pending}
-    atomic_write_json(out / f"sweep_{spec.setting}.json", sweep)
+    sweep_path = out / f"sweep_{spec.setting}.json"
+    # written once the first job has come back (an unreachable scheduler leaves nothing behind) and at the end
     from tqdm.auto import tqdm
 
     threads = spec.evaluation.threads_per_worker if threads_per_worker == "config" else threads_per_worker
     written = failed = errors = 0
+    started = False
     bar = tqdm(total=pending, desc=f"bench {spec.setting}", unit="run", disable=not progress)
     try:
         outcomes: Iterator = run_tasks(job_fn or run_job, jobs, workers=workers, scheduler=scheduler,
                                        threads_per_worker=threads, progress=False)
         for outcome in outcomes:
+            if not started:
+                atomic_write_json(sweep_path, sweep)
+                started = True
             job = jobs[outcome.index]
             if outcome.ok:
                 result: JobResult = outcome.value
@@ -857,6 +868,6 @@ def run_benchmark(
     wall = time.perf_counter() - t0
     sweep.update(finished=time.strftime("%Y-%m-%dT%H:%M:%S"), wall_time_s=wall, runs_written=written,
                  runs_failed=failed, runs_error=errors)
-    atomic_write_json(out / f"sweep_{spec.setting}.json", sweep)
+    atomic_write_json(sweep_path, sweep)
     return SweepReport(total=total, skipped=total - pending, written=written, failed_runs=failed, errors=errors,
                        wall_time=wall, records_dir=out / "records" / spec.setting)
