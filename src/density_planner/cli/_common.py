@@ -114,31 +114,39 @@ def out_dir(path: Path) -> Path:
     return path
 
 
-def load_params_file(path: Path) -> np.ndarray:
-    """Reference parameters from ``.json`` (a list, or an object with ``"params"``), ``.npy`` or ``.npz``."""
+def load_params_file(path: Path, option: str = "--params") -> np.ndarray:
+    """Reference parameters from ``.json`` (a list, or an object with ``"params"``), ``.npy`` or ``.npz``; errors
+    name ``option`` and the file."""
+    from ..io.npz import read_npy, read_npz
+
     path = Path(path)
+    where = f"{option} {path}"
     if not path.is_file():
-        raise FileNotFoundError(f"parameter file not found: {path}")
+        raise FileNotFoundError(f"{where}: parameter file not found")
     try:
         if path.suffix == ".json":
             data = json.loads(path.read_text())
             if isinstance(data, dict):
                 if "params" not in data:
-                    raise ValueError(f"{path}: JSON object has no 'params' entry")
+                    raise ValueError("the JSON object has no 'params' entry")
                 data = data["params"]
             arr = np.asarray(data, dtype=np.float64)
         elif path.suffix == ".npy":
-            arr = np.load(path)
+            arr = read_npy(path, what="parameter", max_bytes=2**20)
         elif path.suffix == ".npz":
-            with np.load(path) as z:
-                if "params" not in z:
-                    raise ValueError(f"{path}: no 'params' array")
-                arr = z["params"]
+            z = read_npz(path, what="parameter", max_bytes=2**20)
+            if "params" not in z:
+                raise ValueError("no 'params' array")
+            arr = z["params"]
         else:
-            raise ValueError(f"{path}: unsupported parameter file type (use .json, .npy or .npz)")
-    except (json.JSONDecodeError, TypeError) as exc:
-        raise ValueError(f"{path}: cannot read reference parameters ({exc})") from exc
-    arr = np.asarray(arr, dtype=np.float64)
+            raise ValueError("unsupported parameter file type (use .json, .npy or .npz)")
+        arr = np.asarray(arr, dtype=np.float64)
+    except (ValueError, TypeError, UnicodeDecodeError) as exc:  # incl. JSONDecodeError, ragged lists, DataError
+        text = str(exc).split("\n")[0]
+        if "inhomogeneous" in text or "sequence" in text:
+            text = "the rows have different lengths (a 2 x 10 table of numbers is expected)"
+        text = text.replace(f"{path}: ", "")
+        raise ValueError(f"{where}: cannot read reference parameters ({text})") from None
     if arr.ndim == 3 and arr.shape[0] == 1:
         arr = arr[0]
     return arr

@@ -355,16 +355,12 @@ class OccupancyGrid:
     @classmethod
     def load(cls, path: str | Path) -> OccupancyGrid:
         """Read a grid written by :meth:`save`; raises :class:`DataError` on a missing or malformed file."""
+        from density_planner.io.npz import read_npz
+
         path = Path(path)
         if not path.is_file():
             raise DataError(f"occupancy grid file not found: {path}")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                return cls.from_arrays(z, source=str(path))
-        except DataError:
-            raise
-        except (OSError, EOFError, ValueError) as exc:
-            raise DataError(f"{path}: cannot read occupancy grid ({exc})") from exc
+        return cls.from_arrays(read_npz(path, what="occupancy grid"), source=str(path))
 
     def __repr__(self) -> str:
         T, NX, NY = self.shape

@@ -204,21 +204,21 @@ def save_scene(scene: Scene, path: str | Path) -> Path:
 def load_scene(path: str | Path) -> Scene:
     """Read a scene written by :func:`save_scene`; raises :class:`DataError` naming the file when it is not
     one."""
+    from density_planner.io.npz import read_npz
+
     path = Path(path)
     if not path.is_file():
         raise DataError(f"scene file not found: {path}")
+    z = read_npz(path, what="scene")  # declared sizes checked before loading; truncated files refused
+    if "scene_json" not in z:
+        raise DataError(f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if "scene_json" not in z:
-                raise DataError(
-                    f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)"
-                )
-            header = json.loads(str(z["scene_json"]))
-            grid = OccupancyGrid.from_arrays(z, source=str(path))
-    except DataError:
-        raise
-    except (OSError, EOFError, ValueError) as exc:  # incl. JSONDecodeError and 'not an npz'
-        raise DataError(f"{path}: cannot read scene ({exc})") from exc
+        header = json.loads(str(z["scene_json"]))
+    except ValueError as exc:  # JSONDecodeError
+        raise DataError(f"{path}: cannot read scene header ({exc})") from exc
+    if not isinstance(header, dict):
+        raise DataError(f"{path}: invalid scene header (a JSON object expected, got {type(header).__name__})")
+    grid = OccupancyGrid.from_arrays(z, source=str(path))
     try:
         return Scene(
             grid=grid,
