@@ -148,7 +148,10 @@ def _resolve_components(spec):
     from ..systems.car import KinematicCar
 
     controller = load_controller(spec.controller)
-    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    planning = spec.run_config.planning  # an explicit horizon is known before the scenes: check the predictor now
+    par = planning.parameterization() if planning.horizon is not None else None
+    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville,
+                               parameterization=par)
     label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
              f"{component_digest(controller, predictor) or '-'}")
     return replace(spec, components=label)
