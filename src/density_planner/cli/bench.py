@@ -159,12 +159,11 @@ def _resolve_components(spec):
 
 def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     """Tables and figures of ``out`` from its records."""
-    from ..evaluation.report import write_tables
-    from ..viz.benchmark import write_figures
-
     import sys
 
     from ..evaluation.benchmark import scan_records
+    from ..evaluation.report import write_tables
+    from ..viz.benchmark import write_figures
 
     records, rows, paths = write_tables(out)
     bad = scan_records(out)[1]

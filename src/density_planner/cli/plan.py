@@ -96,13 +96,12 @@ def versions() -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..checks import check_seed
     from ..config import dumps_toml, load_config, to_dict
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
-
-    from ..checks import check_seed
 
     check_out(args.out)
     if args.distribution_seed is not None:

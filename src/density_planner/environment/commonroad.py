@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from density_planner.config import to_dict
 from density_planner.checks import check_seed
+from density_planner.config import to_dict
 from density_planner.errors import DataError, OptionalDependencyError
 
 from .footprints import (

@@ -54,8 +54,8 @@ from typing import Literal
 import numpy as np
 import torch
 
-from density_planner.config import to_dict
 from density_planner.checks import check_seed
+from density_planner.config import to_dict
 from density_planner.errors import DataError
 
 from .footprints import (
