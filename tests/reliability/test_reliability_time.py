@@ -60,7 +60,7 @@ def test_scene_t_start_defaults_to_grid_t0_and_survives_save_load(tmp_path):
     assert scene.to_json_dict()["t_start"] == 5.0
     back = load_scene(save_scene(scene, tmp_path / "s.npz"))
     assert back.t_start == 5.0
-    with pytest.raises(ValueError, match="outside|covers"):
+    with pytest.raises(ValueError, match=r"Scene.t_start = 20 s lies outside the occupancy grid's time span \[3, "):
         scene_at(20.0, grid)
 
 

@@ -82,7 +82,11 @@ class Scene:
         t_start = self.grid.t0 if self.t_start is None else self.t_start
         if isinstance(t_start, bool) or not isinstance(t_start, (int, float)) or not math.isfinite(t_start):
             raise ValueError(f"Scene.t_start must be a finite number [s], got {t_start!r}")
-        self.grid.check_span(t_start, 0.0)
+        if not self.grid.t0 - 1e-6 * self.grid.dt <= t_start <= self.grid.t_end + 1e-6 * self.grid.dt:
+            raise ValueError(
+                f"Scene.t_start = {t_start:g} s lies outside the occupancy grid's time span [{self.grid.t0:g}, "
+                f"{self.grid.t_end:g}] s"
+            )
         object.__setattr__(self, "t_start", float(t_start))
         object.__setattr__(self, "start", _floats("Scene.start", self.start, 5))
         object.__setattr__(self, "goal", _floats("Scene.goal", self.goal, 2))
