@@ -726,6 +726,14 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                     f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); planning from it is not supported"
                 )
             goal = goal_region(problem, scenario, where=where)
+            alts = goal.alternatives or (goal,)
+            if all(a.velocity is not None and not (a.velocity[0] <= v_max + 1e-9 and a.velocity[1] >= v_min - 1e-9)
+                   for a in alts):
+                bands = ", ".join(f"[{a.velocity[0]:.2f}, {a.velocity[1]:.2f}]" for a in alts)
+                raise DataError(
+                    f"{where}: the goal's velocity interval {bands} m/s lies outside the {model} model's domain "
+                    f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); no plan can reach it"
+                )
     if cfg.sample_start_goal:
         horizon = cfg.sampled_horizon
     else:
