@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
 from density_planner.errors import DataError, OptionalDependencyError
 
@@ -186,8 +187,7 @@ class CommonRoadSceneConfig:
                 raise ValueError(f"CommonRoadSceneConfig.{name} must be >= 0, got {value}")
         if not (self.vehicle_length > 0 and self.vehicle_width > 0):
             raise ValueError("CommonRoadSceneConfig.vehicle_length and vehicle_width must be > 0")
-        if self.seed < 0:
-            raise ValueError(f"CommonRoadSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("CommonRoadSceneConfig.seed", self.seed)
 
 
 # ------------------------------------------------------------------------------------------------- reading
