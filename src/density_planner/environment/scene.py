@@ -21,6 +21,7 @@ from density_planner.errors import DataError
 from density_planner.io.atomic import atomic_save_npz
 
 from .grid import OccupancyGrid
+from .road import RoadScene
 
 __all__ = [
     "Scene",
@@ -66,6 +67,9 @@ class Scene:
         meta: JSON-serialisable description of the source (obstacles, road users, file names, configuration).
         t_start: ABSOLUTE time [s] at which the plan starts, on the grid's clock (default: the grid's ``t0``); the
             planners read the occupancy at ``t_start + k * plan_dt`` (``grid.slices_for``).
+        road: exact road geometry (drivable area, true obstacle shapes over time, goal region with its time
+            interval) for road scenes (CommonRoad); ``None`` for random and inD scenes. ``goal`` is then the
+            goal region's representative point. Saved with the scene (``road_json`` entry of the ``.npz``).
     """
 
     grid: OccupancyGrid
@@ -75,6 +79,7 @@ class Scene:
     name: str = "scene"
     meta: dict[str, Any] = field(default_factory=dict)
     t_start: float | None = None
+    road: RoadScene | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.grid, OccupancyGrid):
@@ -96,6 +101,8 @@ class Scene:
         object.__setattr__(self, "planning_box", box)
         if not isinstance(self.meta, dict):
             raise ValueError(f"Scene.meta must be a dict, got {type(self.meta).__name__}")
+        if self.road is not None and not isinstance(self.road, RoadScene):
+            raise ValueError(f"Scene.road must be a RoadScene or None, got {type(self.road).__name__}")
 
     def to_json_dict(self) -> dict[str, Any]:
         """The scene without its grid, as plain JSON data (the ``scene.json`` written by the CLI)."""
@@ -202,7 +209,10 @@ def save_scene(scene: Scene, path: str | Path) -> Path:
         text = json.dumps(header, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"scene {scene.name!r}: meta is not JSON-serialisable ({exc})") from exc
-    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text))
+    extra = {}
+    if scene.road is not None:
+        extra["road_json"] = np.asarray(json.dumps(scene.road.to_json_dict(), allow_nan=False))
+    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text), **extra)
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -222,6 +232,10 @@ def load_scene(path: str | Path) -> Scene:
         raise DataError(f"{path}: cannot read scene header ({exc})") from exc
     if not isinstance(header, dict):
         raise DataError(f"{path}: invalid scene header (a JSON object expected, got {type(header).__name__})")
+    try:
+        road_data = json.loads(str(z["road_json"])) if "road_json" in z else None
+    except ValueError as exc:
+        raise DataError(f"{path}: cannot read the scene's road data ({exc})") from exc
     grid = OccupancyGrid.from_arrays(z, source=str(path))
     try:
         return Scene(
@@ -232,6 +246,7 @@ def load_scene(path: str | Path) -> Scene:
             name=str(header.get("name", path.stem)),
             meta=dict(header.get("meta", {})),
             t_start=header.get("t_start"),
+            road=None if road_data is None else RoadScene.from_json_dict(road_data),
         )
     except (KeyError, ValueError, TypeError) as exc:
         raise DataError(f"{path}: invalid scene header ({exc})") from exc
