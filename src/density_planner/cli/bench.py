@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import add_config, add_controller, add_out, add_threads, out_dir
+from ._common import add_config, add_controller, add_out, add_progress, add_threads, out_dir, show_progress
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    "MPC and oracle records do not depend on the controller and predictor and are kept)")
     p.add_argument("--plot-envs", type=int, default=3, metavar="K",
                    help="trajectory figures for the first K environments (default 3)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run_bench)
 
@@ -176,7 +176,7 @@ def run_bench(args: argparse.Namespace) -> int:
         threads = args.threads or None
     else:
         threads = spec.evaluation.threads_per_worker
-    report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet,
+    report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=show_progress(args),
                            retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info,
                            threads_per_worker=threads)
     paths = write_report(out, args.plot_envs)

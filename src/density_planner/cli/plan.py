@@ -5,7 +5,18 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_controller, add_device, add_out, out_dir, resolve_device, resolve_dtype
+from ._common import (
+    add_config,
+    add_controller,
+    add_device,
+    add_out,
+    add_progress,
+    out_dir,
+    resolve_device,
+    resolve_dtype,
+    show_progress,
+)
+from ._exit import plan_exit_code
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -30,7 +41,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_config(p)
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run)
 
@@ -86,6 +97,7 @@ def versions() -> dict[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
+    from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
@@ -98,13 +110,18 @@ def run(args: argparse.Namespace) -> int:
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed)
-    ctx = build_context(args, run_config, progress=not args.quiet)
+    ctx = build_context(args, run_config, progress=show_progress(args))
     planner = make_planner(args.planner, ctx)
     result = planner.plan(problem)
 
     atomic_write_text(out / "config.toml", dumps_toml(run_config))
+    verdict = judge_plan(scene, result, system=problem.system, dt=problem.parameterization.plan_dt,
+                         config=run_config.verdict, evaluation=run_config.evaluation)
     summary = result.summary()
     summary.update({
+        "status": "failed" if verdict is None else verdict.status,
+        "planner_status": result.status.value,
+        "verdict": None if verdict is None else verdict.to_dict(),
         "scene": scene.to_json_dict(),
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
@@ -116,36 +133,60 @@ def run(args: argparse.Namespace) -> int:
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
+    if result.states is not None and args.kind == "commonroad":
+        write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
+        written.append("solution.xml")
     if result.states is not None:
-        from ..viz.plan import animate_plan, plot_costs, plot_plan
-
-        states = result.states.detach().cpu().numpy()
-        sx = slx = None
-        if result.samples is not None:
-            sx = result.samples.x.detach().cpu().numpy()
-            slx = result.samples.log_rho.detach().cpu().numpy()
-        p_max = float(result.collision.max) if result.collision is not None else float("nan")
-        title = (f"{scene.name}: {result.planner} ({result.status.value}), P_coll max {p_max:.3f}, "
-                 f"{result.timings.get('total', float('nan')):.1f} s")
-        label = "reference" if result.reference is not None else "executed (nominal model)"
-        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label)
-        written.append("plan.png")
-        if not args.no_gif:
-            animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
-            written.append("plan.gif")
-        if result.cost_history:
-            plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
-            written.append("costs.png")
-    dist = float("nan")
-    if result.states is not None:
-        gx, gy = scene.goal
-        dist = float(((result.states[-1, 0] - gx) ** 2 + (result.states[-1, 1] - gy) ** 2).sqrt())
-    print(f"{result.planner} on {scene.name}: {result.status.value}; final distance to goal {dist:.2f} m; "
-          f"collision probability max "
-          f"{float(result.collision.max) if result.collision is not None else float('nan'):.3f}; "
-          f"planning time {result.timings.get('total', float('nan')):.2f} s; wrote "
-          f"{', '.join(str(out / w) for w in written)}")
-    if not result.ok:
+        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif)
+    dist = float("nan") if verdict is None else verdict.details.get("final_goal_distance", float("nan"))
+    p_max = float(result.collision.max) if result.collision is not None else float("nan")
+    print(f"{result.planner} on {scene.name}: {'no plan' if verdict is None else verdict.summary()}; final "
+          f"distance to the goal {dist:.2f} m; collision probability max {p_max:.3f}; planning time "
+          f"{result.timings.get('total', float('nan')):.2f} s; wrote {', '.join(str(out / w) for w in written)}")
+    if verdict is None:
         print(f"density-planner: planning {result.status.value}: {result.message}", flush=True)
-        return 1
-    return 0
+    return plan_exit_code(verdict)
+
+
+def write_plan_solution(path, scene, result, problem, run_config) -> None:
+    """``solution.xml`` of a plan on a CommonRoad scene (vehicle model and cost function of ``[solution]``)."""
+    from ..evaluation.verdict import plan_inputs
+    from ..io.commonroad_solution import write_solution
+
+    meta = scene.meta
+    scenario_dt = float(meta.get("scenario_dt") or problem.parameterization.plan_dt)
+    road = getattr(scene, "road", None)
+    t_start = float(road.t_start) if road is not None else float(scene.grid.t0)
+    pp = meta.get("planning_problem")
+    write_solution(path, result.states, plan_inputs(result), problem.parameterization.plan_dt,
+                   scenario_id=str(meta.get("scenario_id") or scene.name),
+                   planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
+                   scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
+                   config=run_config.solution, state_names=problem.system.state_names,
+                   computation_time=result.timings.get("total"))
+
+
+def write_plan_figures(out, scene, result, verdict, *, gif: bool = True) -> list[str]:
+    """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written."""
+    from ..viz.plan import animate_plan, plot_costs, plot_plan
+
+    states = result.states.detach().cpu().numpy()
+    sx = slx = None
+    if result.samples is not None:
+        sx = result.samples.x.detach().cpu().numpy()
+        slx = result.samples.log_rho.detach().cpu().numpy()
+    p_max = float(result.collision.max) if result.collision is not None else float("nan")
+    title = (f"{scene.name}: {result.planner}, P_coll max {p_max:.3f}, "
+             f"{result.timings.get('total', float('nan')):.1f} s")
+    label = "reference" if result.reference is not None else "executed (nominal model)"
+    written = []
+    plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
+              verdict=verdict)
+    written.append("plan.png")
+    if gif:
+        animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
+        written.append("plan.gif")
+    if result.cost_history:
+        plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
+        written.append("costs.png")
+    return written

@@ -41,6 +41,7 @@ def plot_plan(
     snapshot_times: Sequence[float] = (0.0, 2.5, 5.0, 7.5, 10.0),
     plan_dt: float = 0.1,
     label: str = "reference",
+    verdict=None,
 ) -> Path:
     """Plan over the time-max occupancy (left) and occupancy snapshots with the sample cloud (right).
 
