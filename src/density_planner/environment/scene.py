@@ -21,6 +21,7 @@ from density_planner.errors import DataError
 from density_planner.io.atomic import atomic_save_npz
 
 from .grid import OccupancyGrid
+from .road import RoadScene
 
 __all__ = [
     "Scene",
@@ -64,6 +65,9 @@ class Scene:
         planning_box: ``(xmin, xmax, ymin, ymax)`` [m] the positions must stay in (the bounds cost J_B).
         name: short identifier, e.g. ``"random-7"``, ``"ind-rec07-t120.0"``.
         meta: JSON-serialisable description of the source (obstacles, road users, file names, configuration).
+        road: exact road geometry (drivable area, true obstacle shapes over time, goal region with its time
+            interval) for road scenes (CommonRoad); ``None`` for random and inD scenes. ``goal`` is then the
+            goal region's representative point. Saved with the scene (``road_json`` entry of the ``.npz``).
     """
 
     grid: OccupancyGrid
@@ -72,6 +76,7 @@ class Scene:
     planning_box: tuple[float, float, float, float]
     name: str = "scene"
     meta: dict[str, Any] = field(default_factory=dict)
+    road: RoadScene | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.grid, OccupancyGrid):
@@ -84,6 +89,8 @@ class Scene:
         object.__setattr__(self, "planning_box", box)
         if not isinstance(self.meta, dict):
             raise ValueError(f"Scene.meta must be a dict, got {type(self.meta).__name__}")
+        if self.road is not None and not isinstance(self.road, RoadScene):
+            raise ValueError(f"Scene.road must be a RoadScene or None, got {type(self.road).__name__}")
 
     def to_json_dict(self) -> dict[str, Any]:
         """The scene without its grid, as plain JSON data (the ``scene.json`` written by the CLI)."""
@@ -187,7 +194,10 @@ def save_scene(scene: Scene, path: str | Path) -> Path:
         text = json.dumps(header, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"scene {scene.name!r}: meta is not JSON-serialisable ({exc})") from exc
-    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text))
+    extra = {}
+    if scene.road is not None:
+        extra["road_json"] = np.asarray(json.dumps(scene.road.to_json_dict(), allow_nan=False))
+    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text), **extra)
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -203,6 +213,7 @@ def load_scene(path: str | Path) -> Scene:
                     f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)"
                 )
             header = json.loads(str(z["scene_json"]))
+            road_data = json.loads(str(z["road_json"])) if "road_json" in z else None
             grid = OccupancyGrid.from_arrays(z, source=str(path))
     except DataError:
         raise
@@ -216,6 +227,7 @@ def load_scene(path: str | Path) -> Scene:
             planning_box=header["planning_box"],
             name=str(header.get("name", path.stem)),
             meta=dict(header.get("meta", {})),
+            road=None if road_data is None else RoadScene.from_json_dict(road_data),
         )
     except (KeyError, ValueError, TypeError) as exc:
         raise DataError(f"{path}: invalid scene header ({exc})") from exc
