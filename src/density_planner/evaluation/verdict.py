@@ -180,8 +180,8 @@ def judge(
     idx = {n: system.state_names.index(n) for n in ("px", "py", "theta", "v") if n in system.state_names}
     if "px" not in idx or "py" not in idx:
         raise ValueError(f"the verdict needs a system with px and py states, got {system.state_names}")
-    xy = x[:, [idx["px"], idx["py"]]]
-    theta = x[:, idx["theta"]] if "theta" in idx else np.zeros(len(x))
+    xy = np.nan_to_num(x[:, [idx["px"], idx["py"]]], nan=0.0, posinf=0.0, neginf=0.0)  # non-finite: fails below
+    theta = np.nan_to_num(x[:, idx["theta"]]) if "theta" in idx else np.zeros(len(x))
     v = x[:, idx["v"]] if "v" in idx else None
     t_rel = dt * np.arange(len(x))
     length, width = _footprint_size(scene, config)
@@ -196,7 +196,8 @@ def judge(
     road = getattr(scene, "road", None)
     if road is not None:
         basis = "road"
-        goal, collision, on_road = _judge_road(road, xy, theta, v, t_rel, boxes, config, details, reasons)
+        goal, collision, on_road = _judge_road(road, xy, theta, v, t_rel, boxes, config, details, reasons,
+                                              scene.grid.bounds)
     else:
         basis = "occupancy"
         goal, collision, on_road = _judge_occupancy(scene, xy, t_rel, boxes, evaluation, details, reasons)
@@ -220,7 +221,7 @@ def _first(mask: np.ndarray) -> int | None:
 
 
 def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, details: dict,
-                reasons: list[str]) -> tuple[bool, bool, bool]:
+                reasons: list[str], scene_bounds: tuple[float, float, float, float]) -> tuple[bool, bool, bool]:
     import shapely
 
     t_abs = float(road.t_start) + t_rel
@@ -266,8 +267,10 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
                        colliding_obstacles=sorted({h[1] for h in hits}))
         more = f" (and {len(hits) - 1} more obstacle(s))" if len(hits) > 1 else ""
         reasons.append(f"collision: with obstacle {oid} at t = {t_hit:.1f} s{more}")
-    # the rectangle inside the drivable area
+    # the rectangle inside the drivable area (no drivable area known: inside the map)
     drivable = road.drivable
+    if drivable is None:
+        return goal_ok, collision_ok, _inside_map(scene_bounds, boxes, t_rel, details, reasons)
     if config.road_tolerance > 0:
         drivable = shapely.buffer(drivable, config.road_tolerance)
     shapely.prepare(drivable)
@@ -286,7 +289,6 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
 
 def _judge_occupancy(scene: Any, xy, t_rel, boxes, evaluation: Any, details: dict,
                      reasons: list[str]) -> tuple[bool, bool, bool]:
-    import shapely
     import torch
 
     grid = scene.grid
@@ -306,16 +308,21 @@ def _judge_occupancy(scene: Any, xy, t_rel, boxes, evaluation: Any, details: dic
         k0 = _first(hit)
         reasons.append(f"collision: occupancy {float(p[k0]):.2f} > {evaluation.collision_threshold:g} at the "
                        f"vehicle's position at t = {float(t_rel[k0]):.1f} s")
-    xmin, xmax, ymin, ymax = grid.bounds
+    return goal_ok, collision_ok, _inside_map(grid.bounds, boxes, t_rel, details, reasons)
+
+
+def _inside_map(bounds, boxes, t_rel, details: dict, reasons: list[str]) -> bool:
+    import shapely
+
+    xmin, xmax, ymin, ymax = bounds
     b = shapely.bounds(boxes)
     out = (b[:, 0] < xmin) | (b[:, 2] > xmax) | (b[:, 1] < ymin) | (b[:, 3] > ymax)
     out |= ~np.isfinite(b).all(axis=1)
-    road_ok = not out.any()
-    if not road_ok:
+    if out.any():
         k0 = _first(out)
         reasons.append(f"off map: the vehicle leaves the map at t = {float(t_rel[k0]):.1f} s")
         details.update(off_road_first_time=float(t_rel[k0]), off_road_steps=int(out.sum()))
-    return goal_ok, collision_ok, road_ok
+    return not out.any()
 
 
 def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, config: VerdictConfig,
