@@ -25,7 +25,7 @@ have no goal region, no true obstacle shapes and no lanelets; their verdict uses
   rule) of the goal point;
 * ``collision_free``: the occupancy probability at the vehicle's position never exceeds
   ``evaluation.collision_threshold`` (0.5: the position is more likely occupied than free);
-* ``on_road``: the vehicle rectangle stays inside the map (the grid's extent);
+* ``on_road``: the vehicle's reference point stays inside the map (the grid's extent; the paper's bounds rule);
 * ``within_model``: as above.
 """
 
@@ -289,6 +289,7 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
 
 def _judge_occupancy(scene: Any, xy, t_rel, boxes, evaluation: Any, details: dict,
                      reasons: list[str]) -> tuple[bool, bool, bool]:
+    import shapely
     import torch
 
     grid = scene.grid
@@ -308,14 +309,17 @@ def _judge_occupancy(scene: Any, xy, t_rel, boxes, evaluation: Any, details: dic
         k0 = _first(hit)
         reasons.append(f"collision: occupancy {float(p[k0]):.2f} > {evaluation.collision_threshold:g} at the "
                        f"vehicle's position at t = {float(t_rel[k0]):.1f} s")
-    return goal_ok, collision_ok, _inside_map(grid.bounds, boxes, t_rel, details, reasons)
+    # the map's extent bounds the position (the paper's bounds rule judges the reference point, not the rectangle:
+    # its random scenes start 2 m from the map's edge)
+    return goal_ok, collision_ok, _inside_map(grid.bounds, shapely.points(xy), t_rel, details, reasons)
 
 
-def _inside_map(bounds, boxes, t_rel, details: dict, reasons: list[str]) -> bool:
+def _inside_map(bounds, geoms, t_rel, details: dict, reasons: list[str]) -> bool:
+    """``geoms`` (vehicle rectangles or reference points) inside the box ``bounds = (xmin, xmax, ymin, ymax)``."""
     import shapely
 
     xmin, xmax, ymin, ymax = bounds
-    b = shapely.bounds(boxes)
+    b = shapely.bounds(geoms)
     out = (b[:, 0] < xmin) | (b[:, 2] > xmax) | (b[:, 1] < ymin) | (b[:, 3] > ymax)
     out |= ~np.isfinite(b).all(axis=1)
     if out.any():
