@@ -53,12 +53,13 @@ class SolutionConfig:
         if self.vehicle_type not in _TYPES:
             raise ConfigError(f"solution.vehicle_type must be one of {', '.join(_TYPES)}, got {self.vehicle_type!r}")
         try:
-            from commonroad.common.solution import CostFunction
+            from commonroad.common.solution import SupportedCostFunctions
         except ImportError:  # checked again when writing
             return
-        if self.cost_function not in CostFunction.__members__:
-            raise ConfigError(f"solution.cost_function must be one of {', '.join(CostFunction.__members__)}, got "
-                              f"{self.cost_function!r}")
+        supported = [c.name for c in SupportedCostFunctions[self.vehicle_model].value]
+        if self.cost_function not in supported:
+            raise ConfigError(f"solution.cost_function must be one of {', '.join(supported)} for vehicle model "
+                              f"{self.vehicle_model}, got {self.cost_function!r}")
 
 
 def _vehicle_parameters(vehicle_type: str) -> tuple[float, float, float]:
