@@ -90,7 +90,9 @@ def add_controller(p: argparse.ArgumentParser) -> None:
     )
 
 
-def add_config(p: argparse.ArgumentParser) -> None:
+def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:
+    """``--config FILE.toml`` and ``--set KEY=VALUE``; ``example`` is a valid key of the command's configuration
+    (tests/test_set_examples.py parses every example)."""
     p.add_argument("--config", type=Path, default=None, metavar="FILE.toml", help="configuration file (TOML)")
     p.add_argument(
         "--set",
@@ -98,7 +100,7 @@ def add_config(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override one configuration value, e.g. --set density_planner.n_candidates=50 (repeatable)",
+        help=f"override one configuration value, e.g. --set {example} (repeatable)",
     )
 
 

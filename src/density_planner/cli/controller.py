@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     add_out(p)
     p.add_argument("--epochs", type=int, default=None, help="number of epochs (default from the configuration)")
-    add_config(p)
+    add_config(p, example="epochs=100")
     p.add_argument("--device", default=None, help="torch device for training: cpu (default), cuda, cuda:N or auto")
     add_threads(p)
     p.add_argument("--no-resume", action="store_true", help="start afresh even if DIR/checkpoint.pt exists")
