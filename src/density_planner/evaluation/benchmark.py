@@ -118,15 +118,15 @@ SETTINGS: dict[str, Setting] = {
         ("unbiased", "biased"), 50, True, single_variant=("oracle",),
         description="all planners on random artificial scenes, perfect and biased heading measurement",
     ),
-    "commonroad": Setting(
-        "commonroad", ("density", "mpc"), ("unbiased",), 0, True,
-        description="every CommonRoad scenario of --scenarios DIR as its author posed it, judged by the verdict "
-        "(evaluation/commonroad_bench.py)",
-    ),
     "real": Setting(
         "real", ("density", "mpc", "tube_mpc_0.5", "oracle"), ("unbiased", "biased"), 30, True,
         single_variant=("oracle",),
         description="density planner, M0, M2 and oracle on recorded traffic (inD, or the shipped CommonRoad scenes)",
+    ),
+    "commonroad": Setting(
+        "commonroad", ("density", "mpc"), ("unbiased",), 0, True,
+        description="every CommonRoad scenario of --scenarios DIR as its author posed it, judged by the verdict "
+        "(evaluation/commonroad_bench.py)",
     ),
 }
 
@@ -242,6 +242,7 @@ def real_envs(
 def build_scene(env: EnvSpec, run_config: Any):
     """The :class:`~density_planner.environment.scene.Scene` of ``env`` built with ``run_config``'s sections."""
     from ..config import update
+    from ..environment.scene import Scene
 
     if env.kind == "random":
         from ..environment.random_scene import random_scene
@@ -260,7 +261,7 @@ def build_scene(env: EnvSpec, run_config: Any):
         if env.seed > 0:
             start, goal = sample_start_goal(scene.grid, scene.planning_box, seed=env.seed, config=cfg.start_goal)
             meta = dict(scene.meta, start_goal_sampled=True, start_goal_seed=env.seed)
-            scene = replace(scene, start=start, goal=goal, name=env.name, meta=meta, road=None)  # not its goal
+            scene = Scene(scene.grid, start, goal, scene.planning_box, name=env.name, meta=meta)
     elif env.kind == "ind":
         from ..environment.ind import load_ind_scene
 
@@ -269,7 +270,7 @@ def build_scene(env: EnvSpec, run_config: Any):
     else:
         raise ValueError(f"unknown environment kind {env.kind!r}; valid choices: random, commonroad, ind")
     if scene.name != env.name:
-        scene = replace(scene, name=env.name)  # keeps the road geometry
+        scene = Scene(scene.grid, scene.start, scene.goal, scene.planning_box, name=env.name, meta=scene.meta)
     return scene
 
 
