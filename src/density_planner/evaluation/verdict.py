@@ -201,7 +201,7 @@ def judge(
     else:
         basis = "occupancy"
         goal, collision, on_road = _judge_occupancy(scene, xy, t_rel, boxes, evaluation, details, reasons)
-    within = _judge_model(system, x, u, idx, config, details, reasons)
+    within = _judge_model(system, x, u, idx, config, details, reasons, dt)
     ok_parts = [goal and finite, collision and finite, on_road and finite, within and finite]
     return Verdict(*ok_parts, p_coll_max=float(p_coll_max), reasons=tuple(reasons), basis=basis, details=details)
 
@@ -330,7 +330,7 @@ def _inside_map(bounds, geoms, t_rel, details: dict, reasons: list[str]) -> bool
 
 
 def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, config: VerdictConfig,
-                 details: dict, reasons: list[str]) -> bool:
+                 details: dict, reasons: list[str], dt: float) -> bool:
     lo, hi = (np.asarray(b, dtype=np.float64) for b in system.state_bounds)
     check = np.ones(x.shape[1], dtype=bool)
     check[[idx["px"], idx["py"]]] = False  # positions: on_road / the map judge them
@@ -340,7 +340,7 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
     names = list(system.state_names)
     for j in np.flatnonzero(bad_x.any(axis=0)):
         k = _first(bad_x[:, j])
-        problems.append(f"{names[j]} = {x[k, j]:.3g} at t-step {k} outside [{lo[j]:.3g}, {hi[j]:.3g}]")
+        problems.append(f"{names[j]} = {x[k, j]:.4g} at t = {k * dt:.1f} s outside [{lo[j]:.4g}, {hi[j]:.4g}]")
     if u is not None and u.size:
         ulo, uhi = (np.asarray(b, dtype=np.float64) for b in system.input_bounds)
         utol = config.model_tolerance * np.maximum(1.0, np.maximum(np.abs(ulo), np.abs(uhi)))
@@ -348,8 +348,8 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
         unames = list(system.input_names)
         for j in np.flatnonzero(bad_u.any(axis=0)):
             k = _first(bad_u[:, j])
-            problems.append(f"input {unames[j]} = {u[k, j]:.3g} at t-step {k} outside [{ulo[j]:.3g}, "
-                            f"{uhi[j]:.3g}]")
+            problems.append(f"input {unames[j]} = {u[k, j]:.4g} at t = {k * dt:.1f} s outside [{ulo[j]:.4g}, "
+                            f"{uhi[j]:.4g}]")
     details["model_violations"] = problems
     if problems:
         reasons.append("outside the model: " + "; ".join(problems))
