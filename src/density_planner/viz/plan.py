@@ -193,9 +193,11 @@ def plot_plan(
 
         def snapshot_cell(j: int):
             return gs[j // ncol, 1 + j % ncol]
-    extent = _extent(scene)
-    show_occupancy(ax, grid.slice(0), extent, alpha=0.9)
-    show_occupancy(ax, grid.max_over_time(), extent, alpha=0.3)  # swept occupancy, faint
+    # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
+    (i0, i1, j0, j1), extent, st = _crop(grid, roi, 700)
+    show_occupancy(ax, grid.probs[0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
+    swept = grid.probs[:, i0:i1:st, j0:j1:st].amax(dim=0)
+    show_occupancy(ax, swept, extent, alpha=0.3)  # swept occupancy, faint
     t_abs = (getattr(scene.road, "t_start", 0.0) if getattr(scene, "road", None) is not None else 0.0) + (
         plan_dt * np.arange(T))
     _draw_obstacle_paths(ax, scene, t_abs)
@@ -231,13 +233,14 @@ def plot_plan(
     for j, (ts, k) in enumerate(zip(snapshot_times, ks)):
         a = fig.add_subplot(snapshot_cell(j))
         k_time = int(round(ts / plan_dt))
-        show_occupancy(a, grid.slice(int(grid.slice_index(k_time * plan_dt))), extent)
+        cx, cy = states[k, 0], states[k, 1]
+        (i0, i1, j0, j1), extent, st = _crop(grid, (cx - half, cx + half, cy - half, cy + half), 300)
+        show_occupancy(a, grid.probs[int(grid.slice_index(k_time * plan_dt)), i0:i1:st, j0:j1:st], extent)
         _draw_goal(a, scene, label=False)
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
         if has_cloud and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
         a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3, zorder=6)
-        cx, cy = states[k, 0], states[k, 1]
         a.set_xlim(cx - half, cx + half)
         a.set_ylim(cy - half, cy + half)
         a.set_aspect("equal")
@@ -261,6 +264,38 @@ def plot_plans(scene: Scene, plans: Mapping[str, np.ndarray], path: str | Path, 
     return save_figure(fig, path)
 
 
+def _gif_palette_image():
+    """A fixed 256-colour palette for plan GIFs: greys (occupancy), the density colour map, the marker colours.
+    Quantising every frame to one fixed palette is fast and keeps colours stable between frames."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_rgb
+    from PIL import Image
+
+    colours = [(v, v, v) for v in np.linspace(0, 255, 160).round().astype(int)]
+    cmap = colormaps[DENSITY_CMAP]
+    colours += [tuple(int(round(255 * c)) for c in cmap(x)[:3]) for x in np.linspace(0, 1, 64)]
+    for name in ("tab:orange", "tab:red", "tab:green", "tab:blue", _OUTSIDE_MAP, "#f4b183", "#f4a6a6",
+                 "#a6d8a6", "#a6c8ec"):
+        colours.append(tuple(int(round(255 * c)) for c in to_rgb(name)))
+    colours += [(255, 255, 255)] * (256 - len(colours))
+    pal = Image.new("P", (1, 1))
+    pal.putpalette([c for rgb in colours[:256] for c in rgb])
+    return pal
+
+
+def _crop(grid, window: tuple[float, float, float, float], max_cells: int) -> tuple[np.ndarray, tuple, int]:
+    """Index ranges of the cells inside ``window`` and a display stride so that the longest side has at most
+    ``max_cells`` cells: ``(slices (i0, i1, j0, j1), extent, stride)``."""
+    x0, x1, y0, y1 = window
+    (ox, oy), c = grid.origin, grid.cell_size
+    _, NX, NY = grid.shape
+    i0, i1 = int(np.clip(np.floor((x0 - ox) / c), 0, NX - 1)), int(np.clip(np.ceil((x1 - ox) / c) + 1, 1, NX))
+    j0, j1 = int(np.clip(np.floor((y0 - oy) / c), 0, NY - 1)), int(np.clip(np.ceil((y1 - oy) / c) + 1, 1, NY))
+    stride = max(1, int(np.ceil(max(i1 - i0, j1 - j0) / max_cells)))
+    extent = (ox + (i0 - 0.5) * c, ox + (i1 - 0.5) * c, oy + (j0 - 0.5) * c, oy + (j1 - 0.5) * c)
+    return (i0, i1, j0, j1), extent, stride
+
+
 def animate_plan(
     scene: Scene,
     states: np.ndarray,
@@ -271,34 +306,79 @@ def animate_plan(
     every: int = 2,
     plan_dt: float = 0.1,
     fps: int = 10,
+    max_cells: int = 320,
 ) -> Path:
     """GIF of the occupancy slices with the density cloud and the reference so far (one frame per ``every``
-    planning steps)."""
+    planning steps), over the region that matters (trajectory, cloud, start, goal region; as in :func:`plot_plan`).
+
+    Fast: the figure is drawn once and only its data change per frame, the occupancy is cropped to the region and
+    strided to at most ``max_cells`` cells per side for display, and every frame is quantised to one fixed
+    palette.
+    """
     from PIL import Image
 
     grid = scene.grid
+    T = states.shape[0]
+    has_cloud = samples_x is not None and samples_log_rho is not None
+    window = _region_of_interest(scene, states, samples_x if has_cloud else None)
+    (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
+    ks = list(range(0, T, every))
+    slices = sorted({int(grid.slice_index(k * plan_dt)) for k in ks})
+    sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
+    where = {s: n for n, s in enumerate(slices)}
+    w, h = window[1] - window[0], window[3] - window[2]
+    aspect = w / max(h, 1e-9)
+    size = (6.4, float(np.clip(6.4 / aspect, 2.4, 6.4)) + 0.9) if aspect >= 1 else (
+        float(np.clip(5.6 * aspect, 2.6, 5.6)) + 1.2, 5.6)
+    fig, ax = plt.subplots(figsize=size, dpi=90, layout="constrained")
+    ax.set_facecolor(_OUTSIDE_MAP)
+    img = ax.imshow(sub[0].T, origin="lower", extent=extent, cmap="Greys", vmin=0.0, vmax=1.0,
+                    interpolation="nearest")
+    before = set(ax.get_children())
+    _draw_goal(ax, scene, label=False)
+    ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.9)
+    (done,) = ax.plot([], [], "-", color="tab:orange", lw=1.8)
+    (now,) = ax.plot([], [], "o", color="tab:orange", ms=4, zorder=6)
+    cloud = None
+    if has_cloud:
+        cloud = ax.scatter(samples_x[:, 0, 0], samples_x[:, 0, 1], c=np.zeros(samples_x.shape[0]), s=4.0,
+                           cmap=DENSITY_CMAP, vmin=0, vmax=1, linewidths=0, zorder=4)
+    overlays = sorted(set(ax.get_children()) - before, key=lambda a: a.get_zorder())
+    ax.set_xlim(window[0], window[1])
+    ax.set_ylim(window[2], window[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.tick_params(labelsize=7)
+    title = ax.set_title(f"{scene.name}  t = 00.0 s", fontsize=9)
+    # blitting: axes, ticks and labels are drawn (and laid out) once; each frame redraws only what changes
+    moving = [img, *overlays, title]
+    for a in moving:
+        a.set_animated(True)
+    fig.canvas.draw()
+    fig.set_layout_engine("none")
+    background = fig.canvas.copy_from_bbox(fig.bbox)
+    palette = _gif_palette_image()
     frames = []
-    fig, ax = plt.subplots(figsize=(4.6, 6.2), dpi=72)
-    for k in range(0, states.shape[0], every):
-        ax.clear()
-        show_occupancy(ax, grid.slice(int(grid.slice_index(k * plan_dt))), _extent(scene))
-        ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.8)
-        ax.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.5)
-        if samples_x is not None and samples_log_rho is not None:
-            _cloud(ax, samples_x, samples_log_rho, k, size=3.0)
-        ax.plot(*scene.goal, "*", color="tab:red", ms=10)
-        ax.set_title(f"{scene.name}  t = {k * plan_dt:4.1f} s", fontsize=9)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_aspect("equal")
-        fig.canvas.draw()
-        rgba = np.asarray(fig.canvas.buffer_rgba())
-        frames.append(Image.fromarray(rgba[..., :3]).quantize(colors=128, method=Image.Quantize.MEDIANCUT))
+    for k in ks:
+        img.set_data(sub[where[int(grid.slice_index(k * plan_dt))]].T)
+        done.set_data(states[: k + 1, 0], states[: k + 1, 1])
+        now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
+        if cloud is not None and k < samples_x.shape[1]:
+            rel = _rel_density(samples_log_rho[:, k])
+            order = np.argsort(rel)
+            cloud.set_offsets(samples_x[order, k, :2])
+            cloud.set_array(rel[order])
+        title.set_text(f"{scene.name}  t = {k * plan_dt:4.1f} s")
+        fig.canvas.restore_region(background)
+        for a in moving:
+            (ax if a is not title else fig).draw_artist(a)
+        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+        frames.append(Image.fromarray(rgb).quantize(palette=palette, dither=Image.Dither.NONE))
     plt.close(fig)
 
     def write(fh):
-        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0,
-                       optimize=True)
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
 
     path = Path(path)
     _atomic(path, write)
