@@ -86,12 +86,13 @@ def versions() -> dict[str, str]:
 
     out = {"density_planner": __version__, "python": sys.version.split()[0], "torch": torch.__version__,
            "numpy": numpy.__version__, "platform": platform.platform()}
-    try:
-        import casadi
+    from importlib.metadata import PackageNotFoundError, version
 
-        out["casadi"] = casadi.__version__
-    except ImportError:
-        pass
+    for package in ("casadi", "commonroad-io", "shapely"):  # without importing them (casadi alone takes ~0.3 s)
+        try:
+            out[package] = version(package)
+        except PackageNotFoundError:
+            pass
     return out
 
 
@@ -105,18 +106,21 @@ def run(args: argparse.Namespace) -> int:
 
     out = out_dir(args.out)
     run_config = load_config(RunConfig, args.config, args.overrides)
-    t0 = time.perf_counter()
+    clock = _Clock()
     scene = scene_from_args(args, run_config)
-    t_scene = time.perf_counter() - t0
+    t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed)
     ctx = build_context(args, run_config, progress=show_progress(args))
     planner = make_planner(args.planner, ctx)
+    clock.lap("setup")
     result = planner.plan(problem)
+    clock.lap("plan")
 
     atomic_write_text(out / "config.toml", dumps_toml(run_config))
     verdict = judge_plan(scene, result, system=problem.system, dt=problem.parameterization.plan_dt,
                          config=run_config.verdict, evaluation=run_config.evaluation)
+    clock.lap("verdict")
     summary = result.summary()
     summary.update({
         "status": "failed" if verdict is None else verdict.status,
@@ -136,8 +140,12 @@ def run(args: argparse.Namespace) -> int:
     if result.states is not None and args.kind == "commonroad":
         write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
         written.append("solution.xml")
+        clock.lap("solution")
     if result.states is not None:
-        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif)
+        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock)
+    # wall time of each step of this command (start-up before run() excluded), for benchmarks/bench_plan_command.py
+    summary["command_timings"] = clock.laps
+    atomic_write_json(out / "plan.json", summary)
     dist = float("nan") if verdict is None else verdict.details.get("final_goal_distance", float("nan"))
     p_max = float(result.collision.max) if result.collision is not None else float("nan")
     print(f"{result.planner} on {scene.name}: {'no plan' if verdict is None else verdict.summary()}; final "
@@ -146,6 +154,22 @@ def run(args: argparse.Namespace) -> int:
     if verdict is None:
         print(f"density-planner: planning {result.status.value}: {result.message}", flush=True)
     return plan_exit_code(verdict)
+
+
+class _Clock:
+    """Wall time per named step (``laps``) and since creation (``laps["total"]``)."""
+
+    def __init__(self) -> None:
+        self.t0 = self.t = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> float:
+        now = time.perf_counter()
+        dt = now - self.t
+        self.laps[name] = self.laps.get(name, 0.0) + dt
+        self.laps["total"] = now - self.t0
+        self.t = now
+        return dt
 
 
 def write_plan_solution(path, scene, result, problem, run_config) -> None:
@@ -166,10 +190,16 @@ def write_plan_solution(path, scene, result, problem, run_config) -> None:
                    computation_time=result.timings.get("total"))
 
 
-def write_plan_figures(out, scene, result, verdict, *, gif: bool = True) -> list[str]:
-    """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written."""
+def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None) -> list[str]:
+    """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written.
+
+    The GIF is drawn in a forked child process while this one draws the PNGs (where ``fork`` exists; else in
+    turn): the command's wall time then holds only the slower of the two."""
+    import multiprocessing as mp
+
     from ..viz.plan import animate_plan, plot_costs, plot_plan
 
+    clock = clock or _Clock()
     states = result.states.detach().cpu().numpy()
     sx = slx = None
     if result.samples is not None:
@@ -180,13 +210,38 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True) -> list
              f"{result.timings.get('total', float('nan')):.1f} s")
     label = "reference" if result.reference is not None else "executed (nominal model)"
     written = []
+    child = None
+    if gif:
+        def draw_gif() -> None:
+            animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
+
+        if "fork" in mp.get_all_start_methods():
+            child = mp.get_context("fork").Process(target=_run_quietly, args=(draw_gif,), daemon=True)
+            child.start()
+        else:
+            draw_gif()
+            clock.lap("gif")
     plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
               verdict=verdict)
     written.append("plan.png")
-    if gif:
-        animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
-        written.append("plan.gif")
+    clock.lap("plan_png")
     if result.cost_history:
         plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
         written.append("costs.png")
+        clock.lap("costs_png")
+    if child is not None:
+        child.join()
+        clock.lap("gif_wait")
+        if child.exitcode != 0:
+            raise RuntimeError(f"drawing {out / 'plan.gif'} failed (exit code {child.exitcode}); rerun with --no-gif")
+    if gif:
+        written.append("plan.gif")
     return written
+
+
+def _run_quietly(fn) -> None:
+    """Target of the GIF process: one torch thread, then ``fn()``."""
+    import torch
+
+    torch.set_num_threads(1)
+    fn()

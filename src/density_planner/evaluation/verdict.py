@@ -340,7 +340,7 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
     names = list(system.state_names)
     for j in np.flatnonzero(bad_x.any(axis=0)):
         k = _first(bad_x[:, j])
-        problems.append(f"{names[j]} = {x[k, j]:.4g} at t = {k * dt:.1f} s outside [{lo[j]:.4g}, {hi[j]:.4g}]")
+        problems.append(f"{names[j]} = {x[k, j]:.6g} at t = {k * dt:.1f} s outside [{lo[j]:.4g}, {hi[j]:.4g}]")
     if u is not None and u.size:
         ulo, uhi = (np.asarray(b, dtype=np.float64) for b in system.input_bounds)
         utol = config.model_tolerance * np.maximum(1.0, np.maximum(np.abs(ulo), np.abs(uhi)))
