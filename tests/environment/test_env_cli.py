@@ -104,7 +104,8 @@ def test_commonroad(commonroad_dir, tmp_path):
         )
         == 0
     )
-    assert load_scene(out / "occupancy.npz").name == "commonroad-USA_Peach-4_8_T-1"
+    assert load_scene(out / "occupancy.npz").name == "USA_Peach-4_8_T-1.xml"
+    assert load_scene(out / "occupancy.npz").road is not None
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,8 @@ def add_scene_args(p: argparse.ArgumentParser, *, flag: str = "--env", required:
                    help="scene source: random artificial scene, inD recording, CommonRoad XML"
                    + (", or a saved scene (.npz from `density-planner env`)" if "file" in kinds else ""))
     p.add_argument("--seed", type=int, default=None,
-                   help="random: scene number (default 0); ind/commonroad: seed of the start/goal sampler")
+                   help="random: scene number (default 0); ind: seed of the start/goal sampler; commonroad: "
+                   "its seed with --set commonroad.sample_start_goal=true")
     p.add_argument("--data-dir", type=Path, default=None, metavar="D", help="ind: folder with the NN_*.csv files")
     p.add_argument("--recording", type=int, default=None, metavar="N", help="ind: recording number")
     p.add_argument("--start-time", type=float, default=None, metavar="S",

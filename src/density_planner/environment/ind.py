@@ -19,7 +19,10 @@ Only the columns this reader uses must be present (:data:`TRACKS_COLUMNS`, :data
 Scene construction (:func:`load_ind_scene`):
 
 1. time window ``[start_time, start_time + (n_slices - 1) dt]`` (default 10 s, 101 slices of 0.1 s); it
-   must lie inside the recording;
+   must start inside the recording; where it runs past the recording's end (or past a road user's last
+   frame), each road user is predicted from its last recorded slice (constant velocity and heading, position
+   error growing with time: :func:`.footprints.extrapolate_tracks`), never dropped; ``scene.json`` records
+   how many were predicted and from when;
 2. every road user is resampled **exactly** to the slice times by linear interpolation between the two
    neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is present
    at a slice only when both neighbouring frames exist;
@@ -58,6 +61,7 @@ from density_planner.config import to_dict
 from density_planner.errors import DataError
 
 from .footprints import (
+    extrapolate_tracks,
     ROAD_USER_CLASSES,
     FootprintConfig,
     RoadUserTracks,
@@ -428,10 +432,16 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     if isinstance(duration, float) and math.isfinite(duration):
         rec_end = min(rec_end, duration) if duration > 0 else rec_end
     t_end = cfg.start_time + (cfg.n_slices - 1) * cfg.dt
-    if cfg.start_time < first_frame / rate - 1e-9 or t_end > rec_end + 1e-9:
+    if cfg.start_time < first_frame / rate - 1e-9 or cfg.start_time > rec_end - 1e-9:
         raise DataError(
-            f"time window [{cfg.start_time:g}, {t_end:g}] s lies outside recording {recording} "
-            f"({first_frame / rate:g}-{rec_end:g} s in {paths['tracks'].name})"
+            f"time window [{cfg.start_time:g}, {t_end:g}] s starts outside recording {recording} "
+            f"({first_frame / rate:g}-{rec_end:g} s in {paths['tracks'].name}); "
+            "set --start-time (or --set ind.start_time=...) inside it"
+        )
+    if t_end > rec_end + 1e-9:
+        logger.info(
+            "inD recording %d ends at %.2f s, before the window's end %.2f s: road users are predicted past "
+            "their last frame (constant velocity and heading)", recording, rec_end, t_end
         )
     times = cfg.start_time + cfg.dt * np.arange(cfg.n_slices)
     win = tracks_in_window(tracks, rate, times)
@@ -457,7 +467,9 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         cls=cls,
         ids=ids.astype(np.int64),
     )
-    present = users.present
+    present = users.present  # recorded slices (before the prediction below)
+    users = extrapolate_tracks(users, times)
+    predicted = users.predicted_for is not None and bool((users.predicted_for > 0).any())
     # map area
     if cfg.area:
         area = tuple(float(v) for v in cfg.area)
@@ -512,6 +524,11 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         "recording": int(recording),
         "frame_rate": rate,
         "window_s": [cfg.start_time, t_end],
+        "recording_end_s": rec_end,
+        "road_users_predicted": int((users.predicted_for > 0).any(axis=1).sum()) if predicted else 0,
+        "prediction": "constant velocity and heading past the last recorded frame; position std grows by "
+        f"{cfg.footprint.prediction_std_rate_along:g} m/s along, {cfg.footprint.prediction_std_rate_across:g} "
+        "m/s across the heading",
         "background": used_background,
         "road_users": [
             {

@@ -174,6 +174,10 @@ def artificial_envs(indices: Sequence[int]) -> tuple[EnvSpec, ...]:
 _SHIPPED = "<shipped>"
 
 
+#: the shipped CommonRoad scenarios `bench real` uses without --data-dir
+SHIPPED_REAL_SCENARIOS = ("USA_Peach-4_8_T-1.xml", "USA_US101-4_1_T-1.xml")
+
+
 def shipped_commonroad_dir() -> Path:
     """Folder of the CommonRoad scenarios shipped with the package (NGSIM, BSD-3 licence file beside them)."""
     from importlib.resources import files
@@ -227,6 +231,8 @@ def real_envs(
                                recording=rec, start_time=start))
         return tuple(out)
     files = sorted(folder.glob("*.xml"))
+    if data_dir is None:  # the package ships more scenarios (tests, examples); `bench real` uses the two NGSIM ones
+        files = [f for f in files if f.name in SHIPPED_REAL_SCENARIOS]
     if not files:
         raise ValueError(f"--data-dir {folder} holds neither inD recordings (NN_tracks.csv) nor CommonRoad "
                          "scenarios (*.xml)")
@@ -242,7 +248,6 @@ def real_envs(
 def build_scene(env: EnvSpec, run_config: Any):
     """The :class:`~density_planner.environment.scene.Scene` of ``env`` built with ``run_config``'s sections."""
     from ..config import update
-    from ..environment.scene import Scene
 
     if env.kind == "random":
         from ..environment.random_scene import random_scene
@@ -250,18 +255,15 @@ def build_scene(env: EnvSpec, run_config: Any):
         scene = random_scene(env.seed, run_config.random_scene)
     elif env.kind == "commonroad":
         from ..environment.commonroad import load_commonroad_scene
-        from ..environment.sampling import sample_start_goal
 
         logging.getLogger("commonroad").setLevel(logging.ERROR)
         cfg = run_config.commonroad
         file = str(env.file)
         if file.startswith(_SHIPPED + "/"):
             file = str(shipped_commonroad_dir() / file[len(_SHIPPED) + 1 :])
+        if env.seed > 0:  # a start and goal sampled on the road instead of the planning problem
+            cfg = update(cfg, {"sample_start_goal": True, "seed": env.seed})
         scene = load_commonroad_scene(file, cfg)
-        if env.seed > 0:
-            start, goal = sample_start_goal(scene.grid, scene.planning_box, seed=env.seed, config=cfg.start_goal)
-            meta = dict(scene.meta, start_goal_sampled=True, start_goal_seed=env.seed)
-            scene = Scene(scene.grid, start, goal, scene.planning_box, name=env.name, meta=meta)
     elif env.kind == "ind":
         from ..environment.ind import load_ind_scene
 
@@ -270,7 +272,7 @@ def build_scene(env: EnvSpec, run_config: Any):
     else:
         raise ValueError(f"unknown environment kind {env.kind!r}; valid choices: random, commonroad, ind")
     if scene.name != env.name:
-        scene = Scene(scene.grid, scene.start, scene.goal, scene.planning_box, name=env.name, meta=scene.meta)
+        scene = dataclasses.replace(scene, name=env.name)
     return scene
 
 
