@@ -60,8 +60,8 @@ def _examples() -> list[tuple[str, str, str]]:
                 j -= 1
                 line = lines[j] + " " + line
             for key, value in SET.findall(lines[i - 1]):
-                if key == "key" or key.endswith("section.key"):
-                    continue  # the syntax's placeholder
+                if key == "key" or key.endswith("section.key") or not value.strip(".,;") or value.isupper():
+                    continue  # the syntax's placeholders (key=value, KEY=..., KEY=N)
                 found.append((f"{path.name}:{i}", _command_of(line), f"{key}={value.rstrip('.,;')}"))
     for command, text in _help_texts():
         kind = command if command in ("train density", "data density", "train controller") else "run"
