@@ -248,7 +248,17 @@ def plot_plan(
         a.set_title(f"t = {k_time * plan_dt:.1f} s" + (" (stopped)" if k < k_time else ""), fontsize=8)
         a.tick_params(labelsize=6)
         a.locator_params(nbins=4)
-    return save_figure(fig, path)
+    return _save_laid_out(fig, path)
+
+
+def _save_laid_out(fig, path: str | Path) -> Path:
+    """Save a figure with constrained layout atomically, without a second 'tight' bounding-box pass (the layout
+    already fits; the extra pass costs a whole draw)."""
+    path = Path(path)
+    fmt = path.suffix.lstrip(".") or "png"
+    _atomic(path, lambda fh: fig.savefig(fh, format=fmt))
+    plt.close(fig)
+    return path
 
 
 def plot_plans(scene: Scene, plans: Mapping[str, np.ndarray], path: str | Path, *, title: str | None = None) -> Path:
