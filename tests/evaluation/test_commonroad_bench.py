@@ -121,3 +121,21 @@ def test_solution_config_rejects_unknown_names():
         SolutionConfig(cost_function="NOPE")
     with pytest.raises(ValueError, match="for vehicle model PM"):
         SolutionConfig(vehicle_model="PM", cost_function="SM1")
+
+
+@pytest.mark.slow
+def test_plan_commonroad_writes_verdict_and_solution(tmp_path, capsys):
+    out = tmp_path / "p"
+    rc = main(["plan", "--env", "commonroad", "--file", str(SHIPPED), *TINY, "--no-progress", "--no-gif",
+               "--out", str(out)])
+    data = json.loads((out / "plan.json").read_text())
+    v = data["verdict"]
+    assert v["basis"] == "road" and data["status"] == v["status"]
+    assert rc == (0 if v["status"] == "success" else 3)  # a failed verdict still writes every file
+    for name in ("plan.json", "config.toml", "plan.png", "solution.xml"):
+        assert (out / name).stat().st_size > 0
+    sol = read_solution(out / "solution.xml")
+    states = sol.planning_problem_solutions[0].trajectory.state_list
+    planned = np.asarray(data["states"])
+    np.testing.assert_allclose([s.position for s in states[: len(planned)]], planned[: len(states), :2], atol=1e-4)
+    assert v["status"] in capsys.readouterr().out
