@@ -34,7 +34,7 @@ import numpy as np
 
 from ..io.atomic import atomic_write_text
 from .benchmark import EnvSpec, Job, JobResult, _base_record, _scene, error_record, load_records, run_job
-from .verdict import VERDICT_PARTS, judge
+from .verdict import VERDICT_PARTS
 
 __all__ = ["commonroad_envs", "run_commonroad_job", "commonroad_summary", "write_commonroad_summary",
            "summary_markdown", "SUMMARY_COLUMNS", "refusal_reason"]
@@ -74,7 +74,6 @@ def run_commonroad_job(job: Job) -> JobResult:
     refusal as a record and the verdict of the executed trajectory in every record (a module-level function:
     picklable for joblib and Dask workers)."""
     from ..planners.problem import PlanningProblem
-    from ..systems.car import KinematicCar
 
     try:  # the scene and its planning problem; a refusal is a record, not an error
         scene = _scene(job)
@@ -84,24 +83,12 @@ def run_commonroad_job(job: Job) -> JobResult:
     except Exception:  # noqa: BLE001 - a bug: recorded with its traceback, the sweep goes on
         tb = traceback.format_exc()
         return JobResult([error_record(job, v, tb, "environment") for v in job.variants])
-    result = run_job(job)
-    problem = PlanningProblem.from_scene(scene, seed=job.env.index)
-    system = problem.system if problem.system is not None else KinematicCar()
-    dt = problem.parameterization.plan_dt
+    result = run_job(job)  # every record holds the verdict of its executed trajectory (benchmark._evaluate)
     for rec in result.records:
-        rec["verdict"] = None
-        states = rec.get("trajectory")
-        if rec.get("status") == "error" or not states or len(states) < 1:
-            continue
-        p = (rec.get("plan") or {}).get("collision_probability_max")
-        try:
-            verdict = judge(scene, np.asarray(states), rec.get("applied_inputs"), system=system, dt=dt,
-                            p_coll_max=math.nan if p is None else float(p), config=job.run_config.verdict,
-                            evaluation=job.run_config.evaluation)
-        except Exception:  # noqa: BLE001
-            rec["verdict_error"] = traceback.format_exc().strip().splitlines()[-1]
-            continue
-        rec["verdict"] = verdict.to_dict()
+        rec.setdefault("verdict", None)
+        if isinstance(rec["verdict"], dict) and rec["verdict"].get("status") == "error":
+            rec["verdict_error"] = rec["verdict"].get("error")
+            rec["verdict"] = None
     return result
 
 

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["VerdictConfig", "Verdict", "judge", "judge_plan", "plan_inputs", "parts_table", "vehicle_footprints",
-           "VERDICT_PARTS"]
+           "record_verdict", "VERDICT_PARTS"]
 
 #: the four parts of a verdict, in the order they are reported
 VERDICT_PARTS = ("goal_reached", "collision_free", "on_road", "within_model")
@@ -392,3 +392,16 @@ def parts_table(verdicts: Sequence[Verdict]) -> dict[str, float]:
     out = {"success": sum(v.ok for v in verdicts) / n}
     out.update({p: sum(bool(getattr(v, p)) for v in verdicts) / n for p in VERDICT_PARTS})
     return out
+
+
+def record_verdict(scene: Any, states: Any, inputs: Any, plan: Any, system: Any, dt: float,
+                   run_config: Any) -> dict[str, Any]:
+    """The verdict of a benchmark run as JSON data (``{"error": ...}`` instead of raising: a record is always
+    written)."""
+    p = getattr(plan, "collision", None)
+    try:
+        return judge(scene, states, inputs, system=system, dt=dt, p_coll_max=math.nan if p is None else float(p.max),
+                     config=getattr(run_config, "verdict", None),
+                     evaluation=getattr(run_config, "evaluation", None)).to_dict()
+    except Exception as exc:  # noqa: BLE001 - recorded
+        return {"status": "error", "error": f"{type(exc).__name__}: {exc}"}
