@@ -175,20 +175,22 @@ def plot_plan(
     roi = _region_of_interest(scene, states, samples_x if has_cloud else None)
     x0, x1, y0, y1 = roi
     aspect = (x1 - x0) / max(y1 - y0, 1e-9)
-    fig = plt.figure(figsize=(13.0, 10.0) if aspect > 1.3 else (13.0, 7.8), layout="constrained")
+    wide = aspect > 2.2
+    fig = plt.figure(figsize=(13.0, 10.0) if wide else (13.0 + max(0.0, aspect - 1.0) * 3.0, 7.8),
+                     layout="constrained")
     outer = fig.add_gridspec(2, 1, height_ratios=[0.06, 1])
     header = fig.add_subplot(outer[0])  # the verdict, coloured, over the whole width
     header.axis("off")
     text, colour = _verdict_line(verdict, width=170)
     header.text(0.0, 0.5, text, color=colour, fontsize=8.5, va="center", ha="left", transform=header.transAxes)
-    if aspect > 1.3:  # wide: overview on top, snapshots in two rows below
+    if wide:  # wide: overview on top, snapshots in two rows below
         gs = outer[1].subgridspec(3, ncol, height_ratios=[1.25, 1, 1])
         ax = fig.add_subplot(gs[0, :])
 
         def snapshot_cell(j: int):
             return gs[1 + j // ncol, j % ncol]
     else:  # tall or square: overview on the left, snapshots in two rows on the right
-        gs = outer[1].subgridspec(2, 1 + ncol, width_ratios=[1.7] + [1] * ncol)
+        gs = outer[1].subgridspec(2, 1 + ncol, width_ratios=[float(np.clip(1.7 * aspect, 1.7, 3.6))] + [1] * ncol)
         ax = fig.add_subplot(gs[:, 0])
 
         def snapshot_cell(j: int):
@@ -212,7 +214,7 @@ def plot_plan(
     _mark_failures(ax, states, verdict, plan_dt)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    ax.set_aspect("equal")
+    ax.set_aspect("equal", anchor="C")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.tick_params(labelsize=7)
