@@ -176,15 +176,16 @@ def plot_plan(
     x0, x1, y0, y1 = roi
     aspect = (x1 - x0) / max(y1 - y0, 1e-9)
     wide = aspect > 2.2
-    fig = plt.figure(figsize=(13.0, 10.0) if wide else (13.0 + max(0.0, aspect - 1.0) * 3.0, 7.8),
+    over_h = 11.0 / aspect + 0.9  # wide: the overview's row fits its aspect over the figure's width
+    fig = plt.figure(figsize=(13.0, 0.6 + over_h + 6.4) if wide else (13.0 + max(0.0, aspect - 1.0) * 3.0, 7.8),
                      layout="constrained")
-    outer = fig.add_gridspec(2, 1, height_ratios=[0.06, 1])
+    outer = fig.add_gridspec(2, 1, height_ratios=[0.6, over_h + 6.4] if wide else [0.06, 1])
     header = fig.add_subplot(outer[0])  # the verdict, coloured, over the whole width
     header.axis("off")
     text, colour = _verdict_line(verdict, width=170)
     header.text(0.0, 0.5, text, color=colour, fontsize=8.5, va="center", ha="left", transform=header.transAxes)
     if wide:  # wide: overview on top, snapshots in two rows below
-        gs = outer[1].subgridspec(3, ncol, height_ratios=[1.25, 1, 1])
+        gs = outer[1].subgridspec(3, ncol, height_ratios=[over_h, 3.2, 3.2])
         ax = fig.add_subplot(gs[0, :])
 
         def snapshot_cell(j: int):
