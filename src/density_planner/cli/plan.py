@@ -27,9 +27,13 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p = sub.add_parser(
         "plan",
         help="plan a motion in a scene (the main job)",
-        description="Build a scene, plan with the chosen planner and write DIR/plan.json (parameters, costs, "
-        "collision probability, timings, configuration, versions), DIR/plan.png, DIR/plan.gif, DIR/costs.png and "
-        "DIR/config.toml (the effective configuration; pass it back with --config to reproduce the run).",
+        description="Build a scene, plan with the chosen planner and write DIR/plan.json (the plan's verdict: "
+        "goal reached in its time interval, collision-free against the true shapes, on the road, within the model; "
+        "parameters, costs, collision probability, timings, configuration, versions), DIR/plan.png, DIR/plan.gif, "
+        "DIR/costs.png, DIR/config.toml (the effective configuration; pass it back with --config to reproduce the "
+        "run) and, on CommonRoad scenes, DIR/solution.xml (CommonRoad solution format; [solution] in the "
+        "configuration). Exit code 0: the plan passed its verdict; 3: a plan was made but failed it (every file is "
+        "still written); 1: no plan; 2: bad input.",
     )
     add_scene_args(p)
     p.add_argument("--planner", default="density", metavar="NAME", help=f"planner ({helps})")
