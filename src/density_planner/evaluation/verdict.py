@@ -49,9 +49,10 @@ VERDICT_PARTS = ("goal_reached", "collision_free", "on_road", "within_model")
 class VerdictConfig:
     """How plans are judged (TOML section ``[verdict]``)."""
 
-    #: vehicle length [m] when the scene does not name one (CommonRoad scenarios may)
+    #: vehicle length [m] when neither the scene (CommonRoad scenarios may name the ego's) nor the system (its
+    #: footprint) gives one
     vehicle_length: float = 4.5
-    #: vehicle width [m] when the scene does not name one
+    #: vehicle width [m], likewise
     vehicle_width: float = 1.8
     #: the rectangle may leave the drivable area by at most this distance [m] and still count as on the road
     #: (numerical slack of the lanelet union, not a modelling allowance)
@@ -139,11 +140,16 @@ def vehicle_footprints(xy: np.ndarray, theta: np.ndarray, length: float, width: 
     return shapely.polygons(np.stack([x, y], axis=-1))
 
 
-def _footprint_size(scene: Any, config: VerdictConfig) -> tuple[float, float]:
+def _footprint_size(scene: Any, config: VerdictConfig, system: Any = None) -> tuple[float, float]:
+    """``(length, width)`` [m] of the vehicle rectangle: the scenario's ego vehicle (``scene.road``), else the
+    system's footprint (where the system defines a non-zero one), else :class:`VerdictConfig`'s."""
     road = getattr(scene, "road", None)
-    length = getattr(road, "vehicle_length", None) if road is not None else None
-    width = getattr(road, "vehicle_width", None) if road is not None else None
-    return (float(length) if length else config.vehicle_length, float(width) if width else config.vehicle_width)
+    if road is not None and getattr(road, "vehicle_length", None) and getattr(road, "vehicle_width", None):
+        return float(road.vehicle_length), float(road.vehicle_width)
+    fp = getattr(system, "footprint", None)
+    if fp is not None and getattr(fp, "length", 0) and getattr(fp, "width", 0):
+        return float(fp.length), float(fp.width)
+    return config.vehicle_length, config.vehicle_width
 
 
 # ---------------------------------------------------------------------------------------------------- judge
@@ -184,7 +190,7 @@ def judge(
     theta = np.nan_to_num(x[:, idx["theta"]]) if "theta" in idx else np.zeros(len(x))
     v = x[:, idx["v"]] if "v" in idx else None
     t_rel = dt * np.arange(len(x))
-    length, width = _footprint_size(scene, config)
+    length, width = _footprint_size(scene, config, system)
     boxes = vehicle_footprints(xy, theta, length, width)
     details: dict[str, Any] = {"vehicle_length": length, "vehicle_width": width, "dt": float(dt),
                                "n_states": int(len(x))}
