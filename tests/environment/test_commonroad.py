@@ -394,3 +394,13 @@ def test_not_a_commonroad_file(tmp_path):
         load_commonroad_scene(text)
     with pytest.raises(DataError, match="not found"):
         load_commonroad_scene(tmp_path / "missing.xml")
+
+
+def test_goal_velocity_outside_the_model_domain_is_refused(tmp_path):
+    goal = ("<position>" + "<rectangle><length>10</length><width>3.5</width><orientation>0</orientation>"
+            "<center><x>80</x><y>1.75</y></center></rectangle></position>"
+            "<time><intervalStart>80</intervalStart><intervalEnd>100</intervalEnd></time>"
+            "<velocity><intervalStart>12.5</intervalStart><intervalEnd>18</intervalEnd></velocity>")
+    with pytest.raises(DataError, match=r"goal's velocity interval \[12\.50, 18\.00\] m/s lies outside the "
+                                        r"KinematicCar model's domain \(0 <= v <= 10 m/s"):
+        load_commonroad_scene(write_scenario(tmp_path / "g.xml", goal=goal), _cfg())

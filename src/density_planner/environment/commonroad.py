@@ -36,8 +36,8 @@ and recorded in ``scene.meta`` (``scene.json``).
    :mod:`.footprints`. Set-based predictions (``occupancySet``) are occupied (1) over every time step they
    cover; past their last set the last set moves on at the initial velocity. A missing velocity is taken from
    the positions' finite differences; a missing orientation from the direction of motion.
-7. **Map**: the region the car can reach within the horizon (start speed, the system's speed and acceleration
-   bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
+7. **Map**: the region the car can reach within the grid's duration (the horizon, at least ``min_duration``;
+   start speed, the system's speed and acceleration bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
    size is ``cell_size`` unless the grid (``T x NX x NY`` float32) would exceed ``memory_budget_gib``; then the
    smallest multiple of 0.05 m that fits (up to ``max_cell_size``, else an error naming the keys to change).
 """
@@ -617,10 +617,13 @@ def _choose_cell(area: tuple[float, float, float, float], n_slices: int, cfg: Co
     budget_cells = cfg.memory_budget_gib * _GIB / 4.0 / n_slices
     need = math.sqrt(w * h / budget_cells) if budget_cells > 0 else math.inf
     cell = cfg.cell_size
-    if need > cell:
-        cell = math.ceil(need / 0.05 - 1e-9) * 0.05
-        # the rounded cell may still overshoot by the +1 lattice points; step up until it fits
-        while (w / cell + 2) * (h / cell + 2) > budget_cells and cell <= cfg.max_cell_size:
+
+    def fits(c: float) -> bool:  # the lattice adds up to 5 points per axis (ends, snapping, whole coarse cells)
+        return (w / c + 5) * (h / c + 5) <= budget_cells
+
+    if not fits(cell):
+        cell = max(cell, math.ceil(need / 0.05 - 1e-9) * 0.05)
+        while not fits(cell) and cell <= cfg.max_cell_size:
             cell += 0.05
         cell = round(cell, 6)
     if cell > cfg.max_cell_size + 1e-9:
@@ -723,6 +726,14 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                     f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); planning from it is not supported"
                 )
             goal = goal_region(problem, scenario, where=where)
+            alts = goal.alternatives or (goal,)
+            if all(a.velocity is not None and not (a.velocity[0] <= v_max + 1e-9 and a.velocity[1] >= v_min - 1e-9)
+                   for a in alts):
+                bands = ", ".join(f"[{a.velocity[0]:.2f}, {a.velocity[1]:.2f}]" for a in alts)
+                raise DataError(
+                    f"{where}: the goal's velocity interval {bands} m/s lies outside the {model} model's domain "
+                    f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); no plan can reach it"
+                )
     if cfg.sample_start_goal:
         horizon = cfg.sampled_horizon
     else:
@@ -746,7 +757,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         area = tuple(float(v) for v in cfg.area)
         region_rule = "configured area"
     elif start is not None and not cfg.sample_start_goal:
-        reach = reach_distance(start[3], v_max, a_max, horizon)
+        span = (n_slices - 1) * cfg.dt  # the grid's duration (>= the horizon: today's planners plan min_duration)
+        reach = reach_distance(start[3], v_max, a_max, span)
         disc = shapely.Point(start[0], start[1]).buffer(reach + cfg.area_margin, quad_segs=16)
         parts = [disc.intersection(drivable.buffer(cfg.area_margin)), shapely.Point(start[0], start[1])]
         if goal is not None and goal.shapes is not None:
@@ -754,7 +766,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         bx0, by0, bx1, by1 = shapely.union_all([p for p in parts if not p.is_empty]).bounds
         m = cfg.area_margin
         area = (bx0 - m, bx1 + m, by0 - m, by1 + m)
-        region_rule = (f"reachable in {horizon:g} s from {start[3]:.1f} m/s (v <= {v_max:g} m/s, |a| <= "
+        region_rule = (f"reachable in {span:g} s from {start[3]:.1f} m/s (v <= {v_max:g} m/s, |a| <= "
                        f"{a_max:g} m/s^2: {reach:.0f} m) on the road, plus the goal region and {m:g} m")
     else:
         m = cfg.area_margin
@@ -766,6 +778,10 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
              cfg.cell_size, n_slices, cfg.memory_budget_gib)
     area = _snap(area, cell)
     nx, ny = lattice_size(area[0], area[1], cell), lattice_size(area[2], area[3], cell)
+    factor = int(round(cfg.footprint.coarse_cell / cell)) if cfg.footprint.coarse_cell > 0 else 1
+    if factor >= 2:  # whole coarse cells: the footprints' coarse lattice then upsamples without a cropping copy
+        nx, ny = nx + (-(nx - 1)) % factor, ny + (-(ny - 1)) % factor
+        area = (area[0], round(area[0] + (nx - 1) * cell, 9), area[2], round(area[2] + (ny - 1) * cell, 9))
     origin = (area[0], area[2])
     times = t_start + cfg.dt * np.arange(n_slices)
 

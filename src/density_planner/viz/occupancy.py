@@ -104,9 +104,10 @@ def _decorate(ax, scene: Scene) -> None:
         goal = road.goal
         if goal.shapes is not None:
             t0, t1 = goal.time_interval
-            ax.plot(*_outline(goal.shapes), color="tab:red", lw=1.2, label=f"goal region ({t0:g}-{t1:g} s)")
+            ax.plot(*_outline(goal.shapes), color="tab:red", lw=1.2, label=f"goal region ({t0:g}-{t1:g} s)",
+                    zorder=4)
     ax.plot(sx, sy, "o", color="tab:green", ms=7, mec="white", label=f"start ({v:.1f} m/s)")
-    ax.plot(gx, gy, "*", color="tab:red", ms=12, mec="white", label="goal")
+    ax.plot(gx, gy, "*", color="tab:red", ms=12, mec="white", label="goal", zorder=3)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
