@@ -46,7 +46,7 @@ def test_bench_commonroad_records_verdicts_and_refusals(tmp_path, capsys):
     assert all(isinstance(v[k], bool) for k in ("goal_reached", "collision_free", "on_road", "within_model"))
     assert v["details"]["n_states"] == len(planned["trajectory"])
     table = (out / "summary_commonroad.md").read_text()
-    assert "| density | 2 | 1 | 1 |" in table and "Refused scenarios" in table and table in printed
+    assert "| density | 2 | 1 | 1 (0) |" in table and "Refused scenarios" in table and table in printed
     # resumable: nothing left to do
     assert main(args) == 0
     assert "2 already done, 0 written" in capsys.readouterr().out

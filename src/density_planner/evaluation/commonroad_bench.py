@@ -180,19 +180,24 @@ def _fmt(v: Any, pct: bool = False) -> str:
 
 def summary_markdown(summary: Mapping[str, Any]) -> str:
     """The summary as Markdown: the table, then the refusals grouped by reason."""
-    lines = ["| planner | scenarios | refused | planned | success (all) | success (planned) | goal reached | "
+    lines = ["| planner | scenarios | refused | planned (errors) | success (all) | success (planned) | goal reached | "
              "collision-free | on road | within model | P_coll max mean | final dist. to goal [m] median | "
              "planning time [s] median |",
              "|---|" + "---:|" * 12]
     for r in summary["rows"]:
         lines.append(
-            f"| {r['planner']} | {r['scenarios']} | {r['refused']} | {r['planned']} | "
+            f"| {r['planner']} | {r['scenarios']} | {r['refused']} | {r['planned']} ({r['errors']}) | "
             f"{r['success']} ({_fmt(r['success_rate'], True)}) | {_fmt(r['success_rate_planned'], True)} | "
             + " | ".join(_fmt(r[f'{p}_rate'], True) for p in VERDICT_PARTS)
             + f" | {_fmt(r['p_coll_max_mean'])} | {_fmt(r['final_goal_distance_median'])} | "
             f"{_fmt(r['planning_time_median'])} |")
     lines.append("")
-    lines.append("Part rates are over the planned scenarios; 'success (all)' counts refused scenarios as failures.")
+    lines.append("Part rates are over the planned scenarios (a run that raised counts as failing every part); "
+                 "'success (all)' counts refused scenarios as failures.")
+    for planner, counter in summary["failed_parts"].items():
+        if counter:
+            lines.append(f"Failed parts ({planner}, planned scenarios): "
+                         + ", ".join(f"{part} {counter[part]}" for part in VERDICT_PARTS) + ".")
     for planner, counter in summary["refusals"].items():
         if not counter:
             continue
