@@ -27,8 +27,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_SUITE = REPO / ".." / "shared" / "data" / "commonroad-suite"
 #: a fixed, varied choice (intersection, urban, highway, bicycle lane scene), used when present
-DEFAULT_PICK = ("DEU_Muc-9_2_T-1", "USA_Lanker-2_17_T-1", "USA_US101-9_3_T-1", "RUS_Bicycle-7_2_T-1",
-                "ZAM_Urban-3_1", "CHN_Sha-4_3_T-1", "USA_Peach-3_4_T-1")
+#: (scenarios the models' domain refuses are left out: their command ends in a second)
+DEFAULT_PICK = ("DEU_Muc-9_2_T-1", "USA_Lanker-2_17_T-1", "RUS_Bicycle-7_2_T-1", "CHN_Sha-4_3_T-1",
+                "USA_Peach-3_4_T-1", "DEU_Ffb-1_6_T-1", "USA_Lanker-1_1_T-1")
 
 
 def main() -> None:
@@ -61,7 +62,7 @@ def main() -> None:
                 wall = time.perf_counter() - t0
                 c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 cpu = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
-                if proc.returncode not in (0, 3):
+                if proc.returncode not in (0, 3):  # refused (exit 2) or no plan: not a timing of the whole command
                     print(f"{f.stem}: exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]}")
                     break
                 timings = json.loads((out / "plan.json").read_text()).get("command_timings", {})
