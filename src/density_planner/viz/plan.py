@@ -111,6 +111,18 @@ def _region_of_interest(scene: Scene, states: np.ndarray, samples_x: np.ndarray 
     return _window(np.concatenate(pts), _extent(scene), margin=12.0)
 
 
+def _emptiest_corner(points: np.ndarray, window: tuple[float, float, float, float]) -> str:
+    """The legend corner of ``window`` with the fewest ``points`` in its quarter (matplotlib's ``loc="best"``
+    tests every artist and costs a third of the figure's drawing time)."""
+    x0, x1, y0, y1 = window
+    pts = points[np.isfinite(points).all(axis=1)]
+    right = pts[:, 0] > 0.5 * (x0 + x1)
+    upper = pts[:, 1] > 0.5 * (y0 + y1)
+    counts = {"upper left": int((upper & ~right).sum()), "upper right": int((upper & right).sum()),
+              "lower left": int((~upper & ~right).sum()), "lower right": int((~upper & right).sum())}
+    return min(counts, key=counts.get)
+
+
 def _verdict_line(verdict, width: int = 150) -> tuple[str, str]:
     """(text, colour) of a verdict for a figure (wrapped to ``width`` characters, at most three lines)."""
     import textwrap
@@ -220,7 +232,7 @@ def plot_plan(
     ax.set_ylabel("y [m]")
     ax.tick_params(labelsize=7)
     ax.set_facecolor(_OUTSIDE_MAP)
-    ax.legend(loc="best", fontsize=7, framealpha=0.8)
+    ax.legend(loc=_emptiest_corner(states[:, :2], roi), fontsize=7, framealpha=0.8)
     fig.suptitle(title or f"{scene.name}: plan", fontsize=10)
     if sc is not None:
         fig.colorbar(sc, ax=ax, label=r"$\rho/\max\rho$ (per time)", shrink=0.5, aspect=25, pad=0.01)
