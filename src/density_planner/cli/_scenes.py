@@ -37,8 +37,10 @@ def _reject(args: argparse.Namespace, kind: str, names: tuple[str, ...]) -> None
 
 def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
     """Build the scene selected by the scene arguments with the matching section of ``run_config``."""
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if args.seed is not None:
+        from ..checks import check_seed
+
+        check_seed("--seed", args.seed)
     kind = args.kind
     where = f"{kind_flag} {kind}"
     seed = {} if args.seed is None else {"seed": args.seed}

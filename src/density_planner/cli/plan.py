@@ -11,12 +11,12 @@ from ._common import (
     add_device,
     add_out,
     add_progress,
+    check_out,
     out_dir,
     resolve_device,
     resolve_dtype,
     show_progress,
 )
-from ._exit import plan_exit_code
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -50,8 +50,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run)
 
 
-def build_context(args: argparse.Namespace, run_config, progress: bool):
-    """Planner context (system, controller, predictor factories) from the command-line arguments."""
+def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
+    """Planner context (system, controller, predictor factories) from the command-line arguments; a learned
+    predictor must fit ``parameterization`` (the plan's horizon) when given."""
     from ..control.registry import load_controller
     from ..density.liouville import ExactLiouville
     from ..density.registry import load_predictor
@@ -62,7 +63,8 @@ def build_context(args: argparse.Namespace, run_config, progress: bool):
     car = KinematicCar()
     controller = load_controller(args.controller).to(device=device, dtype=dtype)
     # None: the default learned predictor if it was trained for this controller, else exact Liouville
-    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville)
+    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville,
+                               parameterization=parameterization)
     if hasattr(predictor, "to"):
         predictor = predictor.to(device=device, dtype=dtype)
     return PlannerContext(
@@ -101,6 +103,7 @@ def versions() -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..checks import check_seed
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
@@ -108,15 +111,18 @@ def run(args: argparse.Namespace) -> int:
     from ..planners.registry import make_planner
     from ..settings import RunConfig
 
-    out = out_dir(args.out)
+    check_out(args.out)
+    if args.distribution_seed is not None:
+        check_seed("--distribution-seed", args.distribution_seed)
     run_config = load_config(RunConfig, args.config, args.overrides)
     clock = _Clock()
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed)
-    ctx = build_context(args, run_config, progress=show_progress(args))
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning)
+    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
     planner = make_planner(args.planner, ctx)
+    out = out_dir(args.out)  # inputs are valid: only now create the output directory
     clock.lap("setup")
     result = planner.plan(problem)
     clock.lap("plan")
@@ -157,6 +163,8 @@ def run(args: argparse.Namespace) -> int:
           f"{result.timings.get('total', float('nan')):.2f} s; wrote {', '.join(str(out / w) for w in written)}")
     if verdict is None:
         print(f"density-planner: planning {result.status.value}: {result.message}", flush=True)
+    from . import plan_exit_code
+
     return plan_exit_code(verdict)
 
 

@@ -18,7 +18,8 @@ and recorded in ``scene.meta`` (``scene.json``).
    horizon; it is that point for a goal without a position, else the point of the goal region (shrunk by 1 m)
    nearest to it.
 3. **Horizon**: ``meta["horizon"]`` = end of the goal's time interval - ``t_start``, capped at ``max_horizon``
-   (logged when capped). The grid covers ``max(horizon, min_duration)`` unless ``n_slices`` is given.
+   (logged when capped). The grid covers the horizon rounded up to whole seconds (the planners plan whole
+   segments), at least ``min_duration``, unless ``n_slices`` is given.
 4. **Road**: the drivable area is the union of the lanelets whose type is a road (types in
    ``non_drivable_lanelet_types`` and lanelets whose road users exclude cars are left out), closed
    morphologically over ``gap_close`` (gaps narrower than that, e.g. the numerical seams between
@@ -55,6 +56,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
 from density_planner.errors import DataError, OptionalDependencyError
 
@@ -181,8 +183,7 @@ class CommonRoadSceneConfig:
                 raise ValueError(f"CommonRoadSceneConfig.{name} must be >= 0, got {value}")
         if not (self.vehicle_length > 0 and self.vehicle_width > 0):
             raise ValueError("CommonRoadSceneConfig.vehicle_length and vehicle_width must be > 0")
-        if self.seed < 0:
-            raise ValueError(f"CommonRoadSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("CommonRoadSceneConfig.seed", self.seed)
 
 
 # ------------------------------------------------------------------------------------------------- reading
@@ -748,7 +749,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             note("the goal's time interval ends %.1f s after the start; the horizon is capped at "
                  "max_horizon = %g s", horizon, cfg.max_horizon)
             horizon = cfg.max_horizon
-    n_slices = cfg.n_slices or int(math.ceil(max(horizon, cfg.min_duration) / cfg.dt - 1e-9)) + 1
+    # the grid covers the horizon rounded up to whole seconds (planners plan whole segments), >= min_duration
+    n_slices = cfg.n_slices or int(math.ceil(max(math.ceil(horizon - 1e-9), cfg.min_duration) / cfg.dt - 1e-9)) + 1
     t_grid_end = t_start + (n_slices - 1) * cfg.dt
 
     # -- map region and cell size

@@ -57,6 +57,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
 from density_planner.errors import DataError
 
@@ -175,8 +176,7 @@ class IndSceneConfig:
             raise ValueError(
                 f"IndSceneConfig.background_threshold must be <= 1, got {self.background_threshold}"
             )
-        if self.seed < 0:
-            raise ValueError(f"IndSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("IndSceneConfig.seed", self.seed)
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
@@ -230,7 +230,34 @@ def _bad_value(path: Path, header: list[str], columns: tuple[str, ...]) -> DataE
     return DataError(f"{path}: cannot parse the numeric columns {', '.join(columns)}")
 
 
+def _check_field_counts(path: Path, n_fields: int) -> None:
+    """Every non-empty line of the CSV ``path`` has ``n_fields`` comma-separated fields (vectorised over the bytes;
+    inD files quote nothing). A row with an extra or a missing field would otherwise be read with shifted columns."""
+    try:
+        buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc})") from exc
+    if buf.size == 0:
+        return
+    newlines = np.flatnonzero(buf == 10)
+    ends = newlines if buf[-1] == 10 else np.append(newlines, buf.size)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    cum = np.concatenate(([0], np.cumsum(buf == 44, dtype=np.int64)))
+    commas = cum[ends] - cum[starts]
+    length = ends - starts
+    cr = (length > 0) & (buf[np.maximum(ends - 1, 0)] == 13)
+    nonblank = (length - cr) > 0
+    bad = np.flatnonzero(nonblank & (commas + 1 != n_fields))
+    if bad.size:
+        line = int(bad[0]) + 1
+        raise DataError(
+            f"{path}: line {line} has {int(commas[bad[0]]) + 1} fields, the header has {n_fields} "
+            f"({bad.size} such line(s)); the file is malformed"
+        )
+
+
 def _read_numeric(path: Path, columns: tuple[str, ...], header: list[str]) -> dict[str, np.ndarray]:
+    _check_field_counts(path, len(header))
     cols = [header.index(c) for c in columns]
     try:
         with warnings.catch_warnings():
@@ -278,6 +305,14 @@ def read_tracks_meta(path: str | Path) -> dict[str, np.ndarray]:
     if data["trackId"].size == 0:
         raise DataError(f"{path}: no rows (the file has only a header)")
     _check_finite(path, data, numeric)
+    for c in ("width", "length"):
+        neg = data[c] < 0
+        if neg.any():
+            row = int(np.argmax(neg))
+            raise DataError(
+                f"{path}: column {c!r} must be >= 0 m, got {data[c][row]:g} on line {row + 2} "
+                f"({int(neg.sum())} negative value(s))"
+            )
     ci = header.index("class")
     with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.reader(fh)

@@ -77,7 +77,7 @@ def run_commonroad_job(job: Job) -> JobResult:
 
     try:  # the scene and its planning problem; a refusal is a record, not an error
         scene = _scene(job)
-        PlanningProblem.from_scene(scene, seed=job.env.index)
+        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning)
     except (ValueError, OSError, ImportError) as exc:
         return JobResult([_refused_record(job, v, refusal_reason(exc)) for v in job.variants])
     except Exception:  # noqa: BLE001 - a bug: recorded with its traceback, the sweep goes on

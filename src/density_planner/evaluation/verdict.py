@@ -305,7 +305,8 @@ def _judge_occupancy(scene: Any, xy, t_rel, boxes, evaluation: Any, details: dic
     goal_ok = final <= evaluation.max_goal_distance
     if not goal_ok:
         reasons.append(f"goal: final position {final:.1f} m from the goal (> {evaluation.max_goal_distance:g} m)")
-    k = grid.slice_index(torch.as_tensor(t_rel, dtype=torch.float64))
+    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    k = grid.slice_index(torch.as_tensor(t0 + t_rel, dtype=torch.float64), clamp=True)
     p = grid.lookup(torch.as_tensor(np.nan_to_num(xy), dtype=torch.float64, device=grid.device), k.to(grid.device))
     p = p.detach().cpu().numpy()
     details.update(p_occ_max=float(p.max()), collision_threshold=float(evaluation.collision_threshold))

@@ -209,9 +209,11 @@ def plot_plan(
         def snapshot_cell(j: int):
             return gs[j // ncol, 1 + j % ncol]
     # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
+    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    k0 = int(grid.slice_index(t0, clamp=True))
     (i0, i1, j0, j1), extent, st = _crop(grid, roi, 700)
-    show_occupancy(ax, grid.probs[0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
-    swept = grid.probs[:, i0:i1:st, j0:j1:st].amax(dim=0)
+    show_occupancy(ax, grid.probs[k0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
+    swept = grid.probs[k0:, i0:i1:st, j0:j1:st].amax(dim=0)
     show_occupancy(ax, swept, extent, alpha=0.3)  # swept occupancy, faint
     t_abs = (getattr(scene.road, "t_start", 0.0) if getattr(scene, "road", None) is not None else 0.0) + (
         plan_dt * np.arange(T))
@@ -250,7 +252,8 @@ def plot_plan(
         k_time = int(round(ts / plan_dt))
         cx, cy = states[k, 0], states[k, 1]
         (i0, i1, j0, j1), extent, st = _crop(grid, (cx - half, cx + half, cy - half, cy + half), 300)
-        show_occupancy(a, grid.probs[int(grid.slice_index(k_time * plan_dt)), i0:i1:st, j0:j1:st], extent)
+        k_slice = int(grid.slice_index(t0 + k_time * plan_dt, clamp=True))  # absolute time on the grid's clock
+        show_occupancy(a, grid.probs[k_slice, i0:i1:st, j0:j1:st], extent)
         _draw_goal(a, scene, label=False)
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
         if has_cloud and k < samples_x.shape[1]:
@@ -348,7 +351,8 @@ def animate_plan(
     window = _region_of_interest(scene, states, samples_x if has_cloud else None)
     (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
     ks = list(range(0, T, every))
-    slices = sorted({int(grid.slice_index(k * plan_dt)) for k in ks})
+    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    slices = sorted({int(grid.slice_index(t0 + k * plan_dt, clamp=True)) for k in ks})
     sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
     where = {s: n for n, s in enumerate(slices)}
     w, h = window[1] - window[0], window[3] - window[2]
@@ -386,7 +390,7 @@ def animate_plan(
     palette = _gif_palette_image()
     frames = []
     for k in ks:
-        img.set_data(sub[where[int(grid.slice_index(k * plan_dt))]].T)
+        img.set_data(sub[where[int(grid.slice_index(t0 + k * plan_dt, clamp=True))]].T)
         done.set_data(states[: k + 1, 0], states[: k + 1, 1])
         now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
         if cloud is not None and k < samples_x.shape[1]:
