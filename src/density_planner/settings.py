@@ -28,6 +28,7 @@ from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
 from .planners.sampling import SamplingConfig
 from .planners.search import SearchConfig
+from .risk.collision import RiskConfig
 
 __all__ = ["RunConfig"]
 
@@ -59,3 +60,5 @@ class RunConfig:
     commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
     #: [evaluation]: closed-loop evaluation and benchmarks (Monte-Carlo samples, failure thresholds, execution)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    #: [risk]: collision with the vehicle's body and the estimator of its probability
+    risk: RiskConfig = field(default_factory=RiskConfig)

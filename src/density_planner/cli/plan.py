@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args, run_config)
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed)
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk)
     ctx = build_context(args, run_config, progress=not args.quiet)
     planner = make_planner(args.planner, ctx)
     result = planner.plan(problem)

@@ -527,6 +527,9 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         "params": _floats(plan.params),
         "cost": plan.cost,
         "collision_probability_max": None if plan.collision is None else float(plan.collision.max),
+        "collision_probability_se_at_max": None if plan.collision is None or plan.collision.se is None
+        else plan.collision.to_dict()["se_at_max"],
+        "collision_estimator": None if plan.collision is None else plan.collision.estimator,
         "iterations": plan.iterations,
         "extras": {k: v for k, v in plan.extras.items() if k in _PLAN_EXTRAS},
     }
@@ -619,9 +622,10 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
         if plan.reference is not None:
             ref = plan.reference
             metrics = run_metrics(scene, ref.x_plan, ref.u_plan, ref.u_plan, box=box, cost_config=cost_cfg,
-                                  plan_dt=plan_dt)
+                                  plan_dt=plan_dt, collision=problem.collision())
             runs = monte_carlo(planner, problem, mc0, plan=plan, controller=ctx.controller, config=eval_cfg)
-            metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt))
+            metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
+                                               collision=problem.collision()))
             rec["trajectory"] = _floats(ref.x_plan)
         flags, reason = failure_flags(metrics, solved and not timeout, eval_cfg,
                                       cost_thresholds=eval_cfg.ablation_cost_failures)
@@ -637,14 +641,15 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
     metrics = None
     if run.states.shape[0] >= 2:
         metrics = run_metrics(scene, run.states, run.planned_inputs, run.applied_inputs, box=box,
-                              cost_config=cost_cfg, plan_dt=plan_dt)
+                              cost_config=cost_cfg, plan_dt=plan_dt, collision=problem.collision())
         t_mc = time.perf_counter()
         runs = monte_carlo(planner, problem, mc0, plan=plan, controller=ctx.controller, config=eval_cfg)
-        metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt))
+        metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
+                                               collision=problem.collision()))
         t_mc = time.perf_counter() - t_mc
         rec["trajectory"] = _floats(run.states)
         if mode == ExecutionMode.TRACK and run.plan.reference is not None:
-            rec["reference"] = _floats(run.plan.reference.x_plan[:, :2])
+            rec["reference"] = _floats(problem.system.positions(run.plan.reference.x_plan))
     else:
         t_mc = 0.0
     flags, reason = failure_flags(metrics, run.ok, eval_cfg)
@@ -672,7 +677,7 @@ def run_job(job: Job) -> JobResult:
     torch.manual_seed(stable_seed("job", job.env.name, job.planner))
     try:
         scene = _scene(job)
-        problem = PlanningProblem.from_scene(scene, seed=job.env.index)
+        problem = PlanningProblem.from_scene(scene, seed=job.env.index, risk=job.run_config.risk)
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
         ctx = _context(job)
     except Exception:  # noqa: BLE001 - recorded, the sweep goes on

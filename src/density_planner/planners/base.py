@@ -92,11 +92,7 @@ class PlanResult:
             "message": self.message,
             "params": _to_list(self.params),
             "cost": self.cost,
-            "collision_probability": None if self.collision is None else {
-                "max": float(self.collision.max),
-                "sum": float(self.collision.sum),
-                "per_slice": _to_list(self.collision.per_slice),
-            },
+            "collision_probability": None if self.collision is None else self.collision.to_dict(),
             "timings": self.timings,
             "iterations": self.iterations,
             "states": _to_list(self.states),

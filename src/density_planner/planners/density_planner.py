@@ -31,7 +31,6 @@ from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
-from ..risk.collision import collision_probability
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
@@ -65,8 +64,10 @@ class DensityPlannerConfig:
     #: "support": samples uniform on the support box of the initial law, weighted by its density (paper's code);
     #: "distribution": samples drawn from the law itself
     sample_proposal: Literal["support", "distribution"] = "support"
-    #: "density": weights are the densities at the samples (paper); "mass": probability mass per sample
-    weighting: Literal["density", "mass"] = "density"
+    #: weights of the sample-averaged cost terms: "mass" = importance weights rho0(x0_i) / q0(x0_i), the
+    #: probability mass a sample carries (unbiased expectations, default; the same weights as risk.estimator =
+    #: "is"); "density" = the densities at the samples (paper; use with risk.estimator = "paper")
+    weighting: Literal["density", "mass"] = "mass"
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
     #: random seed of the initial parameters and samples
@@ -177,7 +178,8 @@ class DensityPlanner(Planner):
         system, par = problem.system, problem.parameterization
         low, high = self._bounds(problem)
         start = problem.reference_start(self.dtype, self.device)
-        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
+                               system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
 
         p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
@@ -239,7 +241,8 @@ class DensityPlanner(Planner):
         """Stage 2: density-weighted local optimisation of ``params (nu, S)``."""
         cfg = self.config
         low, high = self._bounds(problem)
-        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
+                               system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
         x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
                                                      dtype=self.dtype, device=self.device)
@@ -267,11 +270,12 @@ class DensityPlanner(Planner):
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
                  slices: Tensor) -> tuple[dict[str, float], object]:
         """Reported cost (no goal-far factor) and collision probability of a predicted sample cloud."""
-        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device)
+        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device,
+                                 system=problem.system, risk=problem.risk)
         with torch.no_grad():
             cost = report_cost(self._inputs(ref, traj, log_q0, slices)).select(0).to_dict()
-            coll = collision_probability(problem.scene.grid.to(self.device), traj.positions[0], traj.log_rho[0],
-                                         slices)
+            coll = problem.collision(self.device).probability(
+                traj.x[0], slices, log_rho0=traj.log_rho0[0], log_q0=log_q0, log_rho=traj.log_rho[0])
         return cost, coll
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
@@ -299,6 +303,7 @@ class DensityPlanner(Planner):
                 "cost": cost_e,
                 "collision_probability_max": float(coll_e.max),
                 "collision_probability_sum": float(coll_e.sum),
+                "collision_probability": coll_e.to_dict(),
                 "time": time.perf_counter() - t3,
             }
         return PlanResult(
