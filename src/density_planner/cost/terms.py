@@ -300,6 +300,9 @@ class CollisionCost(CostTerm):
     def __call__(self, inputs: CostInputs) -> Tensor:
         centres = self.collision.centres(inputs.x)  # (*batch, N, T, m, 2)
         k = inputs.slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
-        p_des, p_occ = self.desired(centres.detach(), k)
+        read = centres.detach()
+        if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
+            read = self.collision.clamp_to_map(read)
+        p_des, p_occ = self.desired(read, k)
         d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
         return (inputs.weights * d2).sum(dim=(-1, -2))

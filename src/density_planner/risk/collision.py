@@ -7,7 +7,11 @@ reads :meth:`CollisionModel.centres` and :attr:`CollisionModel.body_grid`), the 
 interpolate :attr:`CollisionModel.body_grid` at the disc centres), the evaluation metrics and figures.
 
 **Occupancy of a state** ``P_body(x, t_k)``: the maximum over the body's disc centres ``c_j(x)`` of the disc-dilated
-grid ``D_r`` at the nearest cell of ``c_j`` in the slice of ``t_k``; 1 for a centre outside the map.
+grid ``D_r`` at the nearest cell of ``c_j`` in the slice of ``t_k``; 1 when the state's *position* is outside the
+map (it left the planning domain, as the paper's point vehicle). A disc centre beyond the border reads the nearest
+border cell: the map's cells its disc reaches are all within ``r`` of that cell (the map is a convex box), so this is
+still conservative for the map, and the border itself is not an obstacle (a car starting 2 m from the border of
+the artificial map sticks out of it).
 
 **Collision probability** ``P_coll(t_k) = E[P_body(x(t_k), t_k)]`` over the initial law ``rho0``, estimated from
 samples ``x0_i ~ q0`` propagated to ``x_i(t_k)`` (docs/planner.md, "Collision probability"):
@@ -153,14 +157,26 @@ class CollisionModel:
         slices = self._slices(slices, t, x.device)
         grid = self.body_grid.to(x.device)
         c = self.centres(x)  # (..., T, m, 2)
-        idx, inside = grid.cell_index(c)
+        idx, _ = grid.cell_index(c)  # nearest cell, clamped to the map
         _, nx, ny = grid.shape
         flat = grid.probs.reshape(grid.n_slices, nx * ny)
         lin = idx[..., 0] * ny + idx[..., 1]  # (..., T, m)
         k = slices[:, None].expand_as(lin)
-        vals = flat[k, lin].to(x.dtype)
-        vals = torch.where(inside, vals, torch.ones_like(vals))
-        return vals.amax(-1)
+        vals = flat[k, lin].to(x.dtype).amax(-1)
+        _, inside = grid.cell_index(self.positions(x))
+        return torch.where(inside, vals, torch.ones_like(vals))
+
+    def clamp_to_map(self, centres: Tensor) -> Tensor:
+        """Disc centres ``(..., 2)`` moved onto the map's lattice hull (where their dilated occupancy is read)."""
+        xmin, xmax, ymin, ymax = self.grid.bounds
+        lo = torch.tensor([xmin, ymin], dtype=centres.dtype, device=centres.device)
+        hi = torch.tensor([xmax, ymax], dtype=centres.dtype, device=centres.device)
+        return torch.maximum(torch.minimum(centres, hi), lo)
+
+    @property
+    def is_point(self) -> bool:
+        """Whether the body is a point (one disc of radius 0 at the position: the paper's vehicle)."""
+        return self.cover.radius == 0 and self.cover.offsets == (0.0,)
 
     def _slices(self, slices: Tensor | None, t: int, device: torch.device) -> Tensor:
         if slices is None:
