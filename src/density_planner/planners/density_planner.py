@@ -7,9 +7,13 @@ goal cost falls below the threshold, and the collision term once it is also insi
 resets that candidate's Adam state). The candidate with the lowest full cost is kept.
 
 Stage 2, *local optimisation with density*: ``S`` initial states are drawn (by default uniformly on the support
-of the initial distribution and weighted by their density, as the paper's code does), their closed-loop
-trajectories and log-densities are predicted by a :class:`~density_planner.density.base.DensityPredictor`
-(exact Liouville or a learned network) and the density-weighted cost is minimised with all terms on.
+of the initial distribution, as the paper's code does), their closed-loop trajectories and log-densities are
+predicted by a :class:`~density_planner.density.base.DensityPredictor` (exact Liouville or a learned network) and
+the sample-weighted cost is minimised with all terms on. The weights are the importance weights
+``rho0(x0_i) / q0(x0_i)`` (``weighting = "mass"``, default: expectations over the initial law, docs/planner.md);
+the paper weighted by the predicted density values (``weighting = "density"``). The reported cost and collision
+probability (:class:`~density_planner.risk.collision.CollisionModel`, with its standard error) are measured on a
+fresh draw of ``S`` initial states (``fresh_evaluation_samples``).
 
 Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
 bounds after every step. Defaults are the paper's constants (``original.md`` §10).
@@ -70,6 +74,9 @@ class DensityPlannerConfig:
     weighting: Literal["density", "mass"] = "mass"
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
+    #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
+    #: states (True), or on the samples it was optimised on (False, paper: optimistic, the plan is fitted to them)
+    fresh_evaluation_samples: bool = True
     #: random seed of the initial parameters and samples
     seed: int = 0
     #: cost terms and weights
@@ -290,7 +297,13 @@ class DensityPlanner(Planner):
             timings["total"] = t2 - t_start
             return PlanResult(self.name, PlanStatus.FAILED, params=params1, cost_history={"stage1": hist1,
                               "stage2": hist2}, timings=timings, message="stage 2 produced no finite cost")
-        timings["total"] = t2 - t_start
+        if self.config.fresh_evaluation_samples:
+            x0, log_rho0, log_q0 = sample_initial_states(problem, self.config.n_samples, gen,
+                                                         self.config.sample_proposal, dtype=self.dtype,
+                                                         device=self.device)
+            with torch.no_grad():
+                ref, traj = self._predict(self.predictor, problem, params, x0, log_rho0)
+        timings["total"] = time.perf_counter() - t_start
         cost, coll = self.evaluate(problem, ref, traj, log_q0, slices)
         extras: dict = {"predictor": getattr(self.predictor, "name", type(self.predictor).__name__)}
         if self.exact_check is not None and self.exact_check is not self.predictor:
