@@ -518,6 +518,18 @@ _PLAN_EXTRAS = ("predictor", "tube_radius", "biased_measurement", "n_failed_step
                 "best_restart", "n_tube_offsets")
 
 
+def _risk_check(job: Job, problem: PlanningProblem, plan: PlanResult, controller, eval_cfg) -> dict[str, Any]:
+    """Monte-Carlo check of the plan's collision probability (risk.validate_samples closed loops)."""
+    from .risk_validation import validate_risk
+
+    try:
+        check = validate_risk(problem, plan, controller, n=job.run_config.risk.validate_samples,
+                              seed=stable_seed("risk-check", job.env.name), config=eval_cfg)
+    except ValueError as exc:
+        return {"passed": None, "message": str(exc)}
+    return check.to_dict()
+
+
 def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
     if plan is None:
         return None
@@ -647,6 +659,8 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
         metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
                                                collision=problem.collision()))
         t_mc = time.perf_counter() - t_mc
+        if job.run_config.risk.validate_samples and mode == ExecutionMode.TRACK and variant == job.variants[0]:
+            rec["risk_check"] = _risk_check(job, problem, run.plan, ctx.controller, eval_cfg)
         rec["trajectory"] = _floats(run.states)
         if mode == ExecutionMode.TRACK and run.plan.reference is not None:
             rec["reference"] = _floats(problem.system.positions(run.plan.reference.x_plan))

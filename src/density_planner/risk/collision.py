@@ -61,11 +61,17 @@ class RiskConfig:
     body: bool = True
     #: discs covering a rectangular footprint; 0 = ceil(length / width) + 1 (4 for the car: 28 % area excess)
     n_discs: int = 0
+    #: benchmarks: Monte-Carlo closed loops per tracked plan for the risk check (0 = no check; `bench
+    #: --validate-risk` sets 10000); see density_planner.evaluation.risk_validation
+    validate_samples: int = 0
 
     def __post_init__(self) -> None:
         check_choice("risk.estimator", self.estimator, ESTIMATORS)
         if isinstance(self.n_discs, bool) or not isinstance(self.n_discs, int) or self.n_discs < 0:
             raise ValueError(f"risk.n_discs must be an integer >= 0 (0 = automatic), got {self.n_discs!r}")
+        if isinstance(self.validate_samples, bool) or not isinstance(self.validate_samples, int) or not (
+                self.validate_samples == 0 or self.validate_samples >= 2):
+            raise ValueError(f"risk.validate_samples must be 0 (off) or an integer >= 2, got {self.validate_samples!r}")
 
 
 @dataclass
