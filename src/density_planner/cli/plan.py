@@ -128,7 +128,9 @@ def run(args: argparse.Namespace) -> int:
         title = (f"{scene.name}: {result.planner} ({result.status.value}), P_coll max {p_max:.3f}, "
                  f"{result.timings.get('total', float('nan')):.1f} s")
         label = "reference" if result.reference is not None else "executed (nominal model)"
-        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label)
+        body = problem.collision().outline(result.states.detach().cpu()).numpy()
+        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
+                  body=body)
         written.append("plan.png")
         if not args.no_gif:
             animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)

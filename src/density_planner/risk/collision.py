@@ -172,6 +172,19 @@ class CollisionModel:
         _, inside = grid.cell_index(self.positions(x))
         return torch.where(inside, vals, torch.ones_like(vals))
 
+    def outline(self, x: Tensor) -> Tensor:
+        """Corners ``(..., 4, 2)`` [m] of the footprint rectangle of states ``x (..., nx)`` (for figures; the
+        square of side ``length`` for a disc footprint, a degenerate point for a point)."""
+        fp = self.cover.footprint
+        pos = self.positions(x)
+        heading = None if self.system is None else self.system.headings(x)
+        if heading is None:
+            heading = torch.zeros(pos.shape[:-1], dtype=pos.dtype, device=pos.device)
+        half = torch.tensor([[1, 1], [-1, 1], [-1, -1], [1, -1]], dtype=pos.dtype, device=pos.device) * torch.tensor(
+            [fp.length / 2, (fp.width if fp.width else fp.length) / 2], dtype=pos.dtype, device=pos.device)
+        c, s = torch.cos(heading)[..., None], torch.sin(heading)[..., None]
+        return pos.unsqueeze(-2) + torch.stack([c * half[:, 0] - s * half[:, 1], s * half[:, 0] + c * half[:, 1]], -1)
+
     def clamp_to_map(self, centres: Tensor) -> Tensor:
         """Disc centres ``(..., 2)`` moved onto the map's lattice hull (where their dilated occupancy is read)."""
         xmin, xmax, ymin, ymax = self.grid.bounds

@@ -41,6 +41,7 @@ def plot_plan(
     snapshot_times: Sequence[float] = (0.0, 2.5, 5.0, 7.5, 10.0),
     plan_dt: float = 0.1,
     label: str = "reference",
+    body: np.ndarray | None = None,
 ) -> Path:
     """Plan over the time-max occupancy (left) and occupancy snapshots with the sample cloud (right).
 
@@ -49,6 +50,8 @@ def plot_plan(
             stop early: later snapshots then show where it stopped).
         label: legend label of ``states``.
         samples_x: ``(N, T, nx)`` predicted sample trajectories; samples_log_rho: ``(N, T)``.
+        body: ``(T, 4, 2)`` corners of the vehicle's footprint along ``states``
+            (:meth:`~density_planner.risk.collision.CollisionModel.outline`), drawn in the snapshots.
     """
     grid = scene.grid
     n_snap = len(snapshot_times)
@@ -95,6 +98,8 @@ def plot_plan(
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
         a.plot(*scene.goal, "*", color="tab:red", ms=8)
         a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3)
+        if body is not None and k < body.shape[0]:
+            a.fill(body[k, :, 0], body[k, :, 1], facecolor="none", edgecolor="tab:orange", lw=1.0, zorder=5)
         a.set_title(f"t = {k_time * plan_dt:.1f} s" + (" (stopped)" if k < k_time else ""), fontsize=8)
         a.tick_params(labelsize=6)
         a.set_aspect("equal")
