@@ -620,7 +620,7 @@ class MPCPlanner(Planner):
                 inputs.append(torch.as_tensor(st.input, dtype=torch.float64))
                 if not bool(torch.isfinite(x).all()):
                     raise FloatingPointError(f"the state became non-finite at step {h}")
-                if stop > 0 and float(torch.linalg.norm(x[:2] - goal)) < stop:
+                if stop > 0 and float(torch.linalg.norm(problem.system.positions(x) - goal)) < stop:
                     break
         except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
             log.warning("%s failed: %s", self.name, exc)
