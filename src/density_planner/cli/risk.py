@@ -75,6 +75,26 @@ def run(args: argparse.Namespace) -> int:
                           threshold=args.threshold, config=run_config.evaluation)
     t_mc = time.perf_counter() - t0
     report = check.to_dict()
+    exact = (plan.extras.get("exact_check") or {}).get("collision_probability")
+    if exact and exact.get("se") is not None:
+        # the same fresh samples re-predicted by exact Liouville: separates the estimator from the learned
+        # predictor's trajectory error
+        import math
+
+        import numpy as np
+
+        from ..evaluation.risk_validation import compare_risk
+
+        t = check.z.size
+        se = np.asarray(exact["se"][:t], dtype=float)
+        ess_min = float(exact.get("ess_min", 0.0)) or 1.0
+        se = np.maximum(se, check.monte_carlo_se * math.sqrt(args.samples) / math.sqrt(ess_min))
+        ex = compare_risk(np.asarray(exact["per_slice"][:t]), se, check.monte_carlo, check.monte_carlo_se,
+                          times=check.times, threshold=args.threshold, n_monte_carlo=args.samples,
+                          estimator=exact.get("estimator", ""))
+        report["exact_check"] = {k: v for k, v in ex.to_dict().items() if k in (
+            "passed", "max_abs_z", "steps_beyond_threshold", "max_abs_difference", "planner_max")}
+        report["exact_check"]["planner_p"] = exact["per_slice"][:t]
     report.update({
         "scene": scene.name,
         "planner": plan.planner,
@@ -97,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     plot_risk_validation(check, out / "risk.png", title=title)
     print(f"risk check on {scene.name}: {'PASS' if check.passed else 'FAIL'}; max |z| = {check.max_abs_z:.2f} "
           f"({report['steps_beyond_threshold']} of {report['steps']} steps beyond {args.threshold:g} sigma); "
-          f"P_coll max planner {report['planner_max']:.4f}, Monte Carlo {report['monte_carlo_max']:.4f}; wrote "
+          f"P_coll max planner {report['planner_max']:.4f}, Monte Carlo {report['monte_carlo_max']:.4f}"
+          + (f"; same samples through exact Liouville: {'PASS' if report['exact_check']['passed'] else 'FAIL'}, max "
+             f"|z| {report['exact_check']['max_abs_z']:.2f}" if "exact_check" in report else "") + "; wrote "
           f"{out / 'risk_report.json'}, {out / 'risk.png'}")
     return 0 if check.passed else 1

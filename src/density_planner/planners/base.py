@@ -59,7 +59,7 @@ class PlanResult:
         samples: predicted sample trajectories with log-densities for the final plan (density planners).
         cost: unweighted final cost terms and the weighted total (evaluation form: no goal-far factor).
         cost_history: per stage, per term, one value per iteration (the objective actually optimised).
-        collision: collision probability of the final sample cloud (paper §IV-B binning).
+        collision: collision probability of the final sample cloud with its standard error (:class:`CollisionReport`).
         timings: wall times [s] per stage and ``"total"``.
         iterations: iterations per stage.
         message: human-readable detail (e.g. why it failed).
