@@ -303,6 +303,15 @@ class CollisionCost(CostTerm):
         read = centres.detach()
         if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
             read = self.collision.clamp_to_map(read)
-        p_des, p_occ = self.desired(read, k)
+        with torch.no_grad():
+            # only centres in occupied cells contribute: the desired positions are looked up for those alone
+            # (most of a cloud is usually in free space; identical values)
+            kk = k.expand(read.shape[:-1])
+            c = torch.round(self.grid.world_to_cell(read)).long()
+            occupied = _gather(self.grid, kk, c[..., 0], c[..., 1], 1.0) > 0
+            p_des = read.clone()
+            p_occ = torch.zeros(read.shape[:-1], dtype=read.dtype, device=read.device)
+            if bool(occupied.any()):
+                p_des[occupied], p_occ[occupied] = self.desired(read[occupied], kk[occupied])
         d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
         return (inputs.weights * d2).sum(dim=(-1, -2))
