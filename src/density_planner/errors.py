@@ -23,6 +23,10 @@ class DataError(DensityPlannerError, ValueError):
     """An input data file (scenario, recording, data set shard) is missing, malformed or inconsistent."""
 
 
+class ResourceError(DensityPlannerError, ValueError):
+    """A request needs more memory (or another resource) than the machine has; the message names the setting."""
+
+
 class OptionalDependencyError(DensityPlannerError, ImportError):
     """An optional extra (``mpc``, ``commonroad``, ``dask``) is needed but not installed."""
 
