@@ -142,8 +142,7 @@ def monte_carlo_risk(
     x0 = problem.initial_distribution.sample(n, gen, dtype=torch.float64)
     model = problem.collision("cpu")
     t = ref.x_plan.shape[-2]
-    times = torch.arange(t, dtype=torch.float64) * problem.parameterization.plan_dt
-    slices = problem.scene.grid.slice_index(times)
+    slices = problem.slices(t)
     total = torch.zeros(t, dtype=torch.float64)
     total_sq = torch.zeros(t, dtype=torch.float64)
     for start in range(0, n, chunk):
