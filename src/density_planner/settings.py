@@ -35,6 +35,7 @@ from .planners.oracle import OracleConfig
 from .planners.problem import PlanningConfig
 from .planners.sampling import SamplingConfig
 from .planners.search import SearchConfig
+from .risk.collision import RiskConfig
 
 __all__ = ["RunConfig"]
 
@@ -73,3 +74,5 @@ class RunConfig:
     verdict: VerdictConfig = field(default_factory=VerdictConfig)
     #: [solution]: the CommonRoad solution file of `plan --env commonroad` (vehicle model and type, cost function)
     solution: SolutionConfig = field(default_factory=SolutionConfig)
+    #: [risk]: collision with the vehicle's body and the estimator of its probability
+    risk: RiskConfig = field(default_factory=RiskConfig)

@@ -48,6 +48,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_controller(p)
     add_config(p)
     add_threads(p)
+    p.add_argument("--validate-risk", action="store_true",
+                   help="check each tracked plan's collision probability against 10000 Monte-Carlo closed loops "
+                   "(risk.validate_samples; records gain risk_check, the summary the share of passing plans)")
     p.add_argument("--retry-errors", action="store_true", help="re-run records whose run raised or whose worker died")
     p.add_argument("--redo-stale", action="store_true",
                    help="recompute records of --out made with another configuration (e.g. new controller weights; "
@@ -248,6 +251,10 @@ def run_bench(args: argparse.Namespace) -> int:
     from .plan import versions
 
     run_config = load_config(RunConfig, args.config, args.overrides)
+    if args.validate_risk and not run_config.risk.validate_samples:
+        from ..config import update
+
+        run_config = update(run_config, {"risk": {"validate_samples": 10_000}})
     spec = _resolve_components(spec_from_args(args, run_config))
     if args.plot_envs < 0:
         raise ValueError(f"--plot-envs must be >= 0, got {args.plot_envs}")

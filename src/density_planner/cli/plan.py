@@ -119,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning)
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
+                                         risk=run_config.risk)
     ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
@@ -152,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
         written.append("solution.xml")
         clock.lap("solution")
     if result.states is not None:
-        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock)
+        body = problem.collision().outline(result.states.detach().cpu()).numpy()
+        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock, body=body)
     # wall time of each step of this command (start-up before run() excluded), for benchmarks/bench_plan_command.py
     summary["command_timings"] = clock.laps
     atomic_write_json(out / "plan.json", summary)
@@ -202,7 +204,8 @@ def write_plan_solution(path, scene, result, problem, run_config) -> None:
                    computation_time=result.timings.get("total"))
 
 
-def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None) -> list[str]:
+def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None,
+                       body=None) -> list[str]:
     """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written.
 
     The GIF is drawn in a forked child process while this one draws the PNGs (where ``fork`` exists; else in
@@ -234,7 +237,7 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
             draw_gif()
             clock.lap("gif")
     plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
-              verdict=verdict)
+              verdict=verdict, body=body)
     written.append("plan.png")
     clock.lap("plan_png")
     if result.cost_history:

@@ -160,6 +160,7 @@ def plot_plan(
     plan_dt: float = 0.1,
     label: str = "reference",
     verdict=None,
+    body: np.ndarray | None = None,
 ) -> Path:
     """The plan over the scene (overview) and six occupancy snapshots with the sample cloud around the vehicle.
 
@@ -175,6 +176,8 @@ def plot_plan(
         samples_x: ``(N, T, nx)`` predicted sample trajectories; samples_log_rho: ``(N, T)``.
         snapshot_times: times [s] of the snapshots (default: six, evenly over the trajectory).
         verdict: the plan's :class:`~density_planner.evaluation.verdict.Verdict` (drawn when given).
+        body: ``(T, 4, 2)`` corners of the vehicle's footprint along ``states``
+            (:meth:`~density_planner.risk.collision.CollisionModel.outline`), drawn in the snapshots.
     """
     grid = scene.grid
     T = states.shape[0]
@@ -263,6 +266,8 @@ def plot_plan(
         a.set_ylim(cy - half, cy + half)
         a.set_aspect("equal")
         a.set_facecolor(_OUTSIDE_MAP)
+        if body is not None and k < body.shape[0]:
+            a.fill(body[k, :, 0], body[k, :, 1], facecolor="none", edgecolor="tab:orange", lw=1.0, zorder=5)
         a.set_title(f"t = {k_time * plan_dt:.1f} s" + (" (stopped)" if k < k_time else ""), fontsize=8)
         a.tick_params(labelsize=6)
         a.locator_params(nbins=4)
