@@ -20,6 +20,7 @@ from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import Scene, validate_scene
+from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from ..systems.car import BIAS, KinematicCar
 
@@ -118,12 +119,19 @@ class PlanningProblem:
         system: the dynamics (default: the kinematic car).
         parameterization: reference-input parameterisation (10 segments of 1 s, 0.01-s fine grid, 0.1-s planning
             grid); its horizon must not exceed the scene's time span.
+        risk: how collision is read (body) and its probability estimated (section ``[risk]``).
     """
 
     scene: Scene
     initial_distribution: InitialDistribution
     system: System = field(default_factory=KinematicCar)
     parameterization: PiecewiseConstantInputs = field(default_factory=PiecewiseConstantInputs)
+    risk: RiskConfig = field(default_factory=RiskConfig)
+
+    def collision(self, device: torch.device | str | None = None) -> CollisionModel:
+        """The collision model of this problem (scene grid, system, risk settings) on ``device``."""
+        grid = self.scene.grid if device is None else self.scene.grid.to(device)
+        return CollisionModel(grid, self.system, self.risk)
 
     def __post_init__(self) -> None:
         validate_scene(self.scene)
@@ -146,6 +154,7 @@ class PlanningProblem:
         seed: int = 0,
         system: System | None = None,
         parameterization: PiecewiseConstantInputs | None = None,
+        risk: RiskConfig | None = None,
         planning: PlanningConfig | None = None,
     ) -> PlanningProblem:
         """The paper's default problem: its 5-component Gaussian mixture on the XE0 box around the scene start,
@@ -159,7 +168,7 @@ class PlanningProblem:
         dist = paper_gaussian_mixture(scene.start, half_width, torch.Generator().manual_seed(seed))
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
-        return cls(scene, dist, system, parameterization)
+        return cls(scene, dist, system, parameterization, risk or RiskConfig())
 
     @property
     def t_start(self) -> float:
