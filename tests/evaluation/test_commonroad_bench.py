@@ -114,6 +114,16 @@ def test_solution_resamples_to_the_scenario_time_step(tmp_path):
     np.testing.assert_allclose([s.position[0] for s in states], 2.0 * 0.04 * np.arange(51), atol=1e-9)
 
 
+def test_solution_is_written_in_the_file_frame(tmp_path):
+    # the importer moves far (UTM) coordinates to a local frame; the solution goes back to the file's frame
+    x = np.stack([np.linspace(0, 3, 11), np.zeros(11), np.zeros(11), 3.0 + np.zeros(11), np.zeros(11)], axis=1)
+    path = write_solution(tmp_path / "s.xml", x, None, 0.1, scenario_id="ZAM_Test-1_1_T-1", planning_problem_id=1,
+                          scenario_dt=0.1, initial_time_step=0, frame_offset=(692000.0, 5339000.0))
+    states = read_solution(path).planning_problem_solutions[0].trajectory.state_list
+    np.testing.assert_allclose([s.position for s in states], x[:, :2] + [692000.0, 5339000.0], atol=1e-6)
+    assert x[0, 0] == 0.0  # the caller's array is not modified
+
+
 def test_solution_config_rejects_unknown_names():
     with pytest.raises(ValueError, match="vehicle_model"):
         SolutionConfig(vehicle_model="XX")

@@ -201,7 +201,8 @@ def write_plan_solution(path, scene, result, problem, run_config) -> None:
                    planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
                    scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
                    config=run_config.solution, state_names=problem.system.state_names,
-                   computation_time=result.timings.get("total"))
+                   computation_time=result.timings.get("total"),
+                   frame_offset=tuple(meta.get("frame_offset") or (0.0, 0.0)))
 
 
 def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None,

@@ -139,9 +139,13 @@ def write_solution(
     config: SolutionConfig | None = None,
     state_names: tuple[str, ...] = ("px", "py", "theta", "v", "theta_bias"),
     computation_time: float | None = None,
+    frame_offset: tuple[float, float] = (0.0, 0.0),
 ) -> Path:
     """Write ``states (T, nx)`` (``k dt`` after the initial time step, inputs ``(T - 1, nu)`` or ``None``) as the
-    solution of planning problem ``planning_problem_id`` of scenario ``scenario_id`` to ``path`` (atomically)."""
+    solution of planning problem ``planning_problem_id`` of scenario ``scenario_id`` to ``path`` (atomically).
+
+    ``frame_offset``: the scene's local frame relative to the file's (the importer moves far UTM coordinates to a
+    local frame, ``scene.meta["frame_offset"]``); positions are written in the FILE's coordinates."""
     try:
         from commonroad.common.common_scenario import ScenarioID
         from commonroad.common.solution import (
@@ -163,6 +167,12 @@ def write_solution(
     if inputs is not None and hasattr(inputs, "detach"):
         inputs = inputs.detach().cpu().numpy()
     index = {n: state_names.index(n) for n in ("px", "py", "theta", "v")}
+    if any(frame_offset):
+        import numpy as np
+
+        states = np.array(states, dtype=np.float64, copy=True)
+        states[:, index["px"]] += float(frame_offset[0])
+        states[:, index["py"]] += float(frame_offset[1])
     cr_states = solution_states(states, inputs, dt, scenario_dt=scenario_dt, initial_time_step=initial_time_step,
                                 config=config, state_index=index)
     trajectory = Trajectory(initial_time_step, cr_states)
