@@ -14,6 +14,7 @@ from density_planner.cost.terms import CollisionCost, CostInputs
 from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.road import GoalRegion
 from density_planner.environment.road_sdf import RoadSDF
+from density_planner.risk.collision import CollisionModel
 
 from road_helpers import drivable, lane_graph, road_scene
 
@@ -60,7 +61,7 @@ def test_off_road_costs_more_than_any_collision(barrier):
         probs[0, n // 2 + 1:, :] = 1.0  # a step: gradient 0.5 per cell at the cell next to it
         probs[0, n // 2, :] = 1.0
         grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=cell, dt=0.1)
-        coll = CollisionCost(grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+        coll = CollisionCost(CollisionModel(grid), beta=cfg.beta, plateau_scales=cfg.plateau_scales)
         xs = torch.zeros(n, n, 5, dtype=torch.float64)
         xs[..., 0] = grid.xs[:, None]
         xs[..., 1] = grid.ys[None, :]

@@ -15,6 +15,8 @@ import torch
 from torch import Tensor
 
 from ..environment.scene import Scene
+from ..risk.collision import CollisionModel, RiskConfig
+from ..systems.base import System
 from .road import RoadCostConfig, with_road_terms
 from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, InputCost
 
@@ -136,11 +138,15 @@ def build_cost(
     *,
     optimisation: bool = True,
     device: torch.device | str | None = None,
+    system: System | None = None,
+    risk: RiskConfig | None = None,
 ) -> WeightedCost:
     """The four cost terms for ``scene``: goal, input, bounds (planning box) and collision.
 
-    With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``). On scenes
-    with a road (``scene.road``) the goal term is the goal region in time and the road barrier ``"road"`` is added
+    With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``).
+    ``system`` (positions, heading, body) and ``risk`` define collision (:class:`CollisionModel`); without a
+    system the vehicle is a point at the first two state entries. On scenes with a road (``scene.road``) the goal
+    term is the goal region in time and the road barrier ``"road"`` is added
     (:func:`~density_planner.cost.road.with_road_terms`).
     """
     config = config or CostConfig()
@@ -153,9 +159,11 @@ def build_cost(
         scene.goal,
         far_factor=config.goal_far_factor if optimisation else 1.0,
         close_threshold=config.goal_close_threshold,
+        positions=None if system is None else system.positions,
     )
     grid = scene.grid if device is None else scene.grid.to(device)
-    collision = CollisionCost(grid, beta=config.beta, plateau_scales=config.plateau_scales)
+    model = CollisionModel(grid, system, risk)
+    collision = CollisionCost(model, beta=config.beta, plateau_scales=config.plateau_scales)
     terms, weights = with_road_terms(scene, config, [goal, InputCost(), bounds, collision], config.weights.as_dict(),
                                      optimisation=optimisation, device=device)
     return WeightedCost(terms, weights)
