@@ -57,6 +57,7 @@ from ..systems.car import BIAS
 from .config import EvaluationConfig
 from .metrics import evaluation_box, failure_flags, monte_carlo_metrics, run_metrics
 from .simulate import ExecutionMode, execute, execution_mode, monte_carlo
+from .verdict import record_verdict
 
 __all__ = [
     "Setting",
@@ -125,6 +126,11 @@ SETTINGS: dict[str, Setting] = {
         "real", ("density", "mpc", "tube_mpc_0.5", "oracle"), ("unbiased", "biased"), 30, True,
         single_variant=("oracle",),
         description="density planner, M0, M2 and oracle on recorded traffic (inD, or the shipped CommonRoad scenes)",
+    ),
+    "commonroad": Setting(
+        "commonroad", ("density", "mpc"), ("unbiased",), 0, True,
+        description="every CommonRoad scenario of --scenarios DIR as its author posed it, judged by the verdict "
+        "(evaluation/commonroad_bench.py)",
     ),
 }
 
@@ -649,6 +655,7 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
             metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
                                                collision=problem.collision()))
             rec["trajectory"] = _floats(ref.x_plan)
+            rec["verdict"] = record_verdict(scene, ref.x_plan, ref.u_plan, plan, car, plan_dt, job.run_config)
         flags, reason = failure_flags(metrics, solved and not timeout, eval_cfg,
                                       cost_thresholds=eval_cfg.ablation_cost_failures)
         rec.update(status="timeout" if timeout else plan.status.value, metrics=metrics, failed=bool(reason),
@@ -672,6 +679,8 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
         if job.run_config.risk.validate_samples and mode == ExecutionMode.TRACK and variant == job.variants[0]:
             rec["risk_check"] = _risk_check(job, problem, run.plan, ctx.controller, eval_cfg)
         rec["trajectory"] = _floats(run.states)
+        rec["applied_inputs"] = _floats(run.applied_inputs)
+        rec["verdict"] = record_verdict(scene, run.states, run.applied_inputs, run.plan, car, plan_dt, job.run_config)
         if mode == ExecutionMode.TRACK and run.plan.reference is not None:
             rec["reference"] = _floats(problem.system.positions(run.plan.reference.x_plan))
     else:
