@@ -59,6 +59,29 @@ def _tolerate_projection_domain(coordinate_system) -> None:
     coordinate_system.convert_to_cartesian_coords = tolerant
 
 
+#: a dynamic obstacle whose centre is this close to the planning problem's initial position at the initial time
+#: step is the recorded ego vehicle itself (the commonroad-crime convention); density-planner drops it too
+EGO_TOLERANCE_M = 1.0
+
+
+def _drop_recorded_ego(scenario, planning_problem) -> list[int]:
+    """Remove the recorded ego vehicle from the obstacles, as density-planner's importer does, so that both
+    planners face the same road users (otherwise the peer collides with its own recording at t = 0)."""
+    import numpy as np
+
+    init = planning_problem.initial_state
+    removed = []
+    for obstacle in list(scenario.dynamic_obstacles):
+        state = obstacle.state_at_time(init.time_step)
+        if state is None or not hasattr(state, "position"):
+            continue
+        position = np.asarray(getattr(state.position, "center", state.position), dtype=float)
+        if position.shape == (2,) and np.hypot(*(position - np.asarray(init.position, dtype=float))) < EGO_TOLERANCE_M:
+            scenario.remove_obstacle(obstacle)
+            removed.append(int(obstacle.obstacle_id))
+    return removed
+
+
 def run(path: str) -> dict:
     warnings.filterwarnings("ignore")
     logging.disable(logging.CRITICAL)
@@ -70,6 +93,7 @@ def run(path: str) -> dict:
 
     scenario, pp_set = CommonRoadFileReader(path).open()
     planning_problem = next(iter(pp_set.planning_problem_dict.values()))
+    removed = _drop_recorded_ego(scenario, planning_problem)
     config = ReactivePlannerConfiguration()
     config.planning.dt = float(scenario.dt)
     config.planning.__post_init__()  # recompute the horizon from dt
@@ -91,6 +115,7 @@ def run(path: str) -> dict:
         "planning_time_s": 0.0,
         "n_replans": 0,
         "vehicle": {"length": float(config.vehicle.length), "width": float(config.vehicle.width)},
+        "removed_obstacles": removed,
     }
     try:
         ref_path = create_initial_ref_path(scenario.lanelet_network, planning_problem)
