@@ -109,6 +109,7 @@ def test_nlp_is_built_once_and_steps_do_not_rebuild(m0, empty_run):
         step = m0.solve(state, h)
         assert step.predicted.shape == (11, 4) and step.predicted_inputs.shape == (10, 2)
         assert step.step_time >= step.solve_time > 0
+        # with the car's body (4 discs) IPOPT may also stop on its iteration limit in this scene's first steps
         assert step.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
         state = step.predicted[1]
     res = m0.plan(problem)
