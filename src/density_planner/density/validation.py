@@ -27,6 +27,8 @@ from .base import DensityPredictor
 
 __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
+#: edges of the reference start-speed bands of the accuracy reports [m/s]
+SPEED_BANDS = (0.0, 5.0, 10.0, 20.0, 30.0, 41.0)
 #: the paper's stored validation numbers of its density network (``original.md`` §6)
 PAPER_ERROR_MSE = 0.0182
 PAPER_LOG_DENSITY_RMSE = 9.3
@@ -34,18 +36,20 @@ PAPER_LOG_DENSITY_RMSE = 9.3
 
 def fresh_references(n: int, samples: int, seed: int, *, error_scale: float = 1.0,
                      start_low: Sequence[float] | None = None, start_high: Sequence[float] | None = None,
-                     dtype: torch.dtype = torch.float32) -> tuple[Reference, Tensor]:
+                     dtype: torch.dtype = torch.float32, domain: str = "paper") -> tuple[Reference, Tensor]:
     """``n`` random feasible references and ``samples`` initial states per reference (errors uniform in
-    ``error_scale * XE0``): ``(reference (n,), x0 (n, samples, 5))``."""
+    ``error_scale * XE0``): ``(reference (n,), x0 (n, samples, 5))``. The start box defaults to the data
+    default for the paper's domain and to the car's reference-start box for the others."""
     from ..control.sampling import sample_feasible_references, sample_initial_errors
-    from ..systems.car import KinematicCar
+    from ..systems.car import KinematicCar, car_domain
     from .data import DensityDataConfig
 
-    defaults = DensityDataConfig()
-    car = KinematicCar()
+    car = KinematicCar(car_domain(domain))
+    if domain == "paper":
+        defaults = DensityDataConfig()
+        start_low, start_high = start_low or defaults.start_low, start_high or defaults.start_high
     gen = torch.Generator().manual_seed(seed)
-    ref = sample_feasible_references(car, n, gen, start_low=start_low or defaults.start_low,
-                                     start_high=start_high or defaults.start_high, dtype=dtype)
+    ref = sample_feasible_references(car, n, gen, start_low=start_low, start_high=start_high, dtype=dtype)
     box = [error_scale * v for v in car.config.initial_error_max]
     xe0 = sample_initial_errors(n * samples, gen, box=box, dtype=dtype).reshape(n, samples, car.nx)
     return ref, ref.start.unsqueeze(-2) + xe0
@@ -64,6 +68,26 @@ class DensityComparison:
     time_predictor: float
     n_references: int
     n_samples: int
+    #: reference start speeds ``(R,)`` [m/s] (for the per-speed-band summary)
+    start_speed: Tensor | None = None
+
+    def by_speed_band(self, edges: Sequence[float] = SPEED_BANDS) -> dict[str, dict]:
+        """Position error [m] and |log-density error| (median, p95) per band of reference start speed."""
+        if self.start_speed is None:
+            return {}
+        out = {}
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            sel = (self.start_speed >= lo) & (self.start_speed < hi)
+            if not bool(sel.any()):
+                continue
+            pe = self.position_error[sel].reshape(-1).double()
+            le = self.log_density_error[sel].abs().reshape(-1).double()
+            out[f"v0_in_[{lo:g},{hi:g})"] = {
+                "n_references": int(sel.sum()),
+                "position_error_m": {"median": float(pe.median()), "p95": float(torch.quantile(pe, 0.95))},
+                "log_density_abs_error": {"median": float(le.median()), "p95": float(torch.quantile(le, 0.95))},
+            }
+        return out
 
     def summary(self) -> dict:
         pe, le = self.position_error, self.log_density_error
@@ -107,6 +131,7 @@ class DensityComparison:
             "time_predictor_s": self.time_predictor,
             "time_exact_per_500_trajectories_s": self.time_exact / n_traj * 500,
             "time_predictor_per_500_trajectories_s": self.time_predictor / n_traj * 500,
+            "by_speed_band": self.by_speed_band(),
         }
 
 
@@ -147,5 +172,6 @@ def compare_with_exact(
     if not (bool(torch.isfinite(pe).all()) and bool(torch.isfinite(le).all())):
         raise FloatingPointError("non-finite predictions in the density comparison")
     return DensityComparison(t=t, position_error=pe, log_density_error=le, state_error=torch.cat(se),
-                             time_exact=t_exact, time_predictor=t_pred, n_references=r, n_samples=n)
+                             time_exact=t_exact, time_predictor=t_pred, n_references=r, n_samples=n,
+                             start_speed=reference.start[..., 3].detach().cpu())
 
