@@ -41,7 +41,7 @@ print(max(10, min(60, int(${C3M_SECONDS:-170} / max(t, 1e-3)))))")
   fi
   log "C3M: $C3M_EPOCHS epochs x 200 steps, batch $C3M_BATCH"
   $DP train controller --out "$RES/c3m" --epochs "$C3M_EPOCHS" "${C3M_SET[@]}" --set batch_size=$C3M_BATCH \
-    --device "$DEVICE" --threads "$(nproc)" --export $W/controller_c3m_road.pt --quiet 2>&1 | tee -a "$OUT/train_road.log"
+    --device "$DEVICE" --threads "${THREADS:-$(nproc)}" --export $W/controller_c3m_road.pt --quiet 2>&1 | tee -a "$OUT/train_road.log"
   cp $W/controller_c3m_road.pt $W/controller_c3m_road.json "$OUT/"
   cp "$RES/c3m/history.json" "$OUT/c3m_history.json"
 

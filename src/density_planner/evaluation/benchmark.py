@@ -445,15 +445,16 @@ _SCENES: dict[Any, Any] = {}
 
 
 def _context(job: Job):
-    from ..control.registry import load_controller
+    from ..control.registry import load_controller, model_set_for_scene
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
-    key = (job.controller, job.density, job.run_config.liouville)
+    models = model_set_for_scene(job.env.kind)  # recorded road scenes: the road set; the paper's scenes: paper
+    key = (job.controller, job.density, job.run_config.liouville, models.name)
     if key not in _CONTEXTS:
-        car = KinematicCar()
-        controller = load_controller(job.controller)
+        car = KinematicCar(models.car)
+        controller = load_controller(job.controller, models=models)
         predictor: list[Any] = []
 
         def factory():
