@@ -8,8 +8,11 @@
 #
 # Environment: PY (python, default python3), RES (work directory, default results/road), OUT (where copies of the
 # weights and logs go, default $RES/out), DEVICE (cuda or cpu, default: cuda if torch sees one), C3M_EPOCHS,
-# C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network). The defaults are the settings of the shipped
-# road weights (trained on one NVIDIA H200 with 16 CPU cores); on a CPU-only machine lower them (docs/controller.md).
+# C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network), THREADS / DENSITY_THREADS. The defaults suit a
+# GPU machine. The shipped road weights were made on a 2-core CPU machine (no GPU was available) with
+#   RES=results/road DEVICE=cpu THREADS=1 C3M_EPOCHS=20 C3M_BATCH=2048 bash scripts/train_road_models.sh controller
+#   (then the data with --references 4096 --workers 2, and) DENSITY_TIME=480 bash scripts/train_road_models.sh density
+# (docs/controller.md and docs/density.md record the exact commands and times).
 set -eo pipefail
 PHASE=${1:-all}
 PY=${PY:-python3}
@@ -63,10 +66,10 @@ fi
 if [ "$PHASE" = density ] || [ "$PHASE" = all ]; then
   DENSITY_TIME=${DENSITY_TIME:-170}
   log "density networks: both in parallel, at most $DENSITY_TIME s of training each"
-  $DP train density --arch trajectory --data "$RES/density_data" --out "$RES/train_trajectory" --set device=$DEVICE \
+  $DP train density --arch trajectory --data "$RES/density_data" --out "$RES/train_trajectory" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
     --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
   p1=$!
-  $DP train density --arch pointwise --data "$RES/density_data" --out "$RES/train_pointwise" --set device=$DEVICE \
+  $DP train density --arch pointwise --data "$RES/density_data" --out "$RES/train_pointwise" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
     --epochs 20 --set batch_size=1024 --time-limit "$DENSITY_TIME" --export $W/density_pointwise_road.pt --quiet \
     > "$OUT/train_pointwise.log" 2>&1 &
   p2=$!
