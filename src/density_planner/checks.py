@@ -17,6 +17,8 @@ __all__ = [
     "check_positive",
     "check_choice",
     "check_finite_number",
+    "check_seed",
+    "MAX_SEED",
     "default_dtype_device",
     "broadcast_shape",
 ]
@@ -82,6 +84,22 @@ def check_finite_number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     return value
+
+
+#: the largest seed accepted anywhere (one rule for every seed: an integer in [0, 2^63 - 1], the non-negative
+#: int64 range that torch, NumPy and JSON all hold exactly)
+MAX_SEED = 2**63 - 1
+
+
+def check_seed(name: str, value: Any) -> int:
+    """Require a seed: an integer in ``[0, MAX_SEED]`` (the rule for every seed option and config key)."""
+    import numpy as np
+
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer in [0, 2^63 - 1], got {value!r}")
+    if not 0 <= int(value) <= MAX_SEED:
+        raise ValueError(f"{name} must be an integer in [0, 2^63 - 1], got {value}")
+    return int(value)
 
 
 def check_choice(name: str, value: str, choices: Sequence[str]) -> str:

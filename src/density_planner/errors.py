@@ -27,6 +27,10 @@ class DomainError(DensityPlannerError, ValueError):
     """An input lies outside the domain a learned model was trained on (e.g. a start speed above its range)."""
 
 
+class ResourceError(DensityPlannerError, ValueError):
+    """A request needs more memory (or another resource) than the machine has; the message names the setting."""
+
+
 class OptionalDependencyError(DensityPlannerError, ImportError):
     """An optional extra (``mpc``, ``commonroad``, ``dask``) is needed but not installed."""
 

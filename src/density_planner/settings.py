@@ -9,6 +9,10 @@ needs. Example ``run.toml``::
     [density_planner.cost.weights]
     collision = 0.2
 
+    [planning]
+    horizon = 10.0          # [s], a whole number of segments; omit to follow the scene (else 10 s)
+    segment_duration = 1.0
+
     [liouville]
     integrator = "euler"
     dt = 0.01
@@ -26,6 +30,7 @@ from .evaluation.config import EvaluationConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
+from .planners.problem import PlanningConfig
 from .planners.sampling import SamplingConfig
 from .planners.search import SearchConfig
 
@@ -35,6 +40,9 @@ __all__ = ["RunConfig"]
 @dataclass(frozen=True)
 class RunConfig:
     """All configurable parts of a run (TOML sections)."""
+
+    #: [planning]: horizon, segment length and time steps shared by every planner and the evaluation
+    planning: PlanningConfig = field(default_factory=PlanningConfig)
 
     #: [density_planner]: the two-stage density planner, including its cost terms ([density_planner.cost])
     density_planner: DensityPlannerConfig = field(default_factory=DensityPlannerConfig)

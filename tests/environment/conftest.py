@@ -1,4 +1,5 @@
-"""Fixtures of the environment tests: small synthetic inD recordings and the shared CommonRoad scenarios."""
+"""Fixtures of the environment tests: small synthetic inD recordings and the CommonRoad scenarios shipped with
+the package."""
 
 from __future__ import annotations
 
@@ -7,8 +8,6 @@ from pathlib import Path
 import pytest
 from env_testdata import two_tracks
 
-SHARED = (Path(__file__).resolve().parents[2] / ".." / "shared").resolve()
-COMMONROAD_DIR = SHARED / "data" / "commonroad"
 
 
 @pytest.fixture
@@ -22,6 +21,7 @@ def ind_dir(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def commonroad_dir() -> Path:
-    if not COMMONROAD_DIR.is_dir():
-        pytest.skip(f"shared CommonRoad scenarios not found ({COMMONROAD_DIR})")
-    return COMMONROAD_DIR
+    """The BSD-licensed CommonRoad scenarios in the package (density_planner/data/commonroad): never skipped."""
+    from density_planner.evaluation.benchmark import shipped_commonroad_dir
+
+    return shipped_commonroad_dir()

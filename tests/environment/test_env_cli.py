@@ -104,7 +104,8 @@ def test_commonroad(commonroad_dir, tmp_path):
         )
         == 0
     )
-    assert load_scene(out / "occupancy.npz").name == "commonroad-USA_Peach-4_8_T-1"
+    assert load_scene(out / "occupancy.npz").name == "USA_Peach-4_8_T-1.xml"
+    assert load_scene(out / "occupancy.npz").road is not None
 
 
 @pytest.mark.parametrize(
@@ -116,7 +117,7 @@ def test_commonroad(commonroad_dir, tmp_path):
         (["--kind", "commonroad", "--file", "{tmp}/bad.xml"], "not a CommonRoad scenario"),
         (["--kind", "random", "--set", "random_scene.walls=3"], "unknown key"),
         (["--kind", "random", "--file", "x.xml"], "not used with --kind random"),
-        (["--kind", "random", "--seed", "-2"], "--seed must be >= 0"),
+        (["--kind", "random", "--seed", "-2"], "--seed must be an integer in [0, 2^63 - 1]"),
     ],
 )
 def test_errors_are_one_line_without_traceback(tmp_path, capsys, args, match):

@@ -221,7 +221,7 @@ def test_track_without_meta_entry(ind_dir):
         load_ind_scene(ind_dir, 7, IndSceneConfig(start_time=5.0))
 
 
-@pytest.mark.parametrize("start", [-1.0, 6.5, 100.0])
+@pytest.mark.parametrize("start", [-1.0, 16.5, 100.0])
 def test_window_outside_the_recording(ind_dir, start):
     if start < 0:
         with pytest.raises(ValueError, match="start_time"):
@@ -229,6 +229,28 @@ def test_window_outside_the_recording(ind_dir, start):
         return
     with pytest.raises(DataError, match="outside recording 7"):
         load_ind_scene(ind_dir, 7, IndSceneConfig(start_time=start))  # the recording lasts 15.96 s
+
+
+def test_window_past_the_recording_end_predicts_the_road_users(ind_dir):
+    """Issue 13 item 2: a window running past the recording's end (15.96 s) is not refused; every road user
+    continues at constant velocity and heading, with a footprint that widens and flattens with time."""
+    from density_planner.environment.footprints import FootprintConfig
+
+    cfg = IndSceneConfig(start_time=10.0, cell_size=0.2, area=(40.0, 160.0, -30.0, -10.0))
+    scene = load_ind_scene(ind_dir, 7, cfg)
+    assert scene.meta["recording_end_s"] == pytest.approx(15.96, abs=0.05)
+    assert scene.meta["road_users_predicted"] >= 1
+    g = scene.grid
+    # the car drives along +x at 5 m/s on y = 0 (env_testdata.two_tracks): its peak keeps moving at 5 m/s
+    probs = g.probs[:, :, round((-20.0 - g.origin[1]) / g.cell_size)]  # the row y = -20
+    xs = g.origin[0] + g.cell_size * np.arange(g.probs.shape[1])
+    k1, k2 = 70, 100  # t = 17 s and 20 s: both predicted
+    x1, x2 = xs[int(probs[k1].argmax())], xs[int(probs[k2].argmax())]
+    assert x2 - x1 == pytest.approx(5.0 * 3.0, abs=2 * cfg.cell_size + 0.5)
+    # the uncertainty grows: the peak drops below the recorded one, the footprint widens
+    assert float(probs[k2].max()) < float(probs[50].max())
+    assert int((probs[k2] > 0.05).sum()) > int((probs[50] > 0.05).sum())
+    assert FootprintConfig().prediction_std_rate_along > 0
 
 
 def test_grid_size_guard(ind_dir):

@@ -140,7 +140,9 @@ def test_views():
         grid.slice(3)
     assert grid.to(dtype=torch.float64).probs.dtype == torch.float64
     assert grid.to("cpu") is grid
-    assert int(grid.slice_index(0.14)) == 1 and int(grid.slice_index(5.0)) == 2
+    assert int(grid.slice_index(0.14)) == 1 and int(grid.slice_index(5.0, clamp=True)) == 2
+    with pytest.raises(ValueError, match="outside the occupancy grid's time span"):
+        grid.slice_index(5.0)
 
 
 def test_save_load_round_trip(tmp_path):

@@ -52,7 +52,7 @@ def test_load_errors(tmp_path):
     with pytest.raises(DataError, match="not a scene file"):
         load_scene(tmp_path / "grid.npz")
     (tmp_path / "junk.npz").write_bytes(b"junk")
-    with pytest.raises(DataError, match="cannot read"):
+    with pytest.raises(DataError, match="not a readable .npz file"):
         load_scene(tmp_path / "junk.npz")
 
 

@@ -2,8 +2,9 @@
 
 Each command lives in its own module with a ``register(subparsers, groups)`` function that adds its parser and
 sets ``func``. Grouped commands (``train controller``, ``validate density``, ``data density``) register into the
-shared groups. Errors caused by user input are printed as one line and give exit code 2 (``--debug`` shows the
-traceback instead).
+shared groups. Every error is printed as one line (``--debug`` shows the traceback instead) with one exit-code
+rule: 2 for bad input (arguments, configuration, files, data), 1 for an internal failure (see
+:data:`EXIT_BAD_INPUT`, :func:`classify_error`).
 """
 
 from __future__ import annotations
@@ -57,6 +58,45 @@ def group(sub: argparse._SubParsersAction, groups: dict, name: str) -> argparse.
     return groups[name]
 
 
+#: exit codes (README, "Bad input"): 0 success; 1 internal failure (a bug, a solver or planner failure without a
+#: plan, out of memory, a full disk); 2 bad input (arguments, configuration, files, data, missing optional extras);
+#: 130 interrupted
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+#: OSErrors that are the user's input (a path that is missing, not a directory, not readable)
+_INPUT_OS_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError, FileExistsError)
+
+#: integer options that are seeds: one rule for all of them (:func:`density_planner.checks.check_seed`)
+_SEED_OPTIONS = ("seed", "distribution_seed")
+
+
+def classify_error(exc: BaseException) -> int:
+    """Exit code of an exception: :data:`EXIT_BAD_INPUT` for bad input, :data:`EXIT_FAILURE` otherwise."""
+    if isinstance(exc, (ValueError, DensityPlannerError, ImportError, _INPUT_OS_ERRORS)):
+        return EXIT_BAD_INPUT
+    return EXIT_FAILURE
+
+
+def _check_seeds(args: argparse.Namespace) -> None:
+    from ..checks import check_seed
+
+    for name in _SEED_OPTIONS:
+        value = getattr(args, name, None)
+        if value is not None:
+            check_seed("--" + name.replace("_", "-"), value)
+
+
+def _remove_if_created_empty(path, existed: bool) -> None:
+    """Remove ``--out`` if this run created it and left it empty (a rejected command leaves no directory)."""
+    if path is None or existed:
+        return
+    try:
+        if path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
+    except OSError:  # pragma: no cover - best effort
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -64,23 +104,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.argv = argv
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    out = getattr(args, "out", None)
+    out_existed = out is None or out.exists()
     try:
         from ._common import apply_threads
 
+        _check_seeds(args)
         apply_threads(getattr(args, "threads", None))
         result = args.func(args)
     except KeyboardInterrupt:
+        _remove_if_created_empty(out, out_existed)
         print("density-planner: interrupted", file=sys.stderr)
-        return 130
-    except (ValueError, OSError, ImportError, RuntimeError, DensityPlannerError) as exc:
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - every error becomes one line and an exit code (--debug: traceback)
+        _remove_if_created_empty(out, out_existed)
         if args.debug:
             raise
+        code = classify_error(exc)
         text = str(exc).strip()
         message = text.splitlines()[0] if text else type(exc).__name__
-        if not isinstance(exc, (ValueError, OSError, DensityPlannerError, ImportError)):
-            message = f"{type(exc).__name__}: {message} (run with --debug for the traceback)"
+        if isinstance(exc, MemoryError):
+            message = ("out of memory" + (f" ({message})" if text else "") + "; reduce the size of the request "
+                       "(e.g. --samples, --envs, the scene's cell_size or n_slices)")
+        elif code != EXIT_BAD_INPUT:
+            message = f"internal error: {type(exc).__name__}: {message} (run with --debug for the traceback)"
         print(f"density-planner: error: {message}", file=sys.stderr)
-        return 2
+        return code
+    if result and out is not None:
+        _remove_if_created_empty(out, out_existed)
     return int(result or 0)
 
 

@@ -21,6 +21,7 @@ __all__ = [
     "resolve_dtype",
     "load_params_file",
     "out_dir",
+    "check_out",
 ]
 
 
@@ -29,7 +30,7 @@ def add_out(p: argparse.ArgumentParser, required: bool = True) -> None:
 
 
 def add_seed(p: argparse.ArgumentParser, default: int = 0) -> None:
-    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default})")
+    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default}; 0 <= S < 2^63)")
 
 
 def add_device(p: argparse.ArgumentParser) -> None:
@@ -93,39 +94,59 @@ def resolve_dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
-def out_dir(path: Path) -> Path:
+def check_out(path: Path) -> Path:
+    """Validate ``--out`` without creating it (commands create it only once every input is valid)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"--out {path} exists and is not a directory")
-    path.mkdir(parents=True, exist_ok=True)
+    parent = next((p for p in path.absolute().parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise ValueError(f"--out {path}: {parent} is not a directory")
     return path
 
 
-def load_params_file(path: Path) -> np.ndarray:
-    """Reference parameters from ``.json`` (a list, or an object with ``"params"``), ``.npy`` or ``.npz``."""
+def out_dir(path: Path) -> Path:
+    path = check_out(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out {path}: cannot create the directory ({exc.strerror or exc})") from exc
+    return path
+
+
+def load_params_file(path: Path, option: str = "--params") -> np.ndarray:
+    """Reference parameters from ``.json`` (a list, or an object with ``"params"``), ``.npy`` or ``.npz``; errors
+    name ``option`` and the file."""
+    from ..io.npz import read_npy, read_npz
+
     path = Path(path)
+    where = f"{option} {path}"
     if not path.is_file():
-        raise FileNotFoundError(f"parameter file not found: {path}")
+        raise FileNotFoundError(f"{where}: parameter file not found")
     try:
         if path.suffix == ".json":
             data = json.loads(path.read_text())
             if isinstance(data, dict):
                 if "params" not in data:
-                    raise ValueError(f"{path}: JSON object has no 'params' entry")
+                    raise ValueError("the JSON object has no 'params' entry")
                 data = data["params"]
             arr = np.asarray(data, dtype=np.float64)
         elif path.suffix == ".npy":
-            arr = np.load(path)
+            arr = read_npy(path, what="parameter", max_bytes=2**20)
         elif path.suffix == ".npz":
-            with np.load(path) as z:
-                if "params" not in z:
-                    raise ValueError(f"{path}: no 'params' array")
-                arr = z["params"]
+            z = read_npz(path, what="parameter", max_bytes=2**20)
+            if "params" not in z:
+                raise ValueError("no 'params' array")
+            arr = z["params"]
         else:
-            raise ValueError(f"{path}: unsupported parameter file type (use .json, .npy or .npz)")
-    except (json.JSONDecodeError, TypeError) as exc:
-        raise ValueError(f"{path}: cannot read reference parameters ({exc})") from exc
-    arr = np.asarray(arr, dtype=np.float64)
+            raise ValueError("unsupported parameter file type (use .json, .npy or .npz)")
+        arr = np.asarray(arr, dtype=np.float64)
+    except (ValueError, TypeError, UnicodeDecodeError) as exc:  # incl. JSONDecodeError, ragged lists, DataError
+        text = str(exc).split("\n")[0]
+        if "inhomogeneous" in text or "sequence" in text:
+            text = "the rows have different lengths (a 2 x 10 table of numbers is expected)"
+        text = text.replace(f"{path}: ", "")
+        raise ValueError(f"{where}: cannot read reference parameters ({text})") from None
     if arr.ndim == 3 and arr.shape[0] == 1:
         arr = arr[0]
     return arr

@@ -19,7 +19,8 @@ def add_scene_args(p: argparse.ArgumentParser, *, flag: str = "--env", required:
                    help="scene source: random artificial scene, inD recording, CommonRoad XML"
                    + (", or a saved scene (.npz from `density-planner env`)" if "file" in kinds else ""))
     p.add_argument("--seed", type=int, default=None,
-                   help="random: scene number (default 0); ind/commonroad: seed of the start/goal sampler")
+                   help="random: scene number (default 0); ind: seed of the start/goal sampler; commonroad: "
+                   "its seed with --set commonroad.sample_start_goal=true")
     p.add_argument("--data-dir", type=Path, default=None, metavar="D", help="ind: folder with the NN_*.csv files")
     p.add_argument("--recording", type=int, default=None, metavar="N", help="ind: recording number")
     p.add_argument("--start-time", type=float, default=None, metavar="S",
@@ -36,8 +37,10 @@ def _reject(args: argparse.Namespace, kind: str, names: tuple[str, ...]) -> None
 
 def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
     """Build the scene selected by the scene arguments with the matching section of ``run_config``."""
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if args.seed is not None:
+        from ..checks import check_seed
+
+        check_seed("--seed", args.seed)
     kind = args.kind
     where = f"{kind_flag} {kind}"
     seed = {} if args.seed is None else {"seed": args.seed}
@@ -64,7 +67,12 @@ def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "-
         _reject(args, where, ("--data-dir", "--recording", "--start-time"))
         if not getattr(args, "verbose", 0):  # commonroad-io warns about every legacy element it converts
             logging.getLogger("commonroad").setLevel(logging.ERROR)
-        return load_commonroad_scene(args.file, update(run_config.commonroad, seed))
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
+        # the domain checks (start speed, reachable region) use the car of the scene's model set (road: 0-40 m/s)
+        system = KinematicCar(model_set_for_scene(kind, getattr(args, "models", None)).car)
+        return load_commonroad_scene(args.file, update(run_config.commonroad, seed), system=system)
     if kind == "file":
         from ..environment.scene import load_scene
 

@@ -117,6 +117,12 @@ def spec_from_args(args: argparse.Namespace, run_config):
     for v in variants:
         if v not in allowed:
             raise ValueError(f"unknown variant {v!r} for {args.setting}; valid choices: {', '.join(allowed)}")
+    from ..memory import check_memory
+
+    # the sweep holds one environment spec and one job / record key per run in memory (~1 KB + ~2 KB per run)
+    flag = f"--envs {len(indices)}" if args.seeds is None else f"--seeds {args.seeds}"
+    check_memory(len(indices) * (1024 + 2048 * len(planners) * len(variants)), f"{flag} ({len(indices)} environments)",
+                 "lower --envs (or run the sweep in parts with --seeds A:B)")
     envs = real_envs(indices, args.data_dir) if args.setting == "real" else artificial_envs(indices)
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
@@ -142,7 +148,10 @@ def _resolve_components(spec):
     from ..systems.car import KinematicCar
 
     controller = load_controller(spec.controller)
-    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville)
+    planning = spec.run_config.planning  # an explicit horizon is known before the scenes: check the predictor now
+    par = planning.parameterization() if planning.horizon is not None else None
+    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville,
+                               parameterization=par)
     label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
              f"{component_digest(controller, predictor) or '-'}")
     return replace(spec, components=label)
@@ -150,10 +159,17 @@ def _resolve_components(spec):
 
 def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     """Tables and figures of ``out`` from its records."""
+    import sys
+
+    from ..evaluation.benchmark import scan_records
     from ..evaluation.report import write_tables
     from ..viz.benchmark import write_figures
 
     records, rows, paths = write_tables(out)
+    bad = scan_records(out)[1]
+    if bad:
+        print(f"density-planner: warning: {len(bad)} record file(s) are not usable and count as missing runs in the "
+              f"summary (first: {bad[0].path}: {bad[0].reason})", file=sys.stderr)
     return paths + write_figures(out, rows, records, plot_envs=plot_envs)
 
 

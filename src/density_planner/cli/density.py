@@ -13,6 +13,7 @@ from ._common import (
     add_device,
     add_out,
     add_seed,
+    check_out,
     load_params_file,
     out_dir,
     resolve_device,
@@ -56,23 +57,30 @@ def run(args: argparse.Namespace) -> int:
     from ..density.distributions import paper_gaussian_mixture
     from ..density.liouville import LiouvilleConfig, propagate_density
     from ..io.atomic import atomic_save_npz
+    from ..memory import check_memory
     from ..systems.car import KinematicCar
 
     if args.samples < 1:
         raise ValueError(f"--samples must be >= 1, got {args.samples}")
+    check_out(args.out)
     device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
-    out = out_dir(args.out)
+    # per sample: the saved trajectory (101 x (nx + 1)), the integrator's working set of one step and the arrays
+    # written to the .npz (measured: 14 KB per sample at float32, 20000 samples)
+    itemsize = 8 if dtype == torch.float64 else 4
+    check_memory(args.samples * (101 * 6 * (itemsize + 8) + 8192), f"--samples {args.samples}",
+                 "lower --samples")
     car = KinematicCar()
     controller = load_controller(args.controller).to(device=device, dtype=dtype)
 
+    where = "reference parameters" if args.params is None else f"--params {args.params}"
     params = np.asarray(DEFAULT_PARAMS) if args.params is None else load_params_file(args.params)
     if params.shape != (car.nu, 10):
-        raise ValueError(f"reference parameters must have shape ({car.nu}, 10), got {params.shape}")
+        raise ValueError(f"{where}: reference parameters must have shape ({car.nu}, 10), got {params.shape}")
     if not np.isfinite(params).all():
-        raise ValueError("reference parameters contain NaN or infinite values")
+        raise ValueError(f"{where}: reference parameters contain NaN or infinite values")
     lo, hi = car.config.input_min, car.config.input_max
     if (params < np.asarray(lo)[:, None]).any() or (params > np.asarray(hi)[:, None]).any():
-        raise ValueError(f"reference parameters must lie within the input bounds [{lo}, {hi}]")
+        raise ValueError(f"{where}: reference parameters must lie within the input bounds [{lo}, {hi}]")
     start = torch.tensor(args.start, dtype=dtype, device=device)
     if not bool(torch.isfinite(start).all()):
         raise ValueError("--start contains NaN or infinite values")
@@ -81,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     dt = args.dt if args.dt is not None else (0.1 if integrator == "rk4" else 0.01)
     config = LiouvilleConfig(integrator=integrator, dt=dt)
 
+    out = out_dir(args.out)  # every input is valid: create the output directory
     gen = torch.Generator().manual_seed(args.seed)
     dist = paper_gaussian_mixture(start.cpu().double(), car.config.initial_error_max, gen)
     x0 = dist.sample(args.samples, gen, dtype=dtype, device=device)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_out, out_dir
+from ._common import add_config, add_out, check_out, out_dir
 from ._scenes import add_scene_args, scene_from_args
 
 KINDS = ("random", "ind", "commonroad")
@@ -39,11 +39,12 @@ def run(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..settings import RunConfig
 
-    out = out_dir(args.out)
+    check_out(args.out)
     run_config = load_config(RunConfig, args.config, args.overrides)
     t0 = time.perf_counter()
     scene = scene_from_args(args, run_config, kind_flag="--kind")
     elapsed = time.perf_counter() - t0
+    out = out_dir(args.out)
     save_scene(scene, out / "occupancy.npz")
     atomic_write_json(out / "scene.json", {**scene.to_json_dict(), "build_time_s": elapsed})
     from density_planner.viz.occupancy import animate_occupancy, plot_occupancy
@@ -53,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_gif:
         animate_occupancy(scene, out / "occupancy.gif")
         written.append("occupancy.gif")
-    p_start = float(scene.grid.lookup(torch.tensor(scene.start[:2], dtype=torch.float64), 0))
+    p_start = float(scene.grid.lookup(torch.tensor(scene.start[:2], dtype=torch.float64),
+                                      scene.grid.slice_index(scene.t_start)))
     print(
         f"{scene_summary(scene)}; P_occ at start {p_start:.2f}; built in {elapsed:.2f} s; "
         f"wrote {', '.join(str(out / w) for w in written)}"

@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_controller, add_device, add_out, out_dir, resolve_device, resolve_dtype
+from ._common import (
+    add_config,
+    add_controller,
+    add_device,
+    add_out,
+    check_out,
+    out_dir,
+    resolve_device,
+    resolve_dtype,
+)
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -38,8 +47,10 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run)
 
 
-def build_context(args: argparse.Namespace, run_config, progress: bool):
-    """Planner context (system, controller, predictor factories) from the command-line arguments."""
+def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
+    """Planner context (system, controller, predictor factories) from the command-line arguments; a learned
+    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (car domain, controller
+    and density weights) follows the scene kind unless ``--models`` names one."""
     from ..control.registry import load_controller, model_set_for_scene
     from ..density.liouville import ExactLiouville
     from ..density.registry import load_predictor
@@ -51,7 +62,8 @@ def build_context(args: argparse.Namespace, run_config, progress: bool):
     car = KinematicCar(models.car)
     controller = load_controller(args.controller, models=models).to(device=device, dtype=dtype)
     # None: the default learned predictor if it was trained for this controller, else exact Liouville
-    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville)
+    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville,
+                               parameterization=parameterization)
     if hasattr(predictor, "to"):
         predictor = predictor.to(device=device, dtype=dtype)
     return PlannerContext(
@@ -89,21 +101,29 @@ def versions() -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..checks import check_seed
     from ..config import dumps_toml, load_config, to_dict
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
 
-    out = out_dir(args.out)
+    check_out(args.out)
+    if args.distribution_seed is not None:
+        check_seed("--distribution-seed", args.distribution_seed)
     run_config = load_config(RunConfig, args.config, args.overrides)
     t0 = time.perf_counter()
     scene = scene_from_args(args, run_config)
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed)
-    ctx = build_context(args, run_config, progress=not args.quiet)
+    from ..control.registry import model_set_for_scene
+    from ..systems.car import KinematicCar
+
+    system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, system=system)
+    ctx = build_context(args, run_config, progress=not args.quiet, parameterization=problem.parameterization)
     planner = make_planner(args.planner, ctx)
+    out = out_dir(args.out)  # inputs are valid: only now create the output directory
     result = planner.plan(problem)
 
     atomic_write_text(out / "config.toml", dumps_toml(run_config))

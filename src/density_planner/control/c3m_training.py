@@ -20,7 +20,7 @@ from typing import Any, Literal
 
 import torch
 
-from ..checks import check_positive
+from ..checks import check_positive, check_seed
 from ..errors import CheckpointError
 from ..systems.car import CarConfig, car_domain
 from .base import soft_clip
@@ -105,8 +105,7 @@ class C3MTrainConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"C3MTrainConfig.{name} must be a positive integer, got {value!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"C3MTrainConfig.seed must be a non-negative integer, got {self.seed!r}")
+        check_seed("C3MTrainConfig.seed", self.seed)
         check_positive("C3MTrainConfig.lr", self.lr)
         check_positive("C3MTrainConfig.lr_final", self.lr_final)
         check_positive("C3MTrainConfig.rate", self.rate, allow_zero=True)

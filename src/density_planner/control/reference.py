@@ -176,6 +176,24 @@ class Reference:
         return x_stage, u_stage
 
 
+def _check_input_bounds(system: System, params: Tensor) -> None:
+    """Reference inputs outside the system's input bounds are bad input (the controller and the learned models
+    only cover the bounded inputs); 1e-6 of round-off is allowed."""
+    bounds = getattr(system, "input_bounds", None)
+    if bounds is None:
+        return
+    lo, hi = system.input_bounds_tensor(params)
+    p = params.detach()
+    tol = 1e-6 * (1.0 + torch.maximum(lo.abs(), hi.abs()))[:, None]
+    if bool(((p < lo[:, None] - tol) | (p > hi[:, None] + tol)).any()):
+        below = (lo[:, None] - p).amax().item()
+        above = (p - hi[:, None]).amax().item()
+        raise ValueError(
+            f"params must lie within the input bounds of {type(system).__name__}: lower {lo.tolist()}, upper "
+            f"{hi.tolist()} per channel (got values up to {max(below, above):.3g} outside); clip them first"
+        )
+
+
 def make_reference(
     system: System,
     start: Tensor,
@@ -189,6 +207,7 @@ def make_reference(
     """
     par = parameterization or PiecewiseConstantInputs()
     params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
+    _check_input_bounds(system, params)
     start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
     u = par.inputs(params)
     x = system.rollout(start, u, par.dt)

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import check_seed
 from ..errors import DataError
 from ..io.atomic import atomic_save_torch, atomic_write_json
 from .liouville import LiouvilleConfig
@@ -108,6 +109,7 @@ class DensityDataConfig:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
+        check_seed("seed", self.seed)
         for name in ("references", "samples", "references_per_shard"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:

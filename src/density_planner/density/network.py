@@ -398,17 +398,38 @@ class LearnedDensity(DensityPredictor):
         self.model = self.model.to(device=device, dtype=dtype)
         return self
 
+    def mismatch(self, parameterization) -> str | None:
+        """Why this predictor cannot predict along references of ``parameterization`` (a
+        :class:`~density_planner.control.reference.PiecewiseConstantInputs`), or ``None`` when it can. A network
+        never extrapolates: it only serves the horizon, planning step and segment count it was trained for."""
+        a, par = self.architecture, parameterization
+        if par.n_plan != a.n_times or not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6) or par.n_segments != (
+            a.n_segments
+        ):
+            trained = (a.n_times - 1) * a.dt
+            return (
+                f"the learned density predictor {self.name!r} is trained for a {trained:g}-s horizon ({a.n_times} "
+                f"points of {a.dt:g} s, {a.n_segments} segments); this plan has {par.horizon:g} s ({par.n_plan} "
+                f"points of {par.plan_dt:g} s, {par.n_segments} segments of {par.segment_duration:g} s)"
+            )
+        return None
+
+    def check_parameterization(self, parameterization) -> None:
+        """Raise :class:`ValueError` (naming the fix) when :meth:`mismatch` finds one."""
+        reason = self.mismatch(parameterization)
+        if reason is not None:
+            raise ValueError(f"{reason}; use --density exact (exact Liouville) or the planning horizon the "
+                             "predictor was trained for")
+
     def _check_reference(self, reference: Reference) -> None:
         if not isinstance(reference, Reference):
             raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
-        a, par = self.architecture, reference.parameterization
-        if par.n_plan != a.n_times or not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6) or (
-            tuple(reference.params.shape[-2:]) != (a.nu, a.n_segments)
-        ):
+        a = self.architecture
+        self.check_parameterization(reference.parameterization)
+        if tuple(reference.params.shape[-2:]) != (a.nu, a.n_segments):
             raise ValueError(
-                f"the learned density predictor was trained for {a.n_times} planning points at {a.dt} s and "
-                f"parameters of shape ({a.nu}, {a.n_segments}); the reference has {par.n_plan} points at "
-                f"{par.plan_dt} s and parameters {tuple(reference.params.shape[-2:])} (use --density exact)"
+                f"the learned density predictor needs parameters of shape ({a.nu}, {a.n_segments}); the reference "
+                f"has {tuple(reference.params.shape[-2:])} (use --density exact)"
             )
 
     def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:

@@ -86,29 +86,45 @@ def load_predictor(
     controller: TrackingController,
     *,
     liouville: LiouvilleConfig | None = None,
+    parameterization=None,
 ) -> DensityPredictor:
     """Density predictor ``spec`` for ``system`` tracked by ``controller``.
 
-    ``None`` selects :data:`DEFAULT_PREDICTOR` if it was trained for ``controller`` (else exact Liouville, with
-    a log message); see the module docstring for the names.
+    ``None`` selects :data:`DEFAULT_PREDICTOR` if it was trained for ``controller`` and, when
+    ``parameterization`` (the plan's :class:`~density_planner.control.reference.PiecewiseConstantInputs`) is
+    given, for its horizon; else exact Liouville, with a log message (a warning for a horizon mismatch). A learned
+    predictor named explicitly for a horizon it was not trained for is an error (never a silent extrapolation).
+    See the module docstring for the names.
     """
     if spec is None:
         try:
             # outside the training domain the default falls back to exact Liouville (logged), never extrapolates
-            return load_learned_predictor(DEFAULT_PREDICTOR, controller,
-                                          fallback=ExactLiouville(system, controller, liouville))
+            learned = load_learned_predictor(DEFAULT_PREDICTOR, controller,
+                                             fallback=ExactLiouville(system, controller, liouville))
         except CheckpointError as exc:
             logger.info("default density predictor %r not usable (%s); using exact Liouville",
                            DEFAULT_PREDICTOR, exc)
             return ExactLiouville(system, controller, liouville)
+        reason = None if parameterization is None else learned.mismatch(parameterization)
+        if reason is not None:
+            logger.warning("%s: using exact Liouville instead (slower; name --density exact to silence this)", reason)
+            return ExactLiouville(system, controller, liouville)
+        return learned
     if spec == "exact":
         return ExactLiouville(system, controller, liouville)
     if spec in PREDICTOR_CHOICES:
-        return load_learned_predictor(spec, controller)
+        return _fitting(load_learned_predictor(spec, controller), parameterization)
     path = Path(spec)
     if path.suffix in (".pt", ".json") or path.exists() or path.with_name(path.name + ".pt").exists():
-        return load_learned_predictor(path, controller)
+        return _fitting(load_learned_predictor(path, controller), parameterization)
     raise ValueError(
         f"unknown density predictor {str(spec)!r}; valid choices: {', '.join(PREDICTOR_CHOICES)} or a weights "
         "file (.pt)"
     )
+
+
+def _fitting(predictor, parameterization):
+    """``predictor``, after checking that it was trained for ``parameterization`` (if given)."""
+    if parameterization is not None:
+        predictor.check_parameterization(parameterization)
+    return predictor

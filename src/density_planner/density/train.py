@@ -32,6 +32,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from ..checks import check_seed
 from ..errors import CheckpointError
 from .data import DensityData
 from .network import (
@@ -96,6 +97,7 @@ class DensityTrainConfig:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
+        check_seed("seed", self.seed)
         for name in ("epochs", "batch_size", "times_per_trajectory", "val_times", "patience"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:

@@ -1,28 +1,53 @@
-"""CommonRoad scenarios (XML, read with commonroad-io, the optional ``commonroad`` extra) -> occupancy scene.
+"""CommonRoad scenarios (XML, read with commonroad-io, the optional ``commonroad`` extra) -> scene.
 
-* Static occupancy: 1 outside the drivable area, the union of all lanelet polygons (left bound followed by the
-  reversed right bound, grown by ``lanelet_buffer`` to close the numerical gaps between neighbouring
-  lanelets), plus the shapes of static obstacles at their initial state; 0 on the lanelets. Rasterised with
-  shapely's vectorised ``contains_xy`` at the cell centres.
-* Dynamic obstacles: their initial state and predicted trajectory (position, orientation, velocity) resampled
-  linearly from the scenario's time step to the 0.1-s slices, dimensions from their shape (rectangle: length
-  and width; circle: the diameter; polygon: its bounding box), class from the obstacle type, footprints and
-  clamped sum exactly as for inD (:mod:`.footprints`). Obstacles with set-based predictions contribute their
-  initial state only (logged). A missing velocity counts as 0 m/s, a missing orientation as 0 rad.
-* Start and goal from the planning problem (the first one, or ``planning_problem_id``): start = (position,
-  orientation shifted into the car's heading box, velocity, bias 0); goal = the centroid of the union of the
-  goal state positions (or of the goal lanelets), moved to a point inside the region when the centroid falls
-  outside. Without a planning problem (or without a goal position) the seeded sampler of :mod:`.sampling` is
-  used.
-* Map area: ``area`` if given, else the bounding box of start and goal grown by ``area_margin`` and cut to the
-  lanelet network's bounding box; without a planning problem the whole lanelet network. The time axis starts
-  at the planning problem's initial time step (0 without one).
+:func:`load_commonroad_scene` builds two views of one scenario: the occupancy grid the planners read, and the
+exact :class:`~.road.RoadScene` (drivable area, the road users' true shapes over time, the goal region with its
+time interval) that plans are judged against. Times are absolute: ``t = time_step * dt`` of the scenario; the
+grid's first slice is the planning problem's initial time ``t_start``. Every simplification below is logged
+and recorded in ``scene.meta`` (``scene.json``).
+
+1. **Planning problem** (the first one, or ``planning_problem_id``): start = (position, orientation shifted into
+   the car's heading box, velocity, bias 0). A missing or non-finite start is an error; a start outside the car
+   model's domain (speed above the system's ``state_max``) is refused with one line naming the limit. A scenario
+   without a planning problem is refused unless ``sample_start_goal`` (then start and goal are sampled on the
+   road, seeded, and the goal region is a disc of ``sampled_goal_radius`` around the sampled goal).
+2. **Goal region** (:class:`~.road.GoalRegion`): every goal state's position (rectangle, circle, polygon, shape
+   group, or its goal lanelets), time interval, velocity and orientation intervals; alternative goal states
+   are kept as alternatives. ``scene.goal`` (the single point today's planners steer to) starts from the point
+   reached by following the start lanelet and its first successors at the initial speed until the end of the
+   horizon; it is that point for a goal without a position, else the point of the goal region (shrunk by 1 m)
+   nearest to it.
+3. **Horizon**: ``meta["horizon"]`` = end of the goal's time interval - ``t_start``, capped at ``max_horizon``
+   (logged when capped). The grid covers the horizon rounded up to whole seconds (the planners plan whole
+   segments), at least ``min_duration``, unless ``n_slices`` is given.
+4. **Road**: the drivable area is the union of the lanelets whose type is a road (types in
+   ``non_drivable_lanelet_types`` and lanelets whose road users exclude cars are left out), closed
+   morphologically over ``gap_close`` (gaps narrower than that, e.g. the numerical seams between
+   neighbouring lanelets, become road; the outer boundary does not grow). The area this fills is recorded
+   as ``meta["road"]["gap_area_closed_m2"]``. Static obstacles are occupied (1) at every slice.
+5. **Traffic lights**: while a light of a lanelet is red or red-yellow, a ``stop_line_depth``-deep strip at the
+   lanelet's stop line (or its end when it has none) is occupied (1) and is an obstacle of the road scene
+   (kind ``"red_light"``); a light whose strip covers the start at ``t_start`` is skipped (logged).
+   ``traffic_lights = false`` ignores them (logged).
+6. **Road users**: the dynamic obstacle that coincides with the planning problem's initial state (the
+   recorded ego; position within ``ego_tolerance`` at the initial time step) is dropped; ``exclude_obstacles``
+   drops others by id (an unknown id is an error). Trajectory predictions are resampled to the slices and,
+   past a road user's last recorded state, predicted at constant velocity and heading with a position error
+   growing with time (:func:`.footprints.extrapolate_tracks`); they become the split-Gaussian footprints of
+   :mod:`.footprints`. Set-based predictions (``occupancySet``) are occupied (1) over every time step they
+   cover; past their last set the last set moves on at the initial velocity. A missing velocity is taken from
+   the positions' finite differences; a missing orientation from the direction of motion.
+7. **Map**: the region the car can reach within the grid's duration (the horizon, at least ``min_duration``;
+   start speed, the system's speed and acceleration bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
+   size is ``cell_size`` unless the grid (``T x NX x NY`` float32) would exceed ``memory_budget_gib``; then the
+   smallest multiple of 0.05 m that fits (up to ``max_cell_size``, else an error naming the keys to change).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +56,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
 from density_planner.errors import DataError, OptionalDependencyError
 
@@ -38,11 +64,12 @@ from .footprints import (
     ROAD_USER_CLASSES,
     FootprintConfig,
     RoadUserTracks,
+    extrapolate_tracks,
     rasterise_road_users,
     resample_tracks,
 )
-from .grid import OccupancyGrid
-from .ind import map_lattice
+from .grid import OccupancyGrid, lattice_size
+from .road import GoalRegion, ObstacleTrack, RoadScene
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene, wrap_heading
 
@@ -52,6 +79,8 @@ __all__ = [
     "read_commonroad",
     "obstacle_class_id",
     "static_map",
+    "drivable_area",
+    "reach_distance",
 ]
 
 logger = logging.getLogger(__name__)
@@ -64,6 +93,9 @@ _TYPE_CLASS = {
     "bicycle": 3,
     "motorcycle": 3,
 }
+#: road users that make a lanelet drivable for a car (CommonRoad ``RoadUser`` values)
+_CAR_USERS = {"vehicle", "car"}
+_GIB = 2**30
 
 
 def obstacle_class_id(obstacle_type: Any) -> int:
@@ -76,49 +108,85 @@ def obstacle_class_id(obstacle_type: Any) -> int:
 class CommonRoadSceneConfig:
     """How a CommonRoad scenario becomes a scene (see the module docstring). Lengths in m, times in s."""
 
-    #: number of slices
-    n_slices: int = 101
+    #: number of slices; 0 = cover the horizon, at least ``min_duration``
+    n_slices: int = 0
     #: time between slices [s]
     dt: float = 0.1
-    #: cell edge [m]
+    #: the grid covers at least this long [s] (the planners' horizon today is 10 s)
+    min_duration: float = 10.0
+    #: cap on the horizon [s] (the horizon follows the end of the goal's time interval)
+    max_horizon: float = 20.0
+    #: finest cell edge [m]; coarser when the grid would exceed ``memory_budget_gib``
     cell_size: float = 0.1
-    #: map area (xmin, xmax, ymin, ymax) [m]; empty = around start and goal (see the module docstring)
+    #: coarsest cell edge the automatic choice may use [m]
+    max_cell_size: float = 1.0
+    #: memory budget of the occupancy grid (T x NX x NY float32) [GiB]; the planners hold about twice this
+    #: (grid + its gradient), and scene building time grows with it
+    memory_budget_gib: float = 0.25
+    #: map area (xmin, xmax, ymin, ymax) [m]; empty = reachable region + goal + margin (module docstring)
     area: tuple[float, ...] = ()
-    #: margin around the start-goal bounding box [m]
-    area_margin: float = 20.0
-    #: refuse grids with more cells than this (T * NX * NY; 4 bytes each)
-    max_cells: int = 300_000_000
-    #: the lanelet union is grown by this [m] to close gaps between neighbouring lanelets
-    lanelet_buffer: float = 0.05
+    #: margin around the reachable region and the goal [m]
+    area_margin: float = 10.0
+    #: gaps between drivable lanelets narrower than this are closed [m]
+    gap_close: float = 0.3
+    #: lanelet types that are not drivable (CommonRoad ``LaneletType`` values)
+    non_drivable_lanelet_types: tuple[str, ...] = ("sidewalk", "crosswalk", "bicycleLane")
+    #: red and red-yellow traffic lights block their lanelet's stop line
+    traffic_lights: bool = True
+    #: depth of the blocked strip at a stop line [m]
+    stop_line_depth: float = 1.0
     #: add static obstacles (occupancy 1) to the static map
     include_static_obstacles: bool = True
+    #: drop the dynamic obstacle that coincides with the planning problem's initial state (the recorded ego)
+    drop_ego: bool = True
+    #: position tolerance of that match [m]
+    ego_tolerance: float = 1.0
+    #: ids of further dynamic or static obstacles to leave out
+    exclude_obstacles: tuple[int, ...] = ()
     #: id of the planning problem to use; negative = the one with the smallest id
     planning_problem_id: int = -1
-    #: footprint model of the dynamic obstacles
+    #: sample start and goal on the road (seeded) instead of using the planning problem; needed without one
+    sample_start_goal: bool = False
+    #: radius of the goal region around a sampled goal [m]
+    sampled_goal_radius: float = 2.0
+    #: horizon of a sampled start/goal pair [s]
+    sampled_horizon: float = 10.0
+    #: the ego vehicle's length and width [m] (CommonRoad planning problems do not give them)
+    vehicle_length: float = 4.5
+    vehicle_width: float = 1.8
+    #: footprint model of the dynamic obstacles (incl. the growth of the prediction error)
     footprint: FootprintConfig = field(default_factory=FootprintConfig)
-    #: start/goal sampler rules (used without a planning problem)
+    #: start/goal sampler rules (``sample_start_goal``)
     start_goal: StartGoalConfig = field(default_factory=StartGoalConfig)
     #: seed of the start/goal sampler
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.n_slices < 1:
-            raise ValueError(f"CommonRoadSceneConfig.n_slices must be >= 1, got {self.n_slices}")
-        for name in ("dt", "cell_size"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"CommonRoadSceneConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.n_slices < 0:
+            raise ValueError(f"CommonRoadSceneConfig.n_slices must be >= 0, got {self.n_slices}")
+        for name in ("dt", "cell_size", "max_cell_size", "memory_budget_gib", "max_horizon", "ego_tolerance",
+                     "stop_line_depth", "sampled_goal_radius", "sampled_horizon"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"CommonRoadSceneConfig.{name} must be > 0, got {value}")
+        if self.max_cell_size < self.cell_size:
+            raise ValueError("CommonRoadSceneConfig.max_cell_size must be >= cell_size")
         if self.area and (
             len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]
         ):
             raise ValueError(
                 f"CommonRoadSceneConfig.area must be (xmin, xmax, ymin, ymax) with min < max, got {self.area}"
             )
-        if self.area_margin < 0 or self.lanelet_buffer < 0:
-            raise ValueError("CommonRoadSceneConfig.area_margin and lanelet_buffer must be >= 0")
-        if self.seed < 0:
-            raise ValueError(f"CommonRoadSceneConfig.seed must be >= 0, got {self.seed}")
+        for name in ("area_margin", "gap_close", "min_duration", "vehicle_length", "vehicle_width"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"CommonRoadSceneConfig.{name} must be >= 0, got {value}")
+        if not (self.vehicle_length > 0 and self.vehicle_width > 0):
+            raise ValueError("CommonRoadSceneConfig.vehicle_length and vehicle_width must be > 0")
+        check_seed("CommonRoadSceneConfig.seed", self.seed)
 
 
+# ------------------------------------------------------------------------------------------------- reading
 def _require() -> tuple[Any, Any]:
     try:
         import shapely
@@ -144,128 +212,232 @@ def read_commonroad(path: str | Path) -> tuple[Any, Any]:
             f"{path} is not a CommonRoad scenario (root element <{root.tag}>, expected <commonRoad>)"
         )
     try:
-        return reader_cls(str(path)).open()
+        with warnings.catch_warnings():  # NaN coordinates: shapely warns inside commonroad-io; checked below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return reader_cls(str(path)).open()
     except Exception as exc:  # commonroad-io raises many kinds of errors on malformed content
         raise DataError(f"{path}: cannot read the CommonRoad scenario ({type(exc).__name__}: {exc})") from exc
 
 
-def _lanelet_polygons(scenario: Any, shapely: Any) -> list[Any]:
-    polys = []
-    for lanelet in scenario.lanelet_network.lanelets:
-        left = np.asarray(lanelet.left_vertices, dtype=np.float64)
-        right = np.asarray(lanelet.right_vertices, dtype=np.float64)
-        ring = np.vstack([left, right[::-1]])
-        poly = shapely.Polygon(ring)
-        if not poly.is_valid:
-            poly = poly.buffer(0)
-        if not poly.is_empty:
-            polys.append(poly)
-    return polys
+def _lanelet_polygon(lanelet: Any, shapely: Any, where: str) -> Any:
+    left = np.asarray(lanelet.left_vertices, dtype=np.float64)
+    right = np.asarray(lanelet.right_vertices, dtype=np.float64)
+    if not (np.isfinite(left).all() and np.isfinite(right).all()):
+        raise DataError(
+            f"{where}: lanelet {lanelet.lanelet_id} has non-finite vertices (NaN or inf in its <x>/<y>); "
+            "fix the file"
+        )
+    poly = shapely.Polygon(np.vstack([left, right[::-1]]))
+    if not poly.is_valid:
+        poly = shapely.make_valid(poly)
+    return poly
 
 
-def _shape_dims(shape: Any) -> tuple[float, float]:
-    """(length, width) [m] of a CommonRoad obstacle shape (rectangle, circle, polygon, truck shapes)."""
-    if hasattr(shape, "radius"):
-        return 2.0 * float(shape.radius), 2.0 * float(shape.radius)
-    length = getattr(shape, "total_length", None) or getattr(shape, "length", None)
-    width = getattr(shape, "width", None)
-    if length is not None and width is not None:
-        return float(length), float(width)
-    vertices = getattr(shape, "vertices", None)
-    if vertices is not None:
-        v = np.asarray(vertices, dtype=np.float64)
-        ext = v.max(axis=0) - v.min(axis=0)
-        return float(max(ext)), float(min(ext))
-    raise DataError(f"unsupported CommonRoad obstacle shape {type(shape).__name__}")
+def _is_drivable(lanelet: Any, cfg: CommonRoadSceneConfig) -> bool:
+    types = {str(getattr(t, "value", t)) for t in (getattr(lanelet, "lanelet_type", None) or ())}
+    if types & set(cfg.non_drivable_lanelet_types):
+        # a lanelet typed both as a road and e.g. a crosswalk stays a road
+        if not types - set(cfg.non_drivable_lanelet_types) - {"unknown"}:
+            return False
+    users = {str(getattr(u, "value", u)) for u in (getattr(lanelet, "user_one_way", None) or ())}
+    users |= {str(getattr(u, "value", u)) for u in (getattr(lanelet, "user_bidirectional", None) or ())}
+    return not users or bool(users & _CAR_USERS)
 
 
-def _state_values(state: Any) -> tuple[float, float, float, float]:
-    pos = np.asarray(getattr(state, "position", None), dtype=np.float64).reshape(-1)
-    if pos.size != 2:
-        return (math.nan,) * 4
-    orientation = getattr(state, "orientation", None)
-    velocity = getattr(state, "velocity", None)
-    theta = float(orientation) if isinstance(orientation, (int, float)) else 0.0
-    speed = float(velocity) if isinstance(velocity, (int, float)) else 0.0
-    return float(pos[0]), float(pos[1]), theta, speed
-
-
-def _dynamic_tracks(scenario: Any, times: np.ndarray) -> tuple[RoadUserTracks, list[dict[str, Any]]]:
-    obstacles = list(scenario.dynamic_obstacles)
-    dt_src = float(scenario.dt)
-    rows: list[list[tuple[int, tuple[float, float, float, float]]]] = []
-    max_step = 0
-    for obs in obstacles:
-        states = [obs.initial_state]
-        trajectory = getattr(getattr(obs, "prediction", None), "trajectory", None)
-        if trajectory is not None:
-            states += list(trajectory.state_list)
-        elif getattr(obs, "prediction", None) is not None:
-            logger.info(
-                "obstacle %s has a set-based prediction: only its initial state is used", obs.obstacle_id
-            )
-        entries = []
-        for st in states:
-            step = getattr(st, "time_step", None)
-            if not isinstance(step, (int, np.integer)):
-                continue
-            entries.append((int(step), _state_values(st)))
-            max_step = max(max_step, int(step))
-        rows.append(entries)
-    n = len(obstacles)
-    n_src = max(max_step + 1, 2)
-    dense = {name: np.full((n, n_src), np.nan) for name in ("x", "y", "heading", "speed")}
-    for i, entries in enumerate(rows):
-        for step, (x, y, th, v) in entries:
-            dense["x"][i, step], dense["y"][i, step] = x, y
-            dense["heading"][i, step], dense["speed"][i, step] = th, v
-    res = resample_tracks(dense, np.arange(n_src) * dt_src, times, angles=("heading",))
-    dims = np.asarray([_shape_dims(o.obstacle_shape) for o in obstacles], dtype=np.float64).reshape(n, 2)
-    cls = np.asarray([obstacle_class_id(o.obstacle_type) for o in obstacles], dtype=np.int64)
-    ids = np.asarray([int(o.obstacle_id) for o in obstacles], dtype=np.int64)
-    tracks = RoadUserTracks(
-        res["x"], res["y"], res["heading"], res["speed"], dims[:, 0], dims[:, 1], cls, ids
-    )
-    info = [
-        {
-            "id": int(ids[i]),
-            "type": str(getattr(obstacles[i].obstacle_type, "value", obstacles[i].obstacle_type)),
-            "class": ROAD_USER_CLASSES[int(cls[i])],
-            "length": float(dims[i, 0]),
-            "width": float(dims[i, 1]),
-        }
-        for i in range(n)
-    ]
-    return tracks, info
-
-
-def _static_obstacle_polygons(scenario: Any, shapely: Any) -> list[Any]:
-    polys = []
-    for obs in scenario.static_obstacles:
-        x, y, th, _ = _state_values(obs.initial_state)
-        if not math.isfinite(x):
-            continue
-        shape = obs.obstacle_shape
-        if hasattr(shape, "radius"):
-            polys.append(shapely.Point(x, y).buffer(float(shape.radius)))
-            continue
-        vertices = getattr(shape, "vertices", None)
-        if vertices is not None and not hasattr(shape, "length"):
-            v = np.asarray(vertices, dtype=np.float64)
+def drivable_area(scenario: Any, config: CommonRoadSceneConfig | None = None, *, where: str = "scenario"
+                  ) -> tuple[Any, dict[str, Any]]:
+    """``(drivable geometry, notes)``: the union of the drivable lanelets closed over ``gap_close`` (module
+    docstring, step 4); ``notes`` counts the lanelets kept / left out and the gap area filled [m^2]."""
+    cfg = config or CommonRoadSceneConfig()
+    _, shapely = _require()
+    lanelets = list(scenario.lanelet_network.lanelets)
+    if not lanelets:
+        raise DataError(f"{where}: the scenario has no lanelets (no road to plan on)")
+    polys, left_out = [], []
+    for lanelet in lanelets:
+        poly = _lanelet_polygon(lanelet, shapely, where)
+        if _is_drivable(lanelet, cfg):
+            if not poly.is_empty:
+                polys.append(poly)
         else:
-            length, width = _shape_dims(shape)
-            v = np.array(
-                [
-                    [-length / 2, -width / 2],
-                    [length / 2, -width / 2],
-                    [length / 2, width / 2],
-                    [-length / 2, width / 2],
-                ]
-            )
-        c, s = math.cos(th), math.sin(th)
-        pts = v @ np.array([[c, s], [-s, c]]) + np.array([x, y])
-        polys.append(shapely.Polygon(pts))
-    return polys
+            left_out.append(int(lanelet.lanelet_id))
+    if not polys:
+        raise DataError(
+            f"{where}: none of its {len(lanelets)} lanelets is drivable by a car (types "
+            f"{sorted(cfg.non_drivable_lanelet_types)} are not); change "
+            "--set commonroad.non_drivable_lanelet_types=[...]"
+        )
+    union = shapely.union_all(polys)
+    drivable = union
+    if cfg.gap_close > 0:
+        r = 0.5 * cfg.gap_close
+        drivable = shapely.union(union.buffer(r, join_style="mitre", mitre_limit=2.0).buffer(
+            -r, join_style="mitre", mitre_limit=2.0), union)
+    drivable = shapely.make_valid(drivable)
+    notes = {
+        "n_lanelets": len(lanelets),
+        "n_drivable_lanelets": len(polys),
+        "non_drivable_lanelets": left_out,
+        "gap_close_m": cfg.gap_close,
+        "gap_area_closed_m2": float(drivable.area - union.area),
+        "drivable_area_m2": float(drivable.area),
+        "n_holes": int(sum(len(p.interiors) for p in getattr(drivable, "geoms", [drivable])
+                           if hasattr(p, "interiors"))),
+    }
+    return drivable, notes
+
+
+# --------------------------------------------------------------------------------------------- obstacles
+def _num(value: Any) -> float | None:
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    return None
+
+
+def _shape_outline(shape: Any, shapely: Any) -> tuple[Any, float, float]:
+    """``(outline polygon in the obstacle frame or None for a plain rectangle, length, width)``."""
+    from commonroad.scenario.state import InitialState
+
+    radius = _num(getattr(shape, "radius", None))
+    length, width = _num(getattr(shape, "length", None)), _num(getattr(shape, "width", None))
+    if radius is None and length is not None and width is not None and not getattr(shape, "origin_x_shift", 0):
+        if type(shape).__name__ in ("RectObstacleShape", "Rectangle"):
+            return None, length, width
+    try:
+        occ = shape.compute_occupancy_for_state(
+            InitialState(time_step=0, position=np.zeros(2), orientation=0.0, velocity=0.0))
+        poly = occ.shapely_object
+    except Exception:  # older shape classes: fall back to the bounding rectangle
+        poly = None
+    if poly is None and radius is not None:
+        poly = shapely.Point(0.0, 0.0).buffer(radius, quad_segs=8)
+    if poly is None:
+        if length is None or width is None:
+            raise DataError(f"unsupported CommonRoad obstacle shape {type(shape).__name__}")
+        return None, length, width
+    if poly.geom_type != "Polygon":
+        poly = poly.convex_hull
+    x0, y0, x1, y1 = poly.bounds
+    return poly, max(x1 - x0, 1e-3), max(y1 - y0, 1e-3)
+
+
+def _states(obs: Any) -> list[Any]:
+    states = [obs.initial_state]
+    trajectory = getattr(getattr(obs, "prediction", None), "trajectory", None)
+    if trajectory is not None:
+        states += list(trajectory.state_list)
+    return states
+
+
+def _trajectory_arrays(obs: Any, dt: float, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(times (K,), poses (K, 3), speed (K,))`` of an obstacle's initial state and trajectory."""
+    rows = {}
+    for st in _states(obs):
+        step = getattr(st, "time_step", None)
+        if not isinstance(step, (int, np.integer)):
+            continue
+        pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
+        if pos.size != 2:
+            continue
+        rows[int(step)] = (pos[0], pos[1], _num(getattr(st, "orientation", None)), _num(getattr(st, "velocity",
+                                                                                                 None)))
+    if not rows:
+        raise DataError(f"{where}: dynamic obstacle {obs.obstacle_id} has no state with a position")
+    steps = np.array(sorted(rows))
+    xy = np.array([[rows[s][0], rows[s][1]] for s in steps], dtype=np.float64)
+    th = np.array([np.nan if rows[s][2] is None else rows[s][2] for s in steps])
+    v = np.array([np.nan if rows[s][3] is None else rows[s][3] for s in steps])
+    if not np.isfinite(xy).all():
+        raise DataError(f"{where}: dynamic obstacle {obs.obstacle_id} has a non-finite position; fix the file")
+    times = steps * dt
+    if steps.size > 1:
+        vel = np.gradient(xy, times, axis=0)
+        th = np.where(np.isfinite(th), th, np.arctan2(vel[:, 1], vel[:, 0]))
+        v = np.where(np.isfinite(v), v, np.hypot(vel[:, 0], vel[:, 1]))
+    th, v = np.nan_to_num(th), np.nan_to_num(v)
+    return times, np.column_stack([xy, th]), v
+
+
+def _state_at_step(obs: Any, step: int) -> np.ndarray | None:
+    for st in _states(obs):
+        if getattr(st, "time_step", None) == step:
+            pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
+            return pos if pos.size == 2 else None
+    return None
+
+
+def _interval(value: Any) -> tuple[float, float] | None:
+    if value is None:
+        return None
+    start, end = _num(getattr(value, "start", None)), _num(getattr(value, "end", None))
+    if start is not None and end is not None:
+        return (start, end)
+    x = _num(value)
+    return None if x is None else (x, x)
+
+
+def _set_based_track(obs: Any, kind: str, dt: float, t_end: float, shapely: Any, fp: FootprintConfig
+                     ) -> ObstacleTrack | None:
+    """Set-based prediction -> track of world-frame occupancies, one per scenario time step it covers,
+    continued past its last set at the initial velocity (module docstring, step 6)."""
+    occ_dict = getattr(obs.prediction, "occupancies", None) or {}
+    per_step: dict[int, list[Any]] = {}
+    for key, occ in occ_dict.items():
+        geom = getattr(occ, "shapely_object", None)
+        if geom is None:
+            geom = getattr(getattr(occ, "shape", None), "shapely_object", None)
+        iv = _interval(key) if not isinstance(key, (int, np.integer)) else (int(key), int(key))
+        if geom is None or iv is None:
+            continue
+        for s in range(int(math.floor(iv[0])), int(math.ceil(iv[1])) + 1):
+            per_step.setdefault(s, []).append(geom)
+    init = obs.initial_state
+    pos = np.asarray(init.position, dtype=np.float64).reshape(-1)
+    th0 = _num(getattr(init, "orientation", None)) or 0.0
+    v0 = _num(getattr(init, "velocity", None)) or 0.0
+    init_poly, length, width = _shape_outline(obs.obstacle_shape, shapely)
+    if init_poly is None:
+        init_poly = shapely.box(-length / 2, -width / 2, length / 2, width / 2)
+    base = shapely.affinity.translate(shapely.affinity.rotate(init_poly, th0, origin=(0, 0), use_radians=True),
+                                      *pos)
+    per_step.setdefault(int(init.time_step), []).append(base)
+    steps = np.array(sorted(per_step))
+    geoms = [shapely.union_all(per_step[s]) for s in steps]
+    times = list(steps * dt)
+    predicted = [False] * len(times)
+    std = [0.0] * len(times)
+    last = geoms[-1]
+    n_extra = int(math.floor((t_end - times[-1]) / dt + 1e-9))
+    for i in range(1, n_extra + 1):
+        tau = i * dt
+        e = fp.prediction_std_rate_along * tau
+        moved = shapely.affinity.translate(last, v0 * math.cos(th0) * tau, v0 * math.sin(th0) * tau)
+        geoms.append(moved.buffer(e) if e > 0 else moved)
+        times.append(times[len(steps) - 1] + tau)
+        predicted.append(True)
+        std.append(e)
+    cents = np.array([[g.centroid.x, g.centroid.y, th0] for g in geoms])
+    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, np.array(times), cents, predicted=predicted,
+                         position_std=std, occupancies=np.array(geoms, dtype=object))
+
+
+# ---------------------------------------------------------------------------------------------- rasterise
+def _rasterise_polygons(out: torch.Tensor, polys_per_slice: list[list[Any]], origin: tuple[float, float],
+                        h: float, shapely: Any) -> None:
+    """Set ``out[k] = 1`` inside every polygon of slice ``k`` (cell centres; only each polygon's bounding box of
+    cells is tested)."""
+    _, NX, NY = out.shape
+    for k, polys in enumerate(polys_per_slice):
+        for poly in polys:
+            x0, y0, x1, y1 = poly.bounds
+            i0, i1 = max(int(math.floor((x0 - origin[0]) / h)), 0), min(int(math.ceil((x1 - origin[0]) / h)), NX - 1)
+            j0, j1 = max(int(math.floor((y0 - origin[1]) / h)), 0), min(int(math.ceil((y1 - origin[1]) / h)), NY - 1)
+            if i0 > i1 or j0 > j1:
+                continue
+            gx, gy = np.meshgrid(origin[0] + h * np.arange(i0, i1 + 1), origin[1] + h * np.arange(j0, j1 + 1),
+                                 indexing="ij")
+            inside = torch.from_numpy(shapely.contains_xy(poly, gx, gy))
+            out[k, i0:i1 + 1, j0:j1 + 1][inside] = 1.0
 
 
 def static_map(
@@ -276,153 +448,594 @@ def static_map(
     config: CommonRoadSceneConfig | None = None,
     *,
     drivable: Any = None,
+    static_polygons: list[Any] | None = None,
 ) -> tuple[np.ndarray, int]:
-    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the lanelet union
+    """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the drivable area
     and inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
     if drivable is None:
-        lanelets = _lanelet_polygons(scenario, shapely)
-        if not lanelets:
-            raise DataError("the scenario has no lanelets (no drivable area)")
-        drivable = shapely.union_all(lanelets)
-        if cfg.lanelet_buffer > 0:
-            drivable = drivable.buffer(cfg.lanelet_buffer)
+        drivable, _ = drivable_area(scenario, cfg)
     nx, ny = size
     xs = origin[0] + cell_size * np.arange(nx)
     ys = origin[1] + cell_size * np.arange(ny)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     shapely.prepare(drivable)
-    static = (~shapely.contains_xy(drivable, gx, gy)).astype(np.float32)
-    n_static = 0
+    static = (~shapely.intersects_xy(drivable, gx, gy)).astype(np.float32)
+    if static_polygons is None:
+        static_polygons = []
+        if cfg.include_static_obstacles:
+            for obs in scenario.static_obstacles:
+                track = _static_track(obs, shapely)
+                if track is not None:
+                    static_polygons.append(track.polygons_at(np.array([0.0]))[0])
+    if static_polygons:
+        blocked = shapely.union_all(static_polygons)
+        shapely.prepare(blocked)
+        static[shapely.intersects_xy(blocked, gx, gy)] = 1.0
+    return static, len(static_polygons)
+
+
+def _static_track(obs: Any, shapely: Any) -> ObstacleTrack | None:
+    st = obs.initial_state
+    pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
+    if pos.size != 2 or not np.isfinite(pos).all():
+        return None
+    th = _num(getattr(st, "orientation", None)) or 0.0
+    outline, length, width = _shape_outline(obs.obstacle_shape, shapely)
+    kind = str(getattr(obs.obstacle_type, "value", obs.obstacle_type))
+    t0 = float(getattr(st, "time_step", 0) or 0)
+    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, [t0], [[pos[0], pos[1], th]], shape=outline,
+                         static=True)
+
+
+# -------------------------------------------------------------------------------------------------- goal
+def _lanelet_union(scenario: Any, ids: list[int], shapely: Any, where: str) -> Any:
+    polys = []
+    for lid in ids:
+        lanelet = scenario.lanelet_network.find_lanelet_by_id(lid)
+        if lanelet is None:
+            raise DataError(f"{where}: the goal names lanelet {lid}, which is not in the lanelet network")
+        polys.append(_lanelet_polygon(lanelet, shapely, where))
+    return shapely.union_all(polys) if polys else None
+
+
+def goal_region(problem: Any, scenario: Any, *, where: str = "scenario") -> GoalRegion:
+    """The :class:`~.road.GoalRegion` of a CommonRoad planning problem (module docstring, step 2)."""
+    _, shapely = _require()
+    dt = float(scenario.dt)
+    goal = problem.goal
+    lanelet_goals = dict(getattr(goal, "lanelets_of_goal_position", None) or {})
+    alternatives = []
+    for i, st in enumerate(getattr(goal, "state_list", []) or []):
+        geom, lids = None, tuple(int(x) for x in lanelet_goals.get(i, ()))
+        pos = getattr(st, "position", None)
+        if pos is not None:
+            geom = getattr(pos, "shapely_object", None)
+            if geom is None:
+                centre = np.asarray(getattr(pos, "center", None), dtype=np.float64).reshape(-1)
+                if centre.size == 2:
+                    geom = shapely.Point(*centre)
+        if geom is None and lids:
+            geom = _lanelet_union(scenario, list(lids), shapely, where)
+        if geom is not None:
+            if geom.is_empty or not np.isfinite(shapely.get_coordinates(geom)).all():
+                raise DataError(f"{where}: goal state {i} has an empty or non-finite position; fix the file")
+            if geom.area == 0:  # a point or line goal: reachable only with a tolerance of the car's size
+                geom = geom.buffer(0.5)
+        ts = _interval(getattr(st, "time_step", None))
+        if ts is None:
+            raise DataError(f"{where}: goal state {i} has no time step / interval (required by CommonRoad)")
+        vel = _interval(getattr(st, "velocity", None))
+        ori = _interval(getattr(st, "orientation", None))
+        alternatives.append(GoalRegion(geom, (ts[0] * dt, ts[1] * dt), vel, ori, lids))
+    if not alternatives:
+        raise DataError(f"{where}: the planning problem has no goal state")
+    if len(alternatives) == 1:
+        return alternatives[0]
+    shapes = [a.shapes for a in alternatives if a.shapes is not None]
+    any_anywhere = any(a.shapes is None for a in alternatives)
+    union = None if (any_anywhere or not shapes) else shapely.union_all(shapes)
+    t_lo = min(a.time_interval[0] for a in alternatives)
+    t_hi = max(a.time_interval[1] for a in alternatives)
+    lids = tuple(sorted({i for a in alternatives for i in a.lanelet_ids}))
+    return GoalRegion(union, (t_lo, t_hi), None, None, lids, alternatives=tuple(alternatives))
+
+
+def _lane_following_point(scenario: Any, start: tuple[float, ...], distance: float, shapely: Any
+                          ) -> tuple[float, float]:
+    """The point ``distance`` m ahead of the start along the centre line of its lanelet and first
+    successors (the start itself when it is on no lanelet or ``distance`` is 0)."""
+    net = scenario.lanelet_network
+    xy = np.asarray(start[:2], dtype=np.float64)
+    if distance <= 0:
+        return float(xy[0]), float(xy[1])
+    try:
+        ids = net.find_lanelet_by_position([xy])[0]
+    except Exception:
+        ids = []
+    if not ids:
+        return float(xy[0] + distance * math.cos(start[2])), float(xy[1] + distance * math.sin(start[2]))
+    # the lanelet whose direction is closest to the start heading
+    best, best_err = ids[0], math.inf
+    for lid in ids:
+        c = np.asarray(net.find_lanelet_by_id(lid).center_vertices)
+        line = shapely.LineString(c)
+        s = line.project(shapely.Point(xy))
+        a, b = line.interpolate(max(s - 0.5, 0)), line.interpolate(min(s + 0.5, line.length))
+        err = abs(math.remainder(math.atan2(b.y - a.y, b.x - a.x) - start[2], 2 * math.pi))
+        if err < best_err:
+            best, best_err = lid, err
+    pts = [xy]
+    lanelet = net.find_lanelet_by_id(best)
+    line = shapely.LineString(np.asarray(lanelet.center_vertices))
+    s0 = line.project(shapely.Point(xy))
+    coords = np.asarray(shapely.get_coordinates(shapely.ops.substring(line, s0, line.length)))
+    pts.extend(coords[1:])
+    seen = {best}
+    while True:
+        path = shapely.LineString(np.vstack(pts)) if len(pts) > 1 else None
+        if path is not None and path.length >= distance:
+            p = path.interpolate(distance)
+            return float(p.x), float(p.y)
+        succ = [s for s in (lanelet.successor or []) if s not in seen]
+        if not succ:
+            p = shapely.Point(pts[-1]) if path is None else path.interpolate(path.length)
+            return float(p.x), float(p.y)
+        lanelet = net.find_lanelet_by_id(succ[0])
+        seen.add(succ[0])
+        pts.extend(np.asarray(lanelet.center_vertices)[1:])
+
+
+def _goal_point_near(shapes: Any, xy: tuple[float, float], shapely: Any) -> tuple[float, float]:
+    """The point of ``shapes`` nearest to ``xy``, taken from the region shrunk by 1 m (by less where the
+    region is narrower), so that today's point-goal planners aim at the near side of a long goal lanelet."""
+    p = shapely.Point(xy[0], xy[1])
+    inner = shapes
+    for depth in (1.0, 0.5, 0.25):
+        shrunk = shapes.buffer(-depth)
+        if not shrunk.is_empty:
+            inner = shrunk
+            break
+    q = shapely.ops.nearest_points(inner, p)[0]
+    return float(q.x), float(q.y)
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+def reach_distance(v0: float, v_max: float, a_max: float, horizon: float) -> float:
+    """Largest distance [m] a car starting at ``v0`` covers in ``horizon`` s with acceleration <= ``a_max``
+    and speed <= ``v_max`` (accelerate, then cruise)."""
+    v0 = min(max(v0, 0.0), v_max)
+    if a_max <= 0:
+        return v0 * horizon
+    t_acc = min((v_max - v0) / a_max, horizon)
+    return v0 * t_acc + 0.5 * a_max * t_acc**2 + v_max * (horizon - t_acc)
+
+
+def _choose_cell(area: tuple[float, float, float, float], n_slices: int, cfg: CommonRoadSceneConfig,
+                 where: str) -> float:
+    w, h = area[1] - area[0], area[3] - area[2]
+    budget_cells = cfg.memory_budget_gib * _GIB / 4.0 / n_slices
+    need = math.sqrt(w * h / budget_cells) if budget_cells > 0 else math.inf
+    cell = cfg.cell_size
+
+    def fits(c: float) -> bool:  # the lattice adds up to 5 points per axis (ends, snapping, whole coarse cells)
+        return (w / c + 5) * (h / c + 5) <= budget_cells
+
+    if not fits(cell):
+        cell = max(cell, math.ceil(need / 0.05 - 1e-9) * 0.05)
+        while not fits(cell) and cell <= cfg.max_cell_size:
+            cell += 0.05
+        cell = round(cell, 6)
+    if cell > cfg.max_cell_size + 1e-9:
+        raise DataError(
+            f"{where}: the map ({w:.0f} m x {h:.0f} m, {n_slices} slices) needs cells of {cell:g} m to fit "
+            f"{cfg.memory_budget_gib:g} GiB, coarser than max_cell_size = {cfg.max_cell_size:g} m; raise "
+            "--set commonroad.memory_budget_gib=..., lower --set commonroad.max_horizon=..., or allow "
+            "--set commonroad.max_cell_size=..."
+        )
+    return cell
+
+
+def _snap(area: tuple[float, float, float, float], cell: float) -> tuple[float, float, float, float]:
+    return (
+        round(math.floor(area[0] / cell + 1e-9) * cell, 9),
+        round(math.ceil(area[1] / cell - 1e-9) * cell, 9),
+        round(math.floor(area[2] / cell + 1e-9) * cell, 9),
+        round(math.ceil(area[3] / cell - 1e-9) * cell, 9),
+    )
+
+
+def _model_limits(system: Any) -> tuple[float, float, float, str]:
+    """``(v_min, v_max, a_max, description)`` of the system's speed state and acceleration input."""
+    if system is None:
+        from density_planner.systems.car import KinematicCar
+
+        system = KinematicCar()
+    names = list(getattr(system, "state_names", ()))
+    inputs = list(getattr(system, "input_names", ()))
+    lo, hi = system.state_bounds
+    ulo, uhi = system.input_bounds
+    iv = names.index("v") if "v" in names else 3
+    ia = inputs.index("a") if "a" in inputs else len(inputs) - 1
+    return float(lo[iv]), float(hi[iv]), float(max(abs(ulo[ia]), abs(uhi[ia]))), type(system).__name__
+
+
+# ---------------------------------------------------------------------------------------------------- load
+def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None = None, *,
+                          system: Any = None) -> Scene:
+    """Scene of the CommonRoad scenario in ``path`` (see the module docstring for every step).
+
+    ``system`` (default: :class:`~density_planner.systems.car.KinematicCar`) supplies the speed and
+    acceleration bounds (the reachable map region and the start-domain check). The returned scene carries the
+    exact geometry in ``scene.road`` and the suggested planning horizon in ``scene.meta["horizon"]`` [s].
+    """
+    cfg = config or CommonRoadSceneConfig()
+    _, shapely = _require()
+    import shapely.affinity  # noqa: F401  (submodules used below)
+    import shapely.ops  # noqa: F401
+
+    path = Path(path)
+    scenario, problem_set = read_commonroad(path)
+    bench_id = str(getattr(scenario, "scenario_id", path.stem))
+    where = path.name if bench_id == path.stem else f"{path.name} ({bench_id})"
+    dt_src = float(scenario.dt)
+    if not (math.isfinite(dt_src) and dt_src > 0):
+        raise DataError(f"{where}: the scenario's time step dt = {dt_src} must be a positive number")
+    notes: list[str] = []
+
+    def note(msg: str, *args: Any) -> None:
+        text = msg % args if args else msg
+        logger.info("%s: %s", where, text)
+        notes.append(text)
+
+    drivable, road_notes = drivable_area(scenario, cfg, where=where)
+    if road_notes["non_drivable_lanelets"]:
+        note("%d lanelets are not drivable by a car (types %s or road users without cars) and are left out",
+             len(road_notes["non_drivable_lanelets"]), list(cfg.non_drivable_lanelet_types))
+    v_min, v_max, a_max, model = _model_limits(system)
+
+    # -- planning problem: start, goal, horizon
+    problem = _planning_problem(problem_set, cfg.planning_problem_id, where)
+    if problem is None and not cfg.sample_start_goal:
+        raise DataError(
+            f"{where}: the file has no planning problem (no start and goal); add one, or sample a start and "
+            "goal on its road with --set commonroad.sample_start_goal=true"
+        )
+    start: tuple[float, ...] | None = None
+    t_start = 0.0
+    goal: GoalRegion | None = None
+    if problem is not None:
+        init = problem.initial_state
+        step = getattr(init, "time_step", 0)
+        if not isinstance(step, (int, np.integer)):
+            raise DataError(f"{where}: the planning problem's initial state has no integer time step")
+        t_start = float(step) * dt_src
+        pos = np.asarray(getattr(init, "position", None), dtype=np.float64).reshape(-1)
+        th, v = _num(getattr(init, "orientation", None)), _num(getattr(init, "velocity", None))
+        if pos.size != 2 or th is None or v is None or not (np.isfinite(pos).all() and math.isfinite(th)
+                                                             and math.isfinite(v)):
+            raise DataError(
+                f"{where}: the planning problem's initial state must have a finite position, orientation and "
+                f"velocity, got position {pos.tolist()}, orientation {th}, velocity {v}; fix the file"
+            )
+        start = (float(pos[0]), float(pos[1]), wrap_heading(th), float(v), 0.0)
+        if not cfg.sample_start_goal:
+            if not (v_min - 1e-9 <= v <= v_max + 1e-9):
+                raise DataError(
+                    f"{where}: start speed {v:.2f} m/s is outside the {model} model's domain "
+                    f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); planning from it is not supported"
+                )
+            goal = goal_region(problem, scenario, where=where)
+            alts = goal.alternatives or (goal,)
+            if all(a.velocity is not None and not (a.velocity[0] <= v_max + 1e-9 and a.velocity[1] >= v_min - 1e-9)
+                   for a in alts):
+                bands = ", ".join(f"[{a.velocity[0]:.2f}, {a.velocity[1]:.2f}]" for a in alts)
+                raise DataError(
+                    f"{where}: the goal's velocity interval {bands} m/s lies outside the {model} model's domain "
+                    f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); no plan can reach it"
+                )
+    if cfg.sample_start_goal:
+        horizon = cfg.sampled_horizon
+    else:
+        assert goal is not None
+        horizon = goal.t_end - t_start
+        if horizon <= 0:
+            raise DataError(
+                f"{where}: the goal's time interval [{goal.time_interval[0]:g}, {goal.time_interval[1]:g}] s ends "
+                f"before the start (t = {t_start:g} s)"
+            )
+        if horizon > cfg.max_horizon:
+            note("the goal's time interval ends %.1f s after the start; the horizon is capped at "
+                 "max_horizon = %g s", horizon, cfg.max_horizon)
+            horizon = cfg.max_horizon
+    # the grid covers the horizon rounded up to whole seconds (planners plan whole segments), >= min_duration
+    n_slices = cfg.n_slices or int(math.ceil(max(math.ceil(horizon - 1e-9), cfg.min_duration) / cfg.dt - 1e-9)) + 1
+    t_grid_end = t_start + (n_slices - 1) * cfg.dt
+
+    # -- map region and cell size
+    lx0, ly0, lx1, ly1 = drivable.bounds
+    if cfg.area:
+        area = tuple(float(v) for v in cfg.area)
+        region_rule = "configured area"
+    elif start is not None and not cfg.sample_start_goal:
+        span = (n_slices - 1) * cfg.dt  # the grid's duration (>= the horizon: today's planners plan min_duration)
+        reach = reach_distance(start[3], v_max, a_max, span)
+        disc = shapely.Point(start[0], start[1]).buffer(reach + cfg.area_margin, quad_segs=16)
+        parts = [disc.intersection(drivable.buffer(cfg.area_margin)), shapely.Point(start[0], start[1])]
+        if goal is not None and goal.shapes is not None:
+            parts.append(goal.shapes)
+        bx0, by0, bx1, by1 = shapely.union_all([p for p in parts if not p.is_empty]).bounds
+        m = cfg.area_margin
+        area = (bx0 - m, bx1 + m, by0 - m, by1 + m)
+        region_rule = (f"reachable in {span:g} s from {start[3]:.1f} m/s (v <= {v_max:g} m/s, |a| <= "
+                       f"{a_max:g} m/s^2: {reach:.0f} m) on the road, plus the goal region and {m:g} m")
+    else:
+        m = cfg.area_margin
+        area = (lx0 - m, lx1 + m, ly0 - m, ly1 + m)
+        region_rule = "the whole lanelet network"
+    cell = _choose_cell(area, n_slices, cfg, where)
+    if cell > cfg.cell_size:
+        note("cell size %.2f m (not %g m) keeps the %d-slice grid within memory_budget_gib = %g", cell,
+             cfg.cell_size, n_slices, cfg.memory_budget_gib)
+    area = _snap(area, cell)
+    nx, ny = lattice_size(area[0], area[1], cell), lattice_size(area[2], area[3], cell)
+    factor = int(round(cfg.footprint.coarse_cell / cell)) if cfg.footprint.coarse_cell > 0 else 1
+    if factor >= 2:  # whole coarse cells: the footprints' coarse lattice then upsamples without a cropping copy
+        nx, ny = nx + (-(nx - 1)) % factor, ny + (-(ny - 1)) % factor
+        area = (area[0], round(area[0] + (nx - 1) * cell, 9), area[2], round(area[2] + (ny - 1) * cell, 9))
+    origin = (area[0], area[2])
+    times = t_start + cfg.dt * np.arange(n_slices)
+
+    # -- obstacles
+    known = {int(o.obstacle_id) for o in scenario.obstacles}
+    unknown = sorted(set(int(i) for i in cfg.exclude_obstacles) - known)
+    if unknown:
+        raise DataError(
+            f"{where}: commonroad.exclude_obstacles names obstacle id(s) {unknown} that are not in the scenario "
+            f"(ids: {sorted(known)[:20]}{' ...' if len(known) > 20 else ''})"
+        )
+    excluded = set(int(i) for i in cfg.exclude_obstacles)
+    if excluded:
+        note("obstacles %s excluded by commonroad.exclude_obstacles", sorted(excluded))
+    dyn = [o for o in scenario.dynamic_obstacles if int(o.obstacle_id) not in excluded]
+    dropped_ego = None
+    if cfg.drop_ego and start is not None and problem is not None:
+        best, best_d = None, math.inf
+        for o in dyn:
+            p = _state_at_step(o, int(problem.initial_state.time_step))
+            if p is not None and np.isfinite(p).all():
+                d = float(np.hypot(*(p - np.asarray(start[:2]))))
+                if d < best_d:
+                    best, best_d = o, d
+        if best is not None and best_d <= cfg.ego_tolerance:
+            dropped_ego = {"id": int(best.obstacle_id), "distance_m": best_d}
+            note("dynamic obstacle %d is the recorded ego (%.2f m from the start at its initial time step) and "
+                 "is dropped", best.obstacle_id, best_d)
+            dyn = [o for o in dyn if o is not best]
+    tracks_true: list[ObstacleTrack] = []
+    polys_per_slice: list[list[Any]] = [[] for _ in range(n_slices)]
+    traj_obs, info = [], []
+    n_set = 0
+    for o in dyn:
+        kind = str(getattr(o.obstacle_type, "value", o.obstacle_type))
+        pred = getattr(o, "prediction", None)
+        if pred is not None and getattr(pred, "trajectory", None) is None and hasattr(pred, "occupancies"):
+            track = _set_based_track(o, kind, dt_src, t_grid_end, shapely, cfg.footprint)
+            n_set += 1
+            tracks_true.append(track)
+            for k, poly in enumerate(track.polygons_at(times)):
+                if poly is not None:
+                    polys_per_slice[k].append(poly)
+            info.append({"id": int(o.obstacle_id), "type": kind, "prediction": "set-based",
+                         "t_last_s": track.t_last_recorded})
+            continue
+        traj_obs.append(o)
+    if n_set:
+        note("%d obstacles have set-based predictions: occupied over every time step their sets cover", n_set)
+    users, user_tracks, n_pred = _trajectory_users(traj_obs, times, dt_src, t_grid_end, shapely, cfg, where)
+    tracks_true.extend(user_tracks)
+    for tr in user_tracks:
+        info.append({"id": tr.obstacle_id, "type": tr.kind, "class": ROAD_USER_CLASSES[obstacle_class_id(tr.kind)],
+                     "length": tr.length, "width": tr.width, "t_last_recorded_s": tr.t_last_recorded,
+                     "predicted_after_s": tr.t_last_recorded if tr.predicted.any() else None})
+    if n_pred:
+        note("%d road users end before the grid (t = %.1f s) and are predicted past their last recorded state "
+             "(constant velocity and heading, position std +%g m/s along, +%g m/s across)", n_pred, t_grid_end,
+             cfg.footprint.prediction_std_rate_along, cfg.footprint.prediction_std_rate_across)
+    statics = []
     if cfg.include_static_obstacles:
-        polys = _static_obstacle_polygons(scenario, shapely)
-        n_static = len(polys)
-        if polys:
-            blocked = shapely.union_all(polys)
-            shapely.prepare(blocked)
-            static[shapely.contains_xy(blocked, gx, gy)] = 1.0
-    return static, n_static
+        for o in scenario.static_obstacles:
+            if int(o.obstacle_id) in excluded:
+                continue
+            tr = _static_track(o, shapely)
+            if tr is not None:
+                statics.append(tr)
+    tracks_true.extend(statics)
+
+    # -- traffic lights
+    lights = _red_light_tracks(scenario, times, start, cfg, shapely, where, note)
+    tracks_true.extend(lights)
+    for tr in lights:
+        for k, poly in enumerate(tr.polygons_at(times)):
+            if poly is not None:
+                polys_per_slice[k].append(poly)
+
+    # -- rasterise
+    static, n_static = static_map(scenario, origin, cell, (nx, ny), cfg, drivable=drivable,
+                                  static_polygons=[t.polygons_at(np.array([t_start]))[0] for t in statics])
+    probs = rasterise_road_users(users, origin=origin, cell_size=cell, shape=(n_slices, nx, ny),
+                                 config=cfg.footprint, static=torch.from_numpy(static))
+    if any(polys_per_slice):
+        _rasterise_polygons(probs, polys_per_slice, origin, cell, shapely)
+    grid = OccupancyGrid(probs, origin, cell, cfg.dt, t_start)
+    box = (area[0] + 0.1, area[1] - 0.1, area[2] + 0.1, area[3] - 0.1)
+
+    # -- start / goal of the planners
+    if cfg.sample_start_goal:
+        note("start and goal sampled on the road (seed %d) instead of the planning problem", cfg.seed)
+        start, goal_xy = sample_start_goal(grid, box, seed=cfg.seed, config=cfg.start_goal)
+        goal = GoalRegion(shapely.Point(*goal_xy).buffer(cfg.sampled_goal_radius), (t_start, t_start + horizon))
+        goal_rule = "sampled"
+    else:
+        assert goal is not None and start is not None
+        dist = start[3] * horizon
+        ahead = _lane_following_point(scenario, start, dist, shapely)
+        if goal.shapes is None:
+            goal_xy = ahead
+            goal_rule = (f"the goal has no position: the point {dist:.0f} m ahead along the start lane (initial "
+                         "speed x horizon)")
+            note(goal_rule)
+        else:
+            goal_xy = _goal_point_near(goal.shapes, ahead, shapely)
+            goal_rule = ("the point of the goal region (shrunk by 1 m where it is wider) nearest to the point "
+                         f"{dist:.0f} m ahead along the start lane (initial speed x horizon)")
+        xmin, xmax, ymin, ymax = grid.bounds
+        goal_xy = (min(max(goal_xy[0], xmin), xmax), min(max(goal_xy[1], ymin), ymax))
+    road = RoadScene(drivable, tuple(tracks_true), goal, dt_src, t_start, where, cfg.vehicle_length,
+                     cfg.vehicle_width, meta={"notes": notes})
+    memory = n_slices * nx * ny * 4
+    meta = {
+        "source": "commonroad",
+        "file": str(path),
+        "file_name": path.name,
+        "scenario_id": bench_id,
+        "scenario_dt": dt_src,
+        "t_start": t_start,
+        "horizon": horizon,
+        "planning_problem": None if problem is None else int(getattr(problem, "planning_problem_id", -1)),
+        "start_goal_sampled": bool(cfg.sample_start_goal),
+        "goal": {**goal.to_json_dict(), "point": list(goal_xy), "point_rule": goal_rule},
+        "model_domain": {"model": model, "v_min": v_min, "v_max": v_max, "a_max": a_max},
+        "map": {"area": list(area), "cell_size": cell, "shape": [n_slices, nx, ny], "memory_bytes": memory,
+                "region": region_rule},
+        "road": road_notes,
+        "dropped_ego": dropped_ego,
+        "excluded_obstacles": sorted(excluded),
+        "n_lanelets": road_notes["n_lanelets"],
+        "n_static_obstacles": n_static,
+        "n_red_light_phases": len(lights),
+        "dynamic_obstacles": info,
+        "simplifications": notes,
+        "config": to_dict(cfg),
+    }
+    logger.info("%s: map x [%g, %g], y [%g, %g] m, %g-m cells, %d slices (%.0f MiB): %s", where, area[0], area[1],
+                area[2], area[3], cell, n_slices, memory / 2**20, region_rule)
+    return Scene(grid, start, goal_xy, box, name=where, meta=meta, road=road)
 
 
-def _planning_problem(problem_set: Any, wanted: int) -> Any | None:
+def _trajectory_users(obstacles: list[Any], times: np.ndarray, dt_src: float, t_end: float, shapely: Any,
+                      cfg: CommonRoadSceneConfig, where: str
+                      ) -> tuple[RoadUserTracks, list[ObstacleTrack], int]:
+    """Road users with trajectory predictions: footprint tracks on the slices (predicted past their last
+    state) and exact tracks (recorded states + predicted poses at the slices after them)."""
+    n = len(obstacles)
+    data = [_trajectory_arrays(o, dt_src, where) for o in obstacles]
+    max_step = max([int(round(d[0][-1] / dt_src)) for d in data], default=0)
+    n_src = max(max_step + 1, 2)
+    dense = {name: np.full((n, n_src), np.nan) for name in ("x", "y", "heading", "speed")}
+    for i, (t, poses, v) in enumerate(data):
+        idx = np.rint(t / dt_src).astype(np.int64)
+        dense["x"][i, idx], dense["y"][i, idx] = poses[:, 0], poses[:, 1]
+        dense["heading"][i, idx], dense["speed"][i, idx] = poses[:, 2], v
+    res = resample_tracks(dense, np.arange(n_src) * dt_src, times, angles=("heading",))
+    shapes = [_shape_outline(o.obstacle_shape, shapely) for o in obstacles]
+    dims = np.array([[s[1], s[2]] for s in shapes], dtype=np.float64).reshape(n, 2)
+    kinds = [str(getattr(o.obstacle_type, "value", o.obstacle_type)) for o in obstacles]
+    cls = np.array([obstacle_class_id(k) for k in kinds], dtype=np.int64)
+    ids = np.array([int(o.obstacle_id) for o in obstacles], dtype=np.int64)
+    users = RoadUserTracks(res["x"], res["y"], res["heading"], res["speed"], dims[:, 0], dims[:, 1], cls, ids)
+    users = extrapolate_tracks(users, times)
+    exact, n_pred = [], 0
+    for i, (t, poses, v) in enumerate(data):
+        later = times[times > t[-1] + 1e-9]
+        if later.size:
+            tau = later - t[-1]
+            th = poses[-1, 2]
+            extra = np.column_stack([poses[-1, 0] + v[-1] * math.cos(th) * tau,
+                                     poses[-1, 1] + v[-1] * math.sin(th) * tau, np.full(tau.size, th)])
+            t_all = np.concatenate([t, later])
+            poses_all = np.vstack([poses, extra])
+            flags = np.concatenate([np.zeros(t.size, bool), np.ones(later.size, bool)])
+            std = np.concatenate([np.zeros(t.size), cfg.footprint.prediction_std_rate_along * tau])
+            n_pred += 1
+        else:
+            t_all, poses_all, flags, std = t, poses, None, None
+        exact.append(ObstacleTrack(int(ids[i]), kinds[i], dims[i, 0], dims[i, 1], t_all, poses_all,
+                                   predicted=flags, position_std=std, shape=shapes[i][0]))
+    return users, exact, n_pred
+
+
+def _red_light_tracks(scenario: Any, times: np.ndarray, start: tuple[float, ...] | None,
+                      cfg: CommonRoadSceneConfig, shapely: Any, where: str, note: Any) -> list[ObstacleTrack]:
+    """One obstacle per (lanelet with a traffic light, red phase inside the grid's time span): a strip at the
+    stop line, present while the light is red or red-yellow (module docstring, step 5)."""
+    net = scenario.lanelet_network
+    lights = {int(tl.traffic_light_id): tl for tl in getattr(net, "traffic_lights", []) or []}
+    with_lights = [ll for ll in net.lanelets if getattr(ll, "traffic_lights", None)]
+    if not with_lights:
+        return []
+    if not cfg.traffic_lights:
+        note("traffic lights are ignored (commonroad.traffic_lights = false): %d lanelets have one",
+             len(with_lights))
+        return []
+    dt_src = float(scenario.dt)
+    steps = np.rint(times / dt_src).astype(np.int64)
+    out: list[ObstacleTrack] = []
+    start_pt = None if start is None else shapely.Point(start[0], start[1])
+    skipped = []
+    for ll in with_lights:
+        sl = getattr(ll, "stop_line", None)
+        if sl is not None and getattr(sl, "start", None) is not None and getattr(sl, "end", None) is not None:
+            a, b = np.asarray(sl.start, float), np.asarray(sl.end, float)
+        else:
+            a, b = np.asarray(ll.left_vertices[-1], float), np.asarray(ll.right_vertices[-1], float)
+        seg = b - a
+        width = float(np.hypot(*seg))
+        if not (width > 0 and np.isfinite(seg).all()):
+            continue
+        centre = 0.5 * (a + b)
+        heading = math.atan2(seg[1], seg[0]) - math.pi / 2  # across the line
+        outline = shapely.box(-cfg.stop_line_depth / 2, -width / 2, cfg.stop_line_depth / 2, width / 2)
+        strip = shapely.affinity.translate(shapely.affinity.rotate(outline, heading, origin=(0, 0),
+                                                                   use_radians=True), *centre)
+        red = np.zeros(steps.size, bool)
+        for lid in ll.traffic_lights:
+            tl = lights.get(int(lid))
+            if tl is None or not getattr(tl, "active", True):
+                continue
+            states = np.array([str(getattr(tl.get_state_at_time_step(int(s)), "value", "")) for s in steps])
+            red |= np.isin(states, ("red", "redYellow"))
+        if not red.any():
+            continue
+        if start_pt is not None and red[0] and strip.buffer(0.5 * cfg.vehicle_length).covers(start_pt):
+            skipped.append(int(ll.lanelet_id))
+            continue
+        # contiguous red phases -> one track each
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], red.astype(int), [0]])))
+        for k0, k1 in zip(edges[::2], edges[1::2]):
+            ts = times[k0:k1]
+            if ts.size == 1:
+                ts = np.array([ts[0], ts[0] + 1e-6])
+            tid = -(int(ll.lanelet_id) * 1000 + len(out))  # negative: not a scenario obstacle id
+            out.append(ObstacleTrack(tid, "red_light", cfg.stop_line_depth, width, [ts[0], ts[-1]],
+                                     [[centre[0], centre[1], heading]] * 2))
+    if skipped:
+        note("red lights of lanelets %s are not applied: the start is at their stop line", skipped)
+    if out:
+        note("red traffic lights block the stop lines of their lanelets: %d red phases", len(out))
+    return out
+
+
+def _planning_problem(problem_set: Any, wanted: int, where: str) -> Any | None:
     problems = dict(getattr(problem_set, "planning_problem_dict", {}) or {})
     if not problems:
         return None
     if wanted >= 0:
         if wanted not in problems:
-            raise DataError(f"planning problem {wanted} not in the scenario (ids: {sorted(problems)})")
+            raise DataError(
+                f"{where}: planning problem {wanted} is not in the file (ids: {sorted(problems)}); set "
+                "--set commonroad.planning_problem_id=ID"
+            )
         return problems[wanted]
     return problems[min(problems)]
-
-
-def _goal_point(problem: Any, scenario: Any, shapely: Any) -> tuple[float, float] | None:
-    geoms = []
-    goal = problem.goal
-    for st in getattr(goal, "state_list", []) or []:
-        pos = getattr(st, "position", None)
-        if pos is None:
-            continue
-        geom = getattr(pos, "shapely_object", None)
-        if geom is None:
-            centre = np.asarray(getattr(pos, "center", None), dtype=np.float64).reshape(-1)
-            if centre.size == 2:
-                geom = shapely.Point(*centre)
-        if geom is not None:
-            geoms.append(geom)
-    if not geoms:
-        lanelet_ids = getattr(goal, "lanelets_of_goal_position", None) or {}
-        for ids in lanelet_ids.values():
-            for lid in ids:
-                lanelet = scenario.lanelet_network.find_lanelet_by_id(lid)
-                if lanelet is not None:
-                    left, right = np.asarray(lanelet.left_vertices), np.asarray(lanelet.right_vertices)
-                    geoms.append(shapely.Polygon(np.vstack([left, right[::-1]])).buffer(0))
-    if not geoms:
-        return None
-    region = shapely.union_all(geoms)
-    point = region.centroid
-    if not region.is_empty and region.area > 0 and not region.contains(point):
-        point = region.point_on_surface()
-    return float(point.x), float(point.y)
-
-
-def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None = None) -> Scene:
-    """Scene of the CommonRoad scenario in ``path`` (see the module docstring for every step)."""
-    cfg = config or CommonRoadSceneConfig()
-    _, shapely = _require()
-    path = Path(path)
-    scenario, problem_set = read_commonroad(path)
-    lanelets = _lanelet_polygons(scenario, shapely)
-    if not lanelets:
-        raise DataError(f"{path}: the scenario has no lanelets (no drivable area)")
-    drivable = shapely.union_all(lanelets)
-    if cfg.lanelet_buffer > 0:
-        drivable = drivable.buffer(cfg.lanelet_buffer)
-    lx0, ly0, lx1, ly1 = drivable.bounds
-    problem = _planning_problem(problem_set, cfg.planning_problem_id)
-    start = goal = None
-    t0 = 0.0
-    if problem is not None:
-        x, y, th, v = _state_values(problem.initial_state)
-        if math.isfinite(x):
-            start = (x, y, wrap_heading(th), max(v, 0.0), 0.0)
-        step = getattr(problem.initial_state, "time_step", 0)
-        t0 = float(step) * float(scenario.dt) if isinstance(step, (int, np.integer)) else 0.0
-        goal = _goal_point(problem, scenario, shapely)
-    # map area
-    if cfg.area:
-        area = tuple(float(v) for v in cfg.area)
-    elif start is not None and goal is not None:
-        m = cfg.area_margin
-        area = (
-            min(start[0], goal[0]) - m,
-            max(start[0], goal[0]) + m,
-            min(start[1], goal[1]) - m,
-            max(start[1], goal[1]) + m,
-        )
-        area = (max(area[0], lx0), min(area[1], lx1), max(area[2], ly0), min(area[3], ly1))
-        # keep start and goal inside (the lanelet box may cut the margin only)
-        area = (
-            min(area[0], start[0], goal[0]),
-            max(area[1], start[0], goal[0]),
-            min(area[2], start[1], goal[1]),
-            max(area[3], start[1], goal[1]),
-        )
-    else:
-        area = (lx0, lx1, ly0, ly1)
-    area, nx, ny = map_lattice(
-        area, cfg.cell_size, cfg.n_slices, cfg.max_cells, f"CommonRoad scenario {path.name}"
-    )
-    origin = (area[0], area[2])
-    static, n_static = static_map(scenario, origin, cfg.cell_size, (nx, ny), cfg, drivable=drivable)
-    times = t0 + cfg.dt * np.arange(cfg.n_slices)
-    tracks, info = _dynamic_tracks(scenario, times)
-    probs = rasterise_road_users(
-        tracks,
-        origin=origin,
-        cell_size=cfg.cell_size,
-        shape=(cfg.n_slices, nx, ny),
-        config=cfg.footprint,
-        static=torch.from_numpy(static),
-    )
-    grid = OccupancyGrid(probs, origin, cfg.cell_size, cfg.dt, t0)
-    box = (area[0] + 0.1, area[1] - 0.1, area[2] + 0.1, area[3] - 0.1)
-    sampled = start is None or goal is None
-    if sampled:
-        logger.info("%s: no usable planning problem, sampling start and goal (seed %d)", path.name, cfg.seed)
-        start, goal = sample_start_goal(grid, box, seed=cfg.seed, config=cfg.start_goal)
-    bench_id = str(getattr(scenario, "scenario_id", path.stem))
-    meta = {
-        "source": "commonroad",
-        "file": str(path),
-        "scenario_id": bench_id,
-        "scenario_dt": float(scenario.dt),
-        "planning_problem": None if problem is None else int(getattr(problem, "planning_problem_id", -1)),
-        "start_goal_sampled": sampled,
-        "n_lanelets": len(lanelets),
-        "n_static_obstacles": n_static,
-        "dynamic_obstacles": info,
-        "config": to_dict(cfg),
-    }
-    return Scene(grid, start, goal, box, name=f"commonroad-{bench_id}", meta=meta)

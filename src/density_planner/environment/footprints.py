@@ -21,6 +21,15 @@ distribution is skewed forward along the direction of motion by ``skew`` = 0.5 s
 fixed ``(s_along, s_w)`` instead of their (often missing) length and width, with the same skew. The scene
 is ``P_occ = clamp(static + sum_n P_n, 0, 1)``.
 
+Past a road user's last recorded state (recordings shorter than the planning window) it is *predicted*, never
+dropped (:func:`extrapolate_tracks`): constant velocity and heading from its last recorded slice, with a position
+error that grows linearly with the time ``tau`` since that slice, standard deviations
+``e_along = prediction_std_rate_along * tau`` and ``e_across = prediction_std_rate_across * tau``. The footprint
+is the convolution of the Gaussian above with that error: every standard deviation becomes
+``sqrt(s^2 + e^2)`` and the peak drops by the factor ``prod_axes s / sqrt(s^2 + e^2)`` (the expected occupancy
+of a point under the position error; the along-heading factor uses the geometric mean of ``s_front`` and
+``s_back``).
+
 Evaluation is vectorised over all (road user, slice) pairs at once and touches only the cells of each
 footprint's support rectangle ``[-cutoff s_back, cutoff s_front] x [-cutoff s_w, cutoff s_w]`` (rotated with
 the heading): the rectangles are cut into row segments, sorted by length, evaluated in padded blocks and
@@ -47,6 +56,7 @@ __all__ = [
     "footprint_stds",
     "rasterise_road_users",
     "resample_tracks",
+    "extrapolate_tracks",
 ]
 
 #: road-user classes (the inD ``class`` column); index = class id in :class:`RoadUserTracks`
@@ -80,11 +90,16 @@ class FootprintConfig:
     coarse_cell: float = 0.4
     #: see ``coarse_cell`` [m]
     coarse_min_std: float = 1.2
+    #: growth of the along-heading position error of a predicted road user [m per s past its last recorded state]
+    prediction_std_rate_along: float = 1.0
+    #: growth of the across-heading position error of a predicted road user [m per s]
+    prediction_std_rate_across: float = 0.3
     #: maximum number of window cells evaluated at once (memory: about 40 bytes each)
     chunk_cells: int = 4_000_000
 
     def __post_init__(self) -> None:
-        for name in ("length_factor", "along_margin", "width_factor", "across_margin", "skew", "coarse_cell"):
+        for name in ("length_factor", "along_margin", "width_factor", "across_margin", "skew", "coarse_cell",
+                     "prediction_std_rate_along", "prediction_std_rate_across"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"FootprintConfig.{name} must be a finite number >= 0, got {value}")
@@ -113,6 +128,8 @@ class RoadUserTracks:
         x, y: centre [m]; heading: [rad]; speed: signed speed along the heading [m/s];
         length, width: ``(N,)`` [m]; cls: ``(N,)`` class ids into :data:`ROAD_USER_CLASSES`;
         ids: ``(N,)`` track ids of the source.
+        predicted_for: optional ``(N, T)`` time [s] since the user's last recorded state where the slice is a
+            prediction (see :func:`extrapolate_tracks`), 0 where recorded; ``None``: everything recorded.
     """
 
     x: np.ndarray
@@ -123,9 +140,12 @@ class RoadUserTracks:
     width: np.ndarray
     cls: np.ndarray
     ids: np.ndarray
+    predicted_for: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n, t = np.shape(self.x)
+        if self.predicted_for is not None and np.shape(self.predicted_for) != (n, t):
+            raise ValueError(f"RoadUserTracks.predicted_for must have shape {(n, t)}")
         for name in ("y", "heading", "speed"):
             if np.shape(getattr(self, name)) != (n, t):
                 raise ValueError(
@@ -192,6 +212,36 @@ def resample_tracks(
     return out
 
 
+def extrapolate_tracks(tracks: RoadUserTracks, times: np.ndarray) -> RoadUserTracks:
+    """Fill the slices after each user's last present slice with a constant-velocity, constant-heading
+    prediction (``x += v cos(theta) tau``, ``y += v sin(theta) tau``) and record ``tau`` in ``predicted_for``.
+
+    Users absent before their first present slice stay absent (they have not entered the scene yet); users
+    never present stay absent. Vectorised over users and slices.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    present = tracks.present
+    n, t = present.shape
+    if n == 0 or t == 0:
+        return tracks
+    has = present.any(axis=1)
+    last = np.where(has, t - 1 - np.argmax(present[:, ::-1], axis=1), -1)  # (N,)
+    k = np.arange(t)[None, :]
+    fill = has[:, None] & (k > last[:, None])
+    rows = np.arange(n)
+    safe = np.maximum(last, 0)
+    x0, y0 = tracks.x[rows, safe], tracks.y[rows, safe]
+    th0, v0 = tracks.heading[rows, safe], tracks.speed[rows, safe]
+    tau = np.maximum(times[None, :] - times[safe][:, None], 0.0)
+    x = np.where(fill, x0[:, None] + v0[:, None] * np.cos(th0)[:, None] * tau, tracks.x)
+    y = np.where(fill, y0[:, None] + v0[:, None] * np.sin(th0)[:, None] * tau, tracks.y)
+    heading = np.where(fill, th0[:, None], tracks.heading)
+    speed = np.where(fill, v0[:, None], tracks.speed)
+    prev = np.zeros((n, t)) if tracks.predicted_for is None else np.nan_to_num(tracks.predicted_for)
+    predicted_for = np.where(fill, tau, prev)
+    return RoadUserTracks(x, y, heading, speed, tracks.length, tracks.width, tracks.cls, tracks.ids, predicted_for)
+
+
 def footprint_stds(
     tracks: RoadUserTracks, config: FootprintConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,7 +257,25 @@ def footprint_stds(
     s_back = s_along[:, None] + config.skew * np.maximum(-v, 0.0)
     s_w = np.broadcast_to(s_across[:, None], v.shape).copy()
     s_w[~np.isfinite(v)] = np.nan
+    if tracks.predicted_for is not None:
+        tau = np.nan_to_num(tracks.predicted_for)
+        e_u, e_w = config.prediction_std_rate_along * tau, config.prediction_std_rate_across * tau
+        s_front, s_back = np.hypot(s_front, e_u), np.hypot(s_back, e_u)
+        s_w = np.hypot(s_w, e_w)
     return s_front, s_back, s_w
+
+
+def _prediction_peak_factor(tracks: RoadUserTracks, config: FootprintConfig) -> np.ndarray:
+    """``(N, T)`` factor by which the peak of a predicted footprint drops (module docstring); 1 if recorded."""
+    if tracks.predicted_for is None:
+        return np.ones(np.shape(tracks.x))
+    s_front, s_back, s_w = footprint_stds(
+        RoadUserTracks(tracks.x, tracks.y, tracks.heading, tracks.speed, tracks.length, tracks.width,
+                       tracks.cls, tracks.ids), config)
+    tau = np.nan_to_num(tracks.predicted_for)
+    e_u, e_w = config.prediction_std_rate_along * tau, config.prediction_std_rate_across * tau
+    s_u = np.sqrt(s_front * s_back)
+    return s_u / np.hypot(s_u, e_u) * s_w / np.hypot(s_w, e_w)
 
 
 def rasterise_road_users(
@@ -243,7 +311,8 @@ def rasterise_road_users(
             "sf": s_front[n_idx, k_idx],
             "sb": s_back[n_idx, k_idx],
             "sw": s_w[n_idx, k_idx],
-            "c": np.asarray(cfg.certainty, dtype=np.float64)[tracks.cls[n_idx]],
+            "c": np.asarray(cfg.certainty, dtype=np.float64)[tracks.cls[n_idx]]
+            * _prediction_peak_factor(tracks, cfg)[n_idx, k_idx],
         }
         factor = int(round(cfg.coarse_cell / cell_size)) if cfg.coarse_cell > 0 else 1
         smallest = np.minimum(np.minimum(pairs["sf"], pairs["sb"]), pairs["sw"])

@@ -190,10 +190,60 @@ class OccupancyGrid:
         idx = torch.minimum(c.clamp(min=0), size - 1)
         return idx, inside
 
-    def slice_index(self, t: float | Tensor) -> Tensor:
-        """Index of the slice nearest to time ``t`` [s], clamped to ``[0, T - 1]`` (long tensor)."""
-        t = torch.as_tensor(t, dtype=torch.float64)
-        return torch.round((t - self.t0) / self.dt).long().clamp(0, self.n_slices - 1)
+    @property
+    def t_end(self) -> float:
+        """Time of the last slice [s]: ``t0 + (T - 1) dt``."""
+        return self.t0 + (self.n_slices - 1) * self.dt
+
+    def slice_index(self, t: float | Tensor, *, clamp: bool = False) -> Tensor:
+        """Index of the slice nearest to the ABSOLUTE time ``t`` [s] (scalar or tensor; long tensor, CPU).
+
+        This is the one conversion from time to slice: every planner, cost and metric goes through it (or
+        :meth:`slices_for`). Times are absolute, on the grid's own clock (slice 0 is at :attr:`t0`); a plan
+        starting at ``t_start`` reads ``t_start + k * plan_dt``, never ``k * plan_dt``.
+
+        Raises :class:`ValueError` naming the grid's time span when a time lies outside ``[t0, t_end]`` (up to
+        1e-6 slices of round-off). ``clamp=True`` holds the first / last slice instead: only for look-ahead
+        that deliberately runs past the end of the scene (e.g. the MPC's prediction stages after the plan's
+        horizon), never for the horizon itself.
+        """
+        t = torch.as_tensor(t, dtype=torch.float64).cpu()
+        pos = (t - self.t0) / self.dt
+        if not clamp and pos.numel():
+            lo, hi = float(pos.min()), float(pos.max())
+            tol = 1e-6
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo < -tol or hi > self.n_slices - 1 + tol:
+                t_lo, t_hi = float(t.min()), float(t.max())
+                raise ValueError(
+                    f"time {t_lo:g}" + (f"-{t_hi:g}" if t_hi != t_lo else "") + f" s lies outside the occupancy "
+                    f"grid's time span [{self.t0:g}, {self.t_end:g}] s ({self.n_slices} slices of {self.dt:g} s)"
+                )
+        return torch.round(pos).long().clamp(0, self.n_slices - 1)
+
+    def slices_for(self, t_start: float, dt: float, n: int, *, clamp: bool = False) -> Tensor:
+        """Slices ``(n,)`` (long, CPU) of the absolute times ``t_start + k dt``, ``k = 0 .. n - 1`` [s].
+
+        Raises :class:`ValueError` when the times leave the grid's span, e.g. "planning from 5 s over 10 s needs
+        occupancy up to 15 s, the grid ends at 10 s" (see :meth:`check_span`); ``clamp`` as in
+        :meth:`slice_index`.
+        """
+        if not clamp:
+            self.check_span(t_start, (n - 1) * dt)
+        times = float(t_start) + float(dt) * torch.arange(int(n), dtype=torch.float64)
+        return self.slice_index(times, clamp=True)
+
+    def check_span(self, t_start: float, duration: float) -> None:
+        """Raise :class:`ValueError` unless ``[t_start, t_start + duration]`` [s] lies inside the grid's span."""
+        t_start, duration = float(t_start), float(duration)
+        tol = 1e-6 * self.dt
+        if not (math.isfinite(t_start) and math.isfinite(duration)) or duration < 0:
+            raise ValueError(f"invalid time window: start {t_start} s, duration {duration} s")
+        if t_start < self.t0 - tol or t_start + duration > self.t_end + tol:
+            raise ValueError(
+                f"planning from {t_start:g} s over {duration:g} s needs occupancy for "
+                f"[{t_start:g}, {t_start + duration:g}] s, but the occupancy grid covers [{self.t0:g}, "
+                f"{self.t_end:g}] s; shorten the horizon (planning.horizon) or build a longer scene"
+            )
 
     # ------------------------------------------------------------------ queries
     def lookup(self, xy: Tensor, k: int | Tensor, *, fill: float = 1.0) -> Tensor:
@@ -305,16 +355,12 @@ class OccupancyGrid:
     @classmethod
     def load(cls, path: str | Path) -> OccupancyGrid:
         """Read a grid written by :meth:`save`; raises :class:`DataError` on a missing or malformed file."""
+        from density_planner.io.npz import read_npz
+
         path = Path(path)
         if not path.is_file():
             raise DataError(f"occupancy grid file not found: {path}")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                return cls.from_arrays(z, source=str(path))
-        except DataError:
-            raise
-        except (OSError, EOFError, ValueError) as exc:
-            raise DataError(f"{path}: cannot read occupancy grid ({exc})") from exc
+        return cls.from_arrays(read_npz(path, what="occupancy grid"), source=str(path))
 
     def __repr__(self) -> str:
         T, NX, NY = self.shape

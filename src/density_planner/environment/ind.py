@@ -19,7 +19,10 @@ Only the columns this reader uses must be present (:data:`TRACKS_COLUMNS`, :data
 Scene construction (:func:`load_ind_scene`):
 
 1. time window ``[start_time, start_time + (n_slices - 1) dt]`` (default 10 s, 101 slices of 0.1 s); it
-   must lie inside the recording;
+   must start inside the recording; where it runs past the recording's end (or past a road user's last
+   frame), each road user is predicted from its last recorded slice (constant velocity and heading, position
+   error growing with time: :func:`.footprints.extrapolate_tracks`), never dropped; ``scene.json`` records
+   how many were predicted and from when;
 2. every road user is resampled **exactly** to the slice times by linear interpolation between the two
    neighbouring frames (25 Hz -> 0.1 s = every 2.5 frames; heading along the shorter arc); a user is present
    at a slice only when both neighbouring frames exist;
@@ -54,10 +57,12 @@ from typing import Literal
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
 from density_planner.errors import DataError
 
 from .footprints import (
+    extrapolate_tracks,
     ROAD_USER_CLASSES,
     FootprintConfig,
     RoadUserTracks,
@@ -171,8 +176,7 @@ class IndSceneConfig:
             raise ValueError(
                 f"IndSceneConfig.background_threshold must be <= 1, got {self.background_threshold}"
             )
-        if self.seed < 0:
-            raise ValueError(f"IndSceneConfig.seed must be >= 0, got {self.seed}")
+        check_seed("IndSceneConfig.seed", self.seed)
 
 
 # ---------------------------------------------------------------------------------------------------- CSV
@@ -226,7 +230,34 @@ def _bad_value(path: Path, header: list[str], columns: tuple[str, ...]) -> DataE
     return DataError(f"{path}: cannot parse the numeric columns {', '.join(columns)}")
 
 
+def _check_field_counts(path: Path, n_fields: int) -> None:
+    """Every non-empty line of the CSV ``path`` has ``n_fields`` comma-separated fields (vectorised over the bytes;
+    inD files quote nothing). A row with an extra or a missing field would otherwise be read with shifted columns."""
+    try:
+        buf = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc})") from exc
+    if buf.size == 0:
+        return
+    newlines = np.flatnonzero(buf == 10)
+    ends = newlines if buf[-1] == 10 else np.append(newlines, buf.size)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    cum = np.concatenate(([0], np.cumsum(buf == 44, dtype=np.int64)))
+    commas = cum[ends] - cum[starts]
+    length = ends - starts
+    cr = (length > 0) & (buf[np.maximum(ends - 1, 0)] == 13)
+    nonblank = (length - cr) > 0
+    bad = np.flatnonzero(nonblank & (commas + 1 != n_fields))
+    if bad.size:
+        line = int(bad[0]) + 1
+        raise DataError(
+            f"{path}: line {line} has {int(commas[bad[0]]) + 1} fields, the header has {n_fields} "
+            f"({bad.size} such line(s)); the file is malformed"
+        )
+
+
 def _read_numeric(path: Path, columns: tuple[str, ...], header: list[str]) -> dict[str, np.ndarray]:
+    _check_field_counts(path, len(header))
     cols = [header.index(c) for c in columns]
     try:
         with warnings.catch_warnings():
@@ -274,6 +305,14 @@ def read_tracks_meta(path: str | Path) -> dict[str, np.ndarray]:
     if data["trackId"].size == 0:
         raise DataError(f"{path}: no rows (the file has only a header)")
     _check_finite(path, data, numeric)
+    for c in ("width", "length"):
+        neg = data[c] < 0
+        if neg.any():
+            row = int(np.argmax(neg))
+            raise DataError(
+                f"{path}: column {c!r} must be >= 0 m, got {data[c][row]:g} on line {row + 2} "
+                f"({int(neg.sum())} negative value(s))"
+            )
     ci = header.index("class")
     with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.reader(fh)
@@ -428,10 +467,16 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     if isinstance(duration, float) and math.isfinite(duration):
         rec_end = min(rec_end, duration) if duration > 0 else rec_end
     t_end = cfg.start_time + (cfg.n_slices - 1) * cfg.dt
-    if cfg.start_time < first_frame / rate - 1e-9 or t_end > rec_end + 1e-9:
+    if cfg.start_time < first_frame / rate - 1e-9 or cfg.start_time > rec_end - 1e-9:
         raise DataError(
-            f"time window [{cfg.start_time:g}, {t_end:g}] s lies outside recording {recording} "
-            f"({first_frame / rate:g}-{rec_end:g} s in {paths['tracks'].name})"
+            f"time window [{cfg.start_time:g}, {t_end:g}] s starts outside recording {recording} "
+            f"({first_frame / rate:g}-{rec_end:g} s in {paths['tracks'].name}); "
+            "set --start-time (or --set ind.start_time=...) inside it"
+        )
+    if t_end > rec_end + 1e-9:
+        logger.info(
+            "inD recording %d ends at %.2f s, before the window's end %.2f s: road users are predicted past "
+            "their last frame (constant velocity and heading)", recording, rec_end, t_end
         )
     times = cfg.start_time + cfg.dt * np.arange(cfg.n_slices)
     win = tracks_in_window(tracks, rate, times)
@@ -457,7 +502,9 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         cls=cls,
         ids=ids.astype(np.int64),
     )
-    present = users.present
+    present = users.present  # recorded slices (before the prediction below)
+    users = extrapolate_tracks(users, times)
+    predicted = users.predicted_for is not None and bool((users.predicted_for > 0).any())
     # map area
     if cfg.area:
         area = tuple(float(v) for v in cfg.area)
@@ -512,6 +559,11 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         "recording": int(recording),
         "frame_rate": rate,
         "window_s": [cfg.start_time, t_end],
+        "recording_end_s": rec_end,
+        "road_users_predicted": int((users.predicted_for > 0).any(axis=1).sum()) if predicted else 0,
+        "prediction": "constant velocity and heading past the last recorded frame; position std grows by "
+        f"{cfg.footprint.prediction_std_rate_along:g} m/s along, {cfg.footprint.prediction_std_rate_across:g} "
+        "m/s across the heading",
         "background": used_background,
         "road_users": [
             {

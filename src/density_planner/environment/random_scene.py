@@ -41,7 +41,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from density_planner.checks import check_seed
 from density_planner.config import to_dict
+from density_planner.memory import check_memory
 
 from ._rng import Stream
 from .grid import OccupancyGrid, lattice_size
@@ -346,6 +348,12 @@ def random_scene(seed: int, config: RandomSceneConfig | None = None) -> Scene:
     """The random artificial scene number ``seed`` (deterministic on every machine); see the module
     docstring."""
     cfg = config or RandomSceneConfig()
+    check_seed("seed", seed)
+    nx, ny = lattice_size(*cfg.x_range, cfg.cell_size), lattice_size(*cfg.y_range, cfg.cell_size)
+    # the (T, NX, NY) float32 grid plus the static layer and one slice of temporaries
+    check_memory(4.0 * (cfg.n_slices + 2) * nx * ny,
+                 f"a random scene of {cfg.n_slices} x {nx} x {ny} cells",
+                 "raise random_scene.cell_size (or lower random_scene.n_slices)")
     rng = Stream(seed)
     boxes = _draw_obstacles(rng, cfg)
     probs = rasterise_boxes(

@@ -114,7 +114,7 @@ def sample_start_goal(
     half = int(round(cfg.check_half_width / grid.cell_size))
     start_ok = (_window_max(grid.slice(0), half) <= cfg.start_max_occupancy) & in_box
     goal_ok = (_window_max(grid.slice(-1), half) <= cfg.goal_max_occupancy) & in_box
-    k_look = int(grid.slice_index(grid.t0 + cfg.lookahead_time))
+    k_look = int(grid.slice_index(grid.t0 + cfg.lookahead_time, clamp=True))
     look_max = _window_max(grid.slice(k_look), half)
     start_cells = np.argwhere(start_ok)
     goal_cells = np.argwhere(goal_ok)

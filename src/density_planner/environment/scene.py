@@ -21,6 +21,7 @@ from density_planner.errors import DataError
 from density_planner.io.atomic import atomic_save_npz
 
 from .grid import OccupancyGrid
+from .road import RoadScene
 
 __all__ = [
     "Scene",
@@ -64,6 +65,11 @@ class Scene:
         planning_box: ``(xmin, xmax, ymin, ymax)`` [m] the positions must stay in (the bounds cost J_B).
         name: short identifier, e.g. ``"random-7"``, ``"ind-rec07-t120.0"``.
         meta: JSON-serialisable description of the source (obstacles, road users, file names, configuration).
+        t_start: ABSOLUTE time [s] at which the plan starts, on the grid's clock (default: the grid's ``t0``); the
+            planners read the occupancy at ``t_start + k * plan_dt`` (``grid.slices_for``).
+        road: exact road geometry (drivable area, true obstacle shapes over time, goal region with its time
+            interval) for road scenes (CommonRoad); ``None`` for random and inD scenes. ``goal`` is then the
+            goal region's representative point. Saved with the scene (``road_json`` entry of the ``.npz``).
     """
 
     grid: OccupancyGrid
@@ -72,10 +78,21 @@ class Scene:
     planning_box: tuple[float, float, float, float]
     name: str = "scene"
     meta: dict[str, Any] = field(default_factory=dict)
+    t_start: float | None = None
+    road: RoadScene | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.grid, OccupancyGrid):
             raise ValueError(f"Scene.grid must be an OccupancyGrid, got {type(self.grid).__name__}")
+        t_start = self.grid.t0 if self.t_start is None else self.t_start
+        if isinstance(t_start, bool) or not isinstance(t_start, (int, float)) or not math.isfinite(t_start):
+            raise ValueError(f"Scene.t_start must be a finite number [s], got {t_start!r}")
+        if not self.grid.t0 - 1e-6 * self.grid.dt <= t_start <= self.grid.t_end + 1e-6 * self.grid.dt:
+            raise ValueError(
+                f"Scene.t_start = {t_start:g} s lies outside the occupancy grid's time span [{self.grid.t0:g}, "
+                f"{self.grid.t_end:g}] s"
+            )
+        object.__setattr__(self, "t_start", float(t_start))
         object.__setattr__(self, "start", _floats("Scene.start", self.start, 5))
         object.__setattr__(self, "goal", _floats("Scene.goal", self.goal, 2))
         box = _floats("Scene.planning_box", self.planning_box, 4)
@@ -84,6 +101,8 @@ class Scene:
         object.__setattr__(self, "planning_box", box)
         if not isinstance(self.meta, dict):
             raise ValueError(f"Scene.meta must be a dict, got {type(self.meta).__name__}")
+        if self.road is not None and not isinstance(self.road, RoadScene):
+            raise ValueError(f"Scene.road must be a RoadScene or None, got {type(self.road).__name__}")
 
     def to_json_dict(self) -> dict[str, Any]:
         """The scene without its grid, as plain JSON data (the ``scene.json`` written by the CLI)."""
@@ -93,6 +112,7 @@ class Scene:
             "start": list(self.start),
             "goal": list(self.goal),
             "planning_box": list(self.planning_box),
+            "t_start": self.t_start,
             "grid": {
                 "shape": [T, NX, NY],
                 "origin": list(self.grid.origin),
@@ -151,10 +171,11 @@ def validate_scene(scene: Scene, *, start_threshold: float = START_OCCUPIED_THRE
     bx0, bx1, by0, by1 = scene.planning_box
     if bx1 < xmin or bx0 > xmax or by1 < ymin or by0 > ymax:
         raise ValueError(f"scene {scene.name!r}: planning box {scene.planning_box} does not overlap the map")
-    p0 = float(grid.lookup(torch.tensor([sx, sy], dtype=torch.float64, device=grid.device), 0))
+    k0 = grid.slice_index(scene.t_start).to(grid.device)
+    p0 = float(grid.lookup(torch.tensor([sx, sy], dtype=torch.float64, device=grid.device), k0))
     if p0 > start_threshold:
         raise ValueError(
-            f"scene {scene.name!r}: start ({sx:g}, {sy:g}) is in an occupied cell at t=0 "
+            f"scene {scene.name!r}: start ({sx:g}, {sy:g}) is in an occupied cell at t={scene.t_start:g} s "
             f"(P_occ = {p0:.3f} > {start_threshold})"
         )
     return scene
@@ -181,33 +202,41 @@ def save_scene(scene: Scene, path: str | Path) -> Path:
         "start": list(scene.start),
         "goal": list(scene.goal),
         "planning_box": list(scene.planning_box),
+        "t_start": scene.t_start,
         "meta": scene.meta,
     }
     try:
         text = json.dumps(header, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"scene {scene.name!r}: meta is not JSON-serialisable ({exc})") from exc
-    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text))
+    extra = {}
+    if scene.road is not None:
+        extra["road_json"] = np.asarray(json.dumps(scene.road.to_json_dict(), allow_nan=False))
+    return atomic_save_npz(path, **scene.grid.to_arrays(), scene_json=np.asarray(text), **extra)
 
 
 def load_scene(path: str | Path) -> Scene:
     """Read a scene written by :func:`save_scene`; raises :class:`DataError` naming the file when it is not
     one."""
+    from density_planner.io.npz import read_npz
+
     path = Path(path)
     if not path.is_file():
         raise DataError(f"scene file not found: {path}")
+    z = read_npz(path, what="scene")  # declared sizes checked before loading; truncated files refused
+    if "scene_json" not in z:
+        raise DataError(f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if "scene_json" not in z:
-                raise DataError(
-                    f"{path}: not a scene file (no 'scene_json' entry; was it written by save_scene?)"
-                )
-            header = json.loads(str(z["scene_json"]))
-            grid = OccupancyGrid.from_arrays(z, source=str(path))
-    except DataError:
-        raise
-    except (OSError, EOFError, ValueError) as exc:  # incl. JSONDecodeError and 'not an npz'
-        raise DataError(f"{path}: cannot read scene ({exc})") from exc
+        header = json.loads(str(z["scene_json"]))
+    except ValueError as exc:  # JSONDecodeError
+        raise DataError(f"{path}: cannot read scene header ({exc})") from exc
+    if not isinstance(header, dict):
+        raise DataError(f"{path}: invalid scene header (a JSON object expected, got {type(header).__name__})")
+    try:
+        road_data = json.loads(str(z["road_json"])) if "road_json" in z else None
+    except ValueError as exc:
+        raise DataError(f"{path}: cannot read the scene's road data ({exc})") from exc
+    grid = OccupancyGrid.from_arrays(z, source=str(path))
     try:
         return Scene(
             grid=grid,
@@ -216,6 +245,8 @@ def load_scene(path: str | Path) -> Scene:
             planning_box=header["planning_box"],
             name=str(header.get("name", path.stem)),
             meta=dict(header.get("meta", {})),
+            t_start=header.get("t_start"),
+            road=None if road_data is None else RoadScene.from_json_dict(road_data),
         )
     except (KeyError, ValueError, TypeError) as exc:
         raise DataError(f"{path}: invalid scene header ({exc})") from exc

@@ -74,6 +74,9 @@ __all__ = [
     "run_benchmark",
     "record_path",
     "load_records",
+    "scan_records",
+    "record_problem",
+    "BadRecord",
     "load_scene_map",
     "identity_view",
     "stable_seed",
@@ -169,6 +172,10 @@ def artificial_envs(indices: Sequence[int]) -> tuple[EnvSpec, ...]:
 _SHIPPED = "<shipped>"
 
 
+#: the shipped CommonRoad scenarios `bench real` uses without --data-dir
+SHIPPED_REAL_SCENARIOS = ("USA_Peach-4_8_T-1.xml", "USA_US101-4_1_T-1.xml")
+
+
 def shipped_commonroad_dir() -> Path:
     """Folder of the CommonRoad scenarios shipped with the package (NGSIM, BSD-3 licence file beside them)."""
     from importlib.resources import files
@@ -222,6 +229,8 @@ def real_envs(
                                recording=rec, start_time=start))
         return tuple(out)
     files = sorted(folder.glob("*.xml"))
+    if data_dir is None:  # the package ships more scenarios (tests, examples); `bench real` uses the two NGSIM ones
+        files = [f for f in files if f.name in SHIPPED_REAL_SCENARIOS]
     if not files:
         raise ValueError(f"--data-dir {folder} holds neither inD recordings (NN_tracks.csv) nor CommonRoad "
                          "scenarios (*.xml)")
@@ -237,7 +246,6 @@ def real_envs(
 def build_scene(env: EnvSpec, run_config: Any):
     """The :class:`~density_planner.environment.scene.Scene` of ``env`` built with ``run_config``'s sections."""
     from ..config import update
-    from ..environment.scene import Scene
 
     if env.kind == "random":
         from ..environment.random_scene import random_scene
@@ -245,18 +253,18 @@ def build_scene(env: EnvSpec, run_config: Any):
         scene = random_scene(env.seed, run_config.random_scene)
     elif env.kind == "commonroad":
         from ..environment.commonroad import load_commonroad_scene
-        from ..environment.sampling import sample_start_goal
 
         logging.getLogger("commonroad").setLevel(logging.ERROR)
         cfg = run_config.commonroad
         file = str(env.file)
         if file.startswith(_SHIPPED + "/"):
             file = str(shipped_commonroad_dir() / file[len(_SHIPPED) + 1 :])
-        scene = load_commonroad_scene(file, cfg)
-        if env.seed > 0:
-            start, goal = sample_start_goal(scene.grid, scene.planning_box, seed=env.seed, config=cfg.start_goal)
-            meta = dict(scene.meta, start_goal_sampled=True, start_goal_seed=env.seed)
-            scene = Scene(scene.grid, start, goal, scene.planning_box, name=env.name, meta=meta)
+        if env.seed > 0:  # a start and goal sampled on the road instead of the planning problem
+            cfg = update(cfg, {"sample_start_goal": True, "seed": env.seed})
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
+        scene = load_commonroad_scene(file, cfg, system=KinematicCar(model_set_for_scene(env.kind).car))
     elif env.kind == "ind":
         from ..environment.ind import load_ind_scene
 
@@ -265,7 +273,7 @@ def build_scene(env: EnvSpec, run_config: Any):
     else:
         raise ValueError(f"unknown environment kind {env.kind!r}; valid choices: random, commonroad, ind")
     if scene.name != env.name:
-        scene = Scene(scene.grid, scene.start, scene.goal, scene.planning_box, name=env.name, meta=scene.meta)
+        scene = dataclasses.replace(scene, name=env.name)
     return scene
 
 
@@ -336,6 +344,10 @@ def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str
     payload.update({k: cfg.get(k) for k in _COMMON_SECTIONS})
     payload["cost"] = (cfg.get("density_planner") or {}).get("cost")
     payload["planner"] = {planner: cfg.get(_section_of(planner))}
+    from ..planners.problem import PlanningConfig
+
+    if cfg.get("planning") not in (None, to_dict(PlanningConfig())):  # default time axis: hashes of older records
+        payload["planning"] = cfg["planning"]
     if not _plans_from_true_state(planner):
         payload.update(liouville=cfg.get("liouville"), controller=spec.controller, density=spec.density,
                        components=spec.components)
@@ -444,14 +456,14 @@ _CONTEXTS: dict[Any, Any] = {}
 _SCENES: dict[Any, Any] = {}
 
 
-def _context(job: Job):
+def _context(job: Job, parameterization=None):
     from ..control.registry import load_controller, model_set_for_scene
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
     models = model_set_for_scene(job.env.kind)  # recorded road scenes: the road set; the paper's scenes: paper
-    key = (job.controller, job.density, job.run_config.liouville, models.name)
+    key = (job.controller, job.density, job.run_config.liouville, parameterization, models.name)
     if key not in _CONTEXTS:
         car = KinematicCar(models.car)
         controller = load_controller(job.controller, models=models)
@@ -459,7 +471,8 @@ def _context(job: Job):
 
         def factory():
             if not predictor:
-                predictor.append(load_predictor(job.density, car, controller, liouville=job.run_config.liouville))
+                predictor.append(load_predictor(job.density, car, controller, liouville=job.run_config.liouville,
+                                                parameterization=parameterization))
             return predictor[0]
 
         _CONTEXTS.clear()
@@ -673,9 +686,13 @@ def run_job(job: Job) -> JobResult:
     torch.manual_seed(stable_seed("job", job.env.name, job.planner))
     try:
         scene = _scene(job)
-        problem = PlanningProblem.from_scene(scene, seed=job.env.index)
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
+        problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+                                             system=KinematicCar(model_set_for_scene(job.env.kind).car))
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
-        ctx = _context(job)
+        ctx = _context(job, problem.parameterization)
     except Exception:  # noqa: BLE001 - recorded, the sweep goes on
         tb = traceback.format_exc()
         return JobResult([error_record(job, v, tb, "environment") for v in job.variants])
@@ -709,31 +726,102 @@ def run_job(job: Job) -> JobResult:
 
 
 # ---------------------------------------------------------------------------------------------- parent side
+#: record keys that must be strings, and the number-or-null metrics the summary reads
+_RECORD_KEYS = ("setting", "env", "planner", "variant", "status")
+_SUMMARY_METRICS = ("final_distance", "goal_cost", "collision_cost", "input_cost", "bounds_cost",
+                    "collision_probability_max", "mc_collision_mean", "mc_collision_frequency")
+
+
+def record_problem(record: Any) -> str | None:
+    """Why ``record`` (parsed JSON) is not a benchmark record, or ``None`` when it is one."""
+    if not isinstance(record, dict):
+        return f"a JSON object expected, got {type(record).__name__}"
+    missing = [k for k in _RECORD_KEYS if k not in record]
+    if missing:
+        return f"missing key(s) {missing}"
+    bad = [k for k in _RECORD_KEYS if not isinstance(record[k], str) or not record[k]]
+    if bad:
+        return f"key(s) {bad} must be non-empty strings"
+    for key in ("metrics", "timings", "env_spec"):
+        if record.get(key) is not None and not isinstance(record[key], dict):
+            return f"{key!r} must be an object or null, got {type(record[key]).__name__}"
+    for key in _SUMMARY_METRICS:
+        v = (record.get("metrics") or {}).get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            return f"metrics.{key} must be a number or null, got {v!r}"
+    for key in ("offline", "online_per_step"):
+        v = (record.get("timings") or {}).get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            return f"timings.{key} must be a number or null, got {v!r}"
+    if not isinstance(record.get("failed", False), bool):
+        return f"'failed' must be true or false, got {record['failed']!r}"
+    if not isinstance(record.get("failure_reason") or "", str):
+        return f"'failure_reason' must be a string, got {record['failure_reason']!r}"
+    return None
+
+
 def _read_json(path: Path) -> dict[str, Any] | None:
+    """The record at ``path``, or ``None`` (with a warning) when it is unreadable or not a record."""
+    r, problem = _read_record(path)
+    if problem:
+        log.warning("ignoring %s: %s", path, problem)
+    return r
+
+
+def _read_record(path: Path) -> tuple[dict[str, Any] | None, str | None]:
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        log.warning("ignoring unreadable record %s (%s)", path, exc)
-        return None
+        r = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return None, f"unreadable JSON ({exc})"
+    problem = record_problem(r)
+    return (None, f"not a benchmark record ({problem})") if problem else (r, None)
+
+
+@dataclass(frozen=True)
+class BadRecord:
+    """A record file that could not be used: its path, why, and the run it stands for (from its name)."""
+
+    path: Path
+    reason: str
+    setting: str
+    env: str | None
+    planner: str | None
+    variant: str | None
+
+
+def scan_records(out: str | Path, setting: str | None = None) -> tuple[list[dict[str, Any]], list[BadRecord]]:
+    """``(records, bad)``: the valid records under ``DIR/records`` (as :func:`load_records`) and the files that are
+    unreadable or not records (truncated, ``42``, missing keys, wrong types)."""
+    root = Path(out) / "records"
+    if not root.is_dir():
+        return [], []
+    dirs = [root / setting] if setting else sorted(p for p in root.iterdir() if p.is_dir())
+    records, bad = [], []
+    for d in dirs:
+        for p in sorted(d.glob("*.json")):
+            r, problem = _read_record(p)
+            if problem:
+                parts = p.stem.split("__")
+                env, planner, variant = parts if len(parts) == 3 else (None, None, None)
+                bad.append(BadRecord(p, problem, d.name, env, planner, variant))
+                log.warning("ignoring %s: %s", p, problem)
+                continue
+            records.append(r)
+    return _sorted_records(records), bad
 
 
 def load_records(out: str | Path, setting: str | None = None) -> list[dict[str, Any]]:
-    """All records under ``DIR/records`` (one setting, or all), sorted by setting, environment index, planner,
-    variant."""
-    root = Path(out) / "records"
-    if not root.is_dir():
-        return []
-    dirs = [root / setting] if setting else sorted(p for p in root.iterdir() if p.is_dir())
-    records = []
-    for d in dirs:
-        for p in sorted(d.glob("*.json")):
-            r = _read_json(p)
-            if r is not None and "setting" in r:
-                records.append(r)
+    """All valid records under ``DIR/records`` (one setting, or all), sorted by setting, environment index,
+    planner, variant; files that are not records are skipped with a warning (:func:`scan_records` lists them)."""
+    return scan_records(out, setting)[0]
+
+
+def _sorted_records(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     order = {name: i for i, name in enumerate(SETTINGS)}
 
     def key(r: dict[str, Any]) -> tuple:
-        return (order.get(r["setting"], 99), r["setting"], (r.get("env_spec") or {}).get("index", 0), r["env"],
+        index = (r.get("env_spec") or {}).get("index", 0)
+        return (order.get(r["setting"], 99), r["setting"], index if isinstance(index, int) else 0, r["env"],
                 r["planner"], r["variant"])
 
     return sorted(records, key=key)
@@ -744,8 +832,9 @@ def load_scene_map(out: str | Path, setting: str, env: str) -> dict[str, Any] | 
     path = _map_path(out, setting, env)
     if not path.is_file():
         return None
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
+    from ..io.npz import read_npz
+
+    return read_npz(path, what="benchmark map")
 
 
 def identity_view(record: dict[str, Any]) -> dict[str, Any]:
@@ -827,16 +916,21 @@ def run_benchmark(
              "density": spec.density, "config": to_dict(spec.run_config), "workers": workers, "scheduler": scheduler,
              "run_info": info, "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "runs_total": total,
              "runs_pending": pending}
-    atomic_write_json(out / f"sweep_{spec.setting}.json", sweep)
+    sweep_path = out / f"sweep_{spec.setting}.json"
+    # written once the first job has come back (an unreachable scheduler leaves nothing behind) and at the end
     from tqdm.auto import tqdm
 
     threads = spec.evaluation.threads_per_worker if threads_per_worker == "config" else threads_per_worker
     written = failed = errors = 0
+    started = False
     bar = tqdm(total=pending, desc=f"bench {spec.setting}", unit="run", disable=not progress)
     try:
         outcomes: Iterator = run_tasks(job_fn or run_job, jobs, workers=workers, scheduler=scheduler,
                                        threads_per_worker=threads, progress=False)
         for outcome in outcomes:
+            if not started:
+                atomic_write_json(sweep_path, sweep)
+                started = True
             job = jobs[outcome.index]
             if outcome.ok:
                 result: JobResult = outcome.value
@@ -858,6 +952,6 @@ def run_benchmark(
     wall = time.perf_counter() - t0
     sweep.update(finished=time.strftime("%Y-%m-%dT%H:%M:%S"), wall_time_s=wall, runs_written=written,
                  runs_failed=failed, runs_error=errors)
-    atomic_write_json(out / f"sweep_{spec.setting}.json", sweep)
+    atomic_write_json(sweep_path, sweep)
     return SweepReport(total=total, skipped=total - pending, written=written, failed_runs=failed, errors=errors,
                        wall_time=wall, records_dir=out / "records" / spec.setting)

@@ -81,8 +81,8 @@ def evaluation_box(scene: Scene, state_min: Sequence[float], state_max: Sequence
 
 
 def _slices(scene: Scene, n: int, plan_dt: float, device: torch.device | str = "cpu") -> Tensor:
-    times = torch.arange(n, dtype=torch.float64) * plan_dt
-    return scene.grid.slice_index(times).to(device)
+    """Slices of the ``n`` planning times ``scene.t_start + k plan_dt`` (absolute; the grid's one conversion)."""
+    return scene.grid.slices_for(scene.t_start, plan_dt, n).to(device)
 
 
 @torch.no_grad()

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io.atomic import atomic_write_text
-from .benchmark import SETTINGS, load_records
+from .benchmark import SETTINGS, scan_records
 from .metrics import summarise
 
 __all__ = ["PLANNER_LABELS", "method_label", "summary_rows", "write_tables", "summary_markdown", "CSV_COLUMNS"]
@@ -33,7 +33,8 @@ PLANNER_LABELS = {
 
 #: columns of ``summary.csv``
 CSV_COLUMNS = (
-    "setting", "method", "planner", "variant", "runs", "valid", "failures", "errors", "failure_rate", "cri", "gci",
+    "setting", "method", "planner", "variant", "runs", "missing", "valid", "failures", "errors", "failure_rate", "cri",
+    "gci",
     "ici", "final_distance", "goal_cost", "collision_cost", "input_cost", "collision_probability_max",
     "offline_time", "online_time", "mc_collision_mean", "mc_collision_frequency", "mc_runs", "failure_reasons",
 )
@@ -55,15 +56,63 @@ def _order(s) -> tuple:
             variants.index(s.variant) if s.variant in variants else len(variants), s.variant)
 
 
-def summary_rows(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """One row per (setting, planner, variant), in the order of :data:`CSV_COLUMNS`."""
+def summary_rows(
+    records: Sequence[Mapping[str, Any]], missing: Mapping[tuple[str, str, str], int] | None = None
+) -> list[dict[str, Any]]:
+    """One row per (setting, planner, variant), in the order of :data:`CSV_COLUMNS`. ``missing`` counts the runs of
+    each ``(setting, planner, variant)`` that have no usable record (unreadable file, or not yet run); a method
+    whose every record is missing still gets a row."""
+    missing = dict(missing or {})
     rows = []
-    for s in sorted(summarise(records), key=_order):
+    summaries = summarise(records)
+    present = {(s.setting, s.planner, s.variant) for s in summaries}
+    for key in sorted(k for k, n in missing.items() if n and k not in present):
+        summaries.append(_empty_summary(*key))
+    for s in sorted(summaries, key=_order):
         row: dict[str, Any] = s.as_dict()
+        row["missing"] = int(missing.get((s.setting, s.planner, s.variant), 0))
         row["method"] = method_label(s.planner, s.variant)
         row["failure_reasons"] = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_reasons.items()))
         rows.append({k: row[k] for k in CSV_COLUMNS})
     return rows
+
+
+def _empty_summary(setting: str, planner: str, variant: str):
+    from .metrics import MethodSummary
+
+    nan = math.nan
+    return MethodSummary(setting, planner, variant, 0, 0, 0, 0, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan,
+                         nan, nan, nan, 0, {})
+
+
+def missing_runs(out: str | Path, records: Sequence[Mapping[str, Any]], bad) -> dict[tuple[str, str, str], int]:
+    """Runs without a usable record per ``(setting, planner, variant)``: the runs the sweep file
+    ``DIR/sweep_<setting>.json`` expects minus the valid records, and at least the unusable record files."""
+    import json
+
+    out = Path(out)
+    have: dict[tuple[str, str, str], int] = {}
+    for r in records:
+        k = (str(r["setting"]), str(r["planner"]), str(r["variant"]))
+        have[k] = have.get(k, 0) + 1
+    missing: dict[tuple[str, str, str], int] = {}
+    for b in bad:
+        if b.planner is not None:
+            k = (b.setting, b.planner, b.variant)
+            missing[k] = missing.get(k, 0) + 1
+    for path in sorted(out.glob("sweep_*.json")):
+        try:
+            sweep = json.loads(path.read_text())
+            setting, planners, variants = sweep["setting"], sweep["planners"], sweep["variants"]
+            n_envs = len(sweep["envs"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        single = SETTINGS[setting].single_variant if setting in SETTINGS else ()
+        for planner in planners:
+            for variant in (variants[:1] if planner in single else variants):
+                k = (setting, planner, variant)
+                missing[k] = max(missing.get(k, 0), n_envs - have.get(k, 0))
+    return {k: v for k, v in missing.items() if v > 0}
 
 
 def _csv_value(v: Any) -> Any:
@@ -111,14 +160,20 @@ def summary_markdown(rows: Sequence[Mapping[str, Any]], records: Sequence[Mappin
         for r in rows:
             if r["setting"] != setting:
                 continue
+            runs = f"{r['runs']} ({r['missing']} missing)" if r.get("missing") else f"{r['runs']}"
             out.write(
-                f"| {r['method']} | {r['runs']} | {_fmt(r['failure_rate'], percent=True)} | {_fmt(r['cri'])} | "
+                f"| {r['method']} | {runs} | {_fmt(r['failure_rate'], percent=True)} | {_fmt(r['cri'])} | "
                 f"{_fmt(r['gci'])} | {_fmt(r['ici'])} | {_fmt(r['final_distance'])} | {_fmt(r['offline_time'])} | "
                 f"{_fmt(r['online_time'], scale=1e3)} | {_fmt(r['collision_probability_max'])} | "
                 f"{_fmt(r['mc_collision_mean'])} | {_fmt(r['mc_collision_frequency'], percent=True)} | "
                 f"{r['failure_reasons'] or '–'} |\n"
             )
         out.write("\n")
+        lost = [r for r in rows if r["setting"] == setting and r.get("missing")]
+        if lost:
+            out.write("**Missing runs** (no usable record: unreadable or not a record, or not run yet; the rates "
+                      "above are over the runs present): "
+                      + ", ".join(f"{r['method']} {r['missing']}" for r in lost) + ".\n\n")
     return out.getvalue()
 
 
@@ -127,10 +182,12 @@ def write_tables(out: str | Path) -> tuple[list[dict[str, Any]], list[dict[str, 
 
     Returns ``(records, rows, paths)``. Raises ``ValueError`` if ``DIR`` has no records."""
     out = Path(out)
-    records = load_records(out)
+    records, bad = scan_records(out)
     if not records:
-        raise ValueError(f"no benchmark records under {out / 'records'} (run `density-planner bench ... --out {out}`)")
-    rows = summary_rows(records)
+        extra = f"; {len(bad)} file(s) there are not records (e.g. {bad[0].path.name}: {bad[0].reason})" if bad else ""
+        raise ValueError(f"no benchmark records under {out / 'records'} (run `density-planner bench ... --out {out}`)"
+                         + extra)
+    rows = summary_rows(records, missing_runs(out, records, bad))
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(CSV_COLUMNS), lineterminator="\n")
     writer.writeheader()

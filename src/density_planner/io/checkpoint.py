@@ -182,6 +182,13 @@ def load_weights(
     ):
         raise CheckpointError(f"weights file {pt_path} does not hold a state_dict (a mapping name -> tensor)")
     state = dict(state)
+    for key, value in state.items():  # NaN weights would only show later as a plan without a finite cost
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(
+                f"weights file {pt_path}: parameter {key!r} holds {bad} NaN or infinite value(s); the weights are "
+                "corrupt (restore or retrain them)"
+            )
     if module is not None:
         check_state_dict(module, state, pt_path)
         module.load_state_dict(state)

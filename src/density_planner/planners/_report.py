@@ -18,15 +18,7 @@ from ..density.base import DensityTrajectory, sample_weights
 from ..risk.collision import CollisionReport, collision_probability
 from .problem import PlanningProblem
 
-__all__ = ["plan_slices", "evaluate_samples", "evaluate_trajectory"]
-
-
-def plan_slices(problem: PlanningProblem, n: int | None = None, device: torch.device | str = "cpu") -> Tensor:
-    """Occupancy slice of the first ``n`` planning times ``k * plan_dt`` (default: the whole horizon)."""
-    par = problem.parameterization
-    n = par.n_plan if n is None else n
-    times = torch.arange(n, dtype=torch.float64) * par.plan_dt
-    return problem.scene.grid.slice_index(times).to(device)
+__all__ = ["evaluate_samples", "evaluate_trajectory"]
 
 
 @torch.no_grad()
@@ -44,7 +36,7 @@ def evaluate_samples(
     ``traj`` has a leading batch dimension of one (as returned by a predictor for one reference).
     """
     device = traj.x.device
-    slices = plan_slices(problem, traj.x.shape[-2], device)
+    slices = problem.slices(traj.x.shape[-2], device)
     w = sample_weights(traj.log_rho, traj.log_rho0, mode=weighting, log_q0=log_q0)
     inputs = CostInputs(x=traj.x, weights=w, u_ref=ref.u_plan, slices=slices)
     cost = build_cost(problem.scene, cost_config, optimisation=False, device=device)(inputs).select(0).to_dict()
@@ -63,7 +55,7 @@ def evaluate_trajectory(
     """Evaluation-form cost and collision probability of one trajectory ``states (T, nx)`` on the planning grid
     driven by ``inputs (T - 1, nu)`` (the applied or reference inputs on the same grid)."""
     device = states.device
-    slices = plan_slices(problem, states.shape[0], device)
+    slices = problem.slices(states.shape[0], device)
     cost_inputs = CostInputs.single(states, inputs, slices)
     cost = build_cost(problem.scene, cost_config, optimisation=False, device=device)(cost_inputs).to_dict()
     coll = collision_probability(problem.scene.grid.to(device), states[None, :, :2], None, slices)

@@ -34,14 +34,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_choice
+from ..checks import check_choice, check_seed
 from ..control.reference import Reference, make_reference
 from ..cost.composite import CostConfig, WeightedCost, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
 from ..density.liouville import ExactLiouville
 from ..systems.car import THETA
-from ._report import evaluate_samples, plan_slices
+from ._report import evaluate_samples
 from .base import Planner, PlanResult, PlanStatus
 from .density_planner import sample_initial_states
 from .problem import PlanningProblem
@@ -99,6 +99,7 @@ class TreeConfig:
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
         check_choice("weighting", self.weighting, ("density", "mass"))
         check_choice("horizon", self.horizon, ("auto", "full", "node"))
+        check_seed("seed", self.seed)
 
 
 @dataclass
@@ -283,7 +284,7 @@ class TreePlanner(Planner):
         w0 = sample_weights(log_rho0[:, None], log_rho0, mode=cfg.weighting, log_q0=log_q0)[:, 0]
         goal = torch.tensor(problem.goal, dtype=self.dtype, device=self.device)
         goal0 = float((w0 * (x0[:, :2] - goal).pow(2).sum(-1)).sum())
-        return _Context(problem, start, x0, log_rho0, log_q0, objective, plan_slices(problem, device=self.device),
+        return _Context(problem, start, x0, log_rho0, log_q0, objective, problem.slices(device=self.device),
                         goal0, time.perf_counter())
 
     @abstractmethod
@@ -295,6 +296,8 @@ class TreePlanner(Planner):
     def plan(self, problem: PlanningProblem) -> PlanResult:
         """Run the search; never raises (the status says what happened). ``extras["rejections"]`` counts the
         candidates failing each acceptance rule."""
+        if hasattr(self.predictor, "check_parameterization"):  # a learned predictor only serves its own horizon
+            self.predictor.check_parameterization(problem.parameterization)
         t_start = time.perf_counter()
         try:
             gen = torch.Generator().manual_seed(self.config.seed)

@@ -26,7 +26,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import check_choice
+from ..checks import check_choice, check_seed
 from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, build_cost
 from ..cost.terms import CostInputs
@@ -85,6 +85,7 @@ class DensityPlannerConfig:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
         check_choice("weighting", self.weighting, ("density", "mass"))
+        check_seed("seed", self.seed)
 
 
 def sample_initial_states(
@@ -153,10 +154,8 @@ class DensityPlanner(Planner):
         return torch.tensor(lo, **kw)[:, None], torch.tensor(hi, **kw)[:, None]
 
     def _slices(self, problem: PlanningProblem) -> Tensor:
-        """Occupancy slice of every planning time."""
-        par = problem.parameterization
-        times = torch.arange(par.n_plan, dtype=torch.float64) * par.plan_dt
-        return problem.scene.grid.slice_index(times).to(self.device)
+        """Occupancy slice of every planning time (absolute times ``t_start + k plan_dt``)."""
+        return problem.slices(device=self.device)
 
     def _bar(self, total: int, desc: str):
         from tqdm.auto import tqdm
@@ -275,6 +274,9 @@ class DensityPlanner(Planner):
         return cost, coll
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
+        for predictor in (self.predictor, self.exact_check):  # a learned predictor only serves its own horizon
+            if hasattr(predictor, "check_parameterization"):
+                predictor.check_parameterization(problem.parameterization)
         t_start = time.perf_counter()
         gen = torch.Generator().manual_seed(self.config.seed)
         params1, hist1, it1 = self.initialise(problem, gen)

@@ -462,7 +462,11 @@ class MPCPlanner(Planner):
         prog = self._program_for(grid.cell_size, self._limits(system))
         cfg = self.config
         n_steps = cfg.n_steps or int(round(problem.parameterization.horizon / cfg.stage_dt))
-        times = torch.arange(n_steps + cfg.horizon + 1, dtype=torch.float64) * cfg.stage_dt
+        # occupancy slices of the absolute times t_start + k stage_dt: the closed loop's own steps must lie in the
+        # grid (ValueError otherwise); the prediction stages after the last step look past the plan's horizon and
+        # hold the grid's last slice where the scene ends there
+        problem.slices(n_steps + 1, dt=cfg.stage_dt)
+        slices = grid.slices_for(problem.t_start, cfg.stage_dt, n_steps + cfg.horizon + 1, clamp=True)
         xmin, xmax, ymin, ymax = grid.bounds
         shrink = cfg.tube_radius if cfg.tighten_constraints else 0.0
         lo = np.array([xmin + shrink, ymin + shrink])
@@ -484,7 +488,7 @@ class MPCPlanner(Planner):
             probs=probs,
             origin=np.asarray(grid.origin, dtype=float),
             cell=grid.cell_size,
-            slices=grid.slice_index(times).numpy(),
+            slices=slices.numpy(),
             pos_lo=lo,
             pos_hi=hi,
             goal=np.asarray(problem.goal, dtype=float),
@@ -644,7 +648,8 @@ class MPCPlanner(Planner):
             try:
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
                 result.extras["objective"] = mpc_objective(problem.scene.grid, x, u, problem.goal,
-                                                           self.config.weights, dt=self.config.stage_dt)
+                                                           self.config.weights, dt=self.config.stage_dt,
+                                                           t_start=problem.t_start)
             except Exception as exc:  # noqa: BLE001
                 result.message += f" (evaluation failed: {exc})"
         elif states:
@@ -665,16 +670,18 @@ def mpc_objective(
     *,
     offsets: np.ndarray | None = None,
     dt: float = 0.1,
+    t_start: float | None = None,
 ) -> dict[str, float]:
     """``J_MPC`` (paper Eq. (11)) of a whole trajectory ``states (T, >=2)`` on the 0.1-s grid with
     ``inputs (T - 1, 2)``, from ``h = 0`` over ``T - 1`` stages: the oracle's objective, also used to compare the
     closed-loop MPC runs with it. Terms unweighted, ``total`` weighted; occupancy interpolated bilinearly (fill 1
-    outside the map), summed over ``offsets (M, 2)`` [m] if given."""
+    outside the map), summed over ``offsets (M, 2)`` [m] if given. ``states[k]`` lies at the absolute time
+    ``t_start + k dt`` (default ``t_start``: the grid's ``t0``)."""
     states = states.detach().to("cpu", torch.float64)
     inputs = inputs.detach().to("cpu", torch.float64)
     g = grid.to("cpu")
     T = states.shape[0]
-    k = g.slice_index(torch.arange(T, dtype=torch.float64) * dt)
+    k = g.slices_for(g.t0 if t_start is None else t_start, dt, T)
     pos = states[:, :2]
     if offsets is not None:
         pos = pos[:, None, :] + torch.as_tensor(offsets, dtype=torch.float64)[None]

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_choice
+from ..checks import check_choice, check_seed
 from ..control.reference import make_reference
 from ..cost.composite import CostConfig
 from ..systems.car import BIAS, THETA, KinematicCar, V
@@ -76,8 +76,7 @@ class OracleConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
-            raise ValueError(f"seed must be an integer, got {self.seed!r}")
+        check_seed("seed", self.seed)
         if not math.isfinite(self.init_std) or self.init_std < 0:
             raise ValueError(f"init_std must be a finite number >= 0, got {self.init_std!r}")
         if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
@@ -107,7 +106,7 @@ class _OracleProgram:
             probs = np.concatenate([probs, probs])
         values = np.ascontiguousarray(probs.transpose(0, 2, 1)).ravel()  # x fastest, then y, then slice
         occ = ca.interpolant("occ", "linear", [xs, ys, ts], values)
-        slices = grid.slice_index(torch.arange(self.N + 1, dtype=torch.float64) * par.plan_dt).tolist()
+        slices = problem.slices(self.N + 1).tolist()  # absolute times t_start + k plan_dt
 
         F = car_step_function(ca, par.plan_dt, par.plan_stride)
         Pm = ca.MX.sym("params", 2, self.n_seg)
@@ -184,7 +183,7 @@ class OraclePlanner(Planner):
         self._program_key: tuple | None = None
 
     def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
-        key = (problem.scene.grid, problem.parameterization, problem.system.config)
+        key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config)
         if self._program is None or self._program_key is None or any(
             a is not b and a != b for a, b in zip(self._program_key, key)
         ):
@@ -256,7 +255,7 @@ class OraclePlanner(Planner):
                                        torch.tensor(lo, dtype=torch.float64)[:, None])
                 ref = make_reference(system, start, params, par)
                 obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
-                                    dt=par.plan_dt)
+                                    dt=par.plan_dt, t_start=problem.t_start)
                 feasible = prog.feasible(ref.x_plan)
                 entry["objective"] = obj["total"]
                 entry["feasible"] = feasible
@@ -285,7 +284,7 @@ class OraclePlanner(Planner):
         extras["best_restart"] = i_best
         extras["best_converged"] = bool(restarts[i_best]["success"])
         extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
-                                            dt=par.plan_dt)
+                                            dt=par.plan_dt, t_start=problem.t_start)
         n_conv = sum(1 for e in restarts if e["success"])
         message = (f"{n_conv} of {len(restarts)} restarts converged; kept restart {i_best} "
                    f"({restarts[i_best]['status']})")

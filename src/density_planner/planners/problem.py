@@ -1,19 +1,111 @@
-"""The planning problem: a scene, the initial-state distribution, the system and the reference parameterisation."""
+"""The planning problem: a scene, the initial-state distribution, the system and the reference parameterisation.
+
+Time axis (the one rule every planner, cost and metric follows): a plan starts at the scene's ABSOLUTE time
+``scene.t_start`` (on the occupancy grid's clock; default the grid's ``t0``) and its planning-grid point ``k`` lies
+at ``t_start + k * plan_dt``. :meth:`PlanningProblem.slices` turns these times into occupancy slices through
+:meth:`~density_planner.environment.grid.OccupancyGrid.slices_for`, which refuses a horizon that leaves the grid.
+The horizon and the segment length are configuration (:class:`PlanningConfig`, TOML section ``[planning]``).
+"""
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
+from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import Scene, validate_scene
 from ..systems.base import System
 from ..systems.car import BIAS, KinematicCar
 
-__all__ = ["PlanningProblem"]
+__all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON"]
+
+log = logging.getLogger(__name__)
+
+#: the paper's planning horizon [s] (10 segments of 1 s); the shipped learned density predictors are trained for it
+DEFAULT_HORIZON = 10.0
+
+
+@dataclass(frozen=True)
+class PlanningConfig:
+    """``[planning]``: the time axis shared by every planner (density planner, search, sampling, MPC, oracle) and
+    the evaluation.
+
+    The horizon is ``horizon`` when given (explicit configuration wins); else the scene's suggestion
+    ``scene.meta["horizon"]`` [s from the plan's start] (e.g. the end of a CommonRoad goal's time interval),
+    rounded up to whole segments and capped at ``max_horizon`` and at the scene's time span; else
+    :data:`DEFAULT_HORIZON` (10 s, the paper). The shipped learned density predictors are trained for 10 s of
+    1-s segments at 0.1 s: for other values the planner falls back to exact Liouville (logged warning) or, when a
+    learned predictor is named explicitly, refuses with an error.
+    """
+
+    #: planning horizon [s], a whole number of segments (None: the scene's suggestion, else 10 s)
+    horizon: float | None = None
+    #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped)
+    max_horizon: float = 20.0
+    #: duration of one piecewise-constant segment of the reference inputs [s]
+    segment_duration: float = 1.0
+    #: step of the planning grid on which costs, risks and metrics are evaluated [s]
+    plan_dt: float = 0.1
+    #: fine integration step of the reference and of closed-loop simulations [s]
+    dt: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("max_horizon", "segment_duration", "plan_dt", "dt"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"planning.{name} must be a finite number > 0, got {v!r}")
+        if self.horizon is not None:
+            h = self.horizon
+            if isinstance(h, bool) or not isinstance(h, (int, float)) or not math.isfinite(h) or h <= 0:
+                raise ValueError(f"planning.horizon must be a finite number > 0, got {h!r}")
+            self._segments(h, "planning.horizon")
+        PiecewiseConstantInputs(1, self.segment_duration, self.dt, self.plan_dt)  # validates the ratios
+
+    def _segments(self, horizon: float, what: str) -> int:
+        n = horizon / self.segment_duration
+        if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 1:
+            raise ValueError(
+                f"{what} ({horizon:g} s) must be a whole number of segments of planning.segment_duration = "
+                f"{self.segment_duration:g} s"
+            )
+        return int(round(n))
+
+    def resolve_horizon(self, scene: Scene | None = None) -> float:
+        """The horizon [s] for ``scene`` (see the class docstring)."""
+        if self.horizon is not None:
+            return float(self.horizon)
+        suggested = None if scene is None else scene.meta.get("horizon", getattr(scene, "horizon", None))
+        if suggested is None:
+            return DEFAULT_HORIZON
+        try:
+            suggested = float(suggested)
+        except (TypeError, ValueError):
+            raise ValueError(f"scene {scene.name!r}: meta['horizon'] must be a number [s], got {suggested!r}") from None
+        if not math.isfinite(suggested) or suggested <= 0:
+            raise ValueError(f"scene {scene.name!r}: suggested horizon must be > 0 s, got {suggested}")
+        seg = self.segment_duration
+        n = max(1, math.ceil(suggested / seg - 1e-9))
+        n = min(n, max(1, math.floor(self.max_horizon / seg + 1e-9)))
+        span = scene.grid.t_end - scene.t_start
+        n = min(n, max(1, math.floor(span / seg + 1e-9)))
+        horizon = n * seg
+        if not math.isclose(horizon, suggested):
+            log.info("scene %s suggests a %.3g-s horizon; planning over %.3g s (whole %.3g-s segments, at most "
+                     "planning.max_horizon = %.3g s and the scene's %.3g s)", scene.name, suggested, horizon, seg,
+                     self.max_horizon, span)
+        return horizon
+
+    def parameterization(self, scene: Scene | None = None) -> PiecewiseConstantInputs:
+        """The reference parameterisation over the horizon for ``scene``."""
+        horizon = self.resolve_horizon(scene)
+        n = self._segments(horizon, "planning horizon")
+        return PiecewiseConstantInputs(n, float(self.segment_duration), float(self.dt), float(self.plan_dt))
 
 
 @dataclass
@@ -44,12 +136,7 @@ class PlanningProblem:
                 f"initial_distribution has dimension {self.initial_distribution.dim}, the system state has "
                 f"{self.system.nx}"
             )
-        grid = self.scene.grid
-        span = grid.t0 + (grid.n_slices - 1) * grid.dt
-        if self.parameterization.horizon > span + 1e-6:
-            raise ValueError(
-                f"planning horizon {self.parameterization.horizon} s exceeds the occupancy grid's time span {span} s"
-            )
+        self.scene.grid.check_span(self.scene.t_start, self.parameterization.horizon)
 
     @classmethod
     def from_scene(
@@ -59,15 +146,33 @@ class PlanningProblem:
         seed: int = 0,
         system: System | None = None,
         parameterization: PiecewiseConstantInputs | None = None,
+        planning: PlanningConfig | None = None,
     ) -> PlanningProblem:
         """The paper's default problem: its 5-component Gaussian mixture on the XE0 box around the scene start,
-        drawn with ``seed``."""
+        drawn with ``seed``. The horizon comes from ``parameterization`` if given, else from ``planning`` (default
+        :class:`PlanningConfig`: the scene's suggestion or 10 s)."""
+        check_seed("seed", seed)
         system = system or KinematicCar()
         half_width = getattr(getattr(system, "config", None), "initial_error_max", None)
         if half_width is None:
             raise ValueError("from_scene needs a system with config.initial_error_max (the XE0 box)")
         dist = paper_gaussian_mixture(scene.start, half_width, torch.Generator().manual_seed(seed))
-        return cls(scene, dist, system, parameterization or PiecewiseConstantInputs())
+        if parameterization is None:
+            parameterization = (planning or PlanningConfig()).parameterization(scene)
+        return cls(scene, dist, system, parameterization)
+
+    @property
+    def t_start(self) -> float:
+        """Absolute time [s] of the plan's start on the occupancy grid's clock (``scene.t_start``)."""
+        return self.scene.t_start
+
+    def slices(self, n: int | None = None, device: torch.device | str = "cpu", *, dt: float | None = None) -> Tensor:
+        """Occupancy slices ``(n,)`` of the planning times ``t_start + k * dt`` (default: ``plan_dt`` over the whole
+        horizon): the one place planners, costs and metrics get their slices from. Raises :class:`ValueError` when
+        the times leave the grid's span."""
+        par = self.parameterization
+        n = par.n_plan if n is None else int(n)
+        return self.scene.grid.slices_for(self.t_start, par.plan_dt if dt is None else dt, n).to(device)
 
     def reference_start(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Tensor:
         """Start of the reference: the mean of the initial distribution, with zero heading bias (the reference is

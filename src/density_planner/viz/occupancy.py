@@ -64,6 +64,19 @@ def _figsize(scene: Scene, width: float = 6.0) -> tuple[float, float]:
     return (width if aspect <= 1.5 else max(height / aspect + 1.6, 4.0), height)
 
 
+def _outline(geom) -> tuple[np.ndarray, np.ndarray]:
+    """x, y of all boundary rings of a shapely geometry, separated by NaN (one ``plot`` call)."""
+    import shapely
+
+    parts = shapely.get_parts(shapely.get_parts(shapely.boundary(geom)))
+    chunks = []
+    for line in parts:
+        xy = shapely.get_coordinates(line)
+        chunks.extend([xy, np.full((1, 2), np.nan)])
+    xy = np.concatenate(chunks) if chunks else np.empty((0, 2))
+    return xy[:, 0], xy[:, 1]
+
+
 def _decorate(ax, scene: Scene) -> None:
     sx, sy, th, v = scene.start[:4]
     gx, gy = scene.goal
@@ -84,11 +97,23 @@ def _decorate(ax, scene: Scene) -> None:
         xytext=(sx, sy),
         arrowprops={"arrowstyle": "->", "color": "tab:green", "lw": 1.5},
     )
+    road = getattr(scene, "road", None)
+    if road is not None:  # exact geometry of road scenes: road edges and the goal region (no autoscaling)
+        if road.drivable is not None:
+            ax.plot(*_outline(road.drivable), color="tab:cyan", lw=0.6, label="road edge")
+        goal = road.goal
+        if goal.shapes is not None:
+            t0, t1 = goal.time_interval
+            ax.plot(*_outline(goal.shapes), color="tab:red", lw=1.2, label=f"goal region ({t0:g}-{t1:g} s)",
+                    zorder=4)
     ax.plot(sx, sy, "o", color="tab:green", ms=7, mec="white", label=f"start ({v:.1f} m/s)")
-    ax.plot(gx, gy, "*", color="tab:red", ms=12, mec="white", label="goal")
+    ax.plot(gx, gy, "*", color="tab:red", ms=12, mec="white", label="goal", zorder=3)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
+    ext = _extent(scene)
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
 
 
 def plot_occupancy(scene: Scene, path: str | Path, *, title: str | None = None) -> Path:

@@ -85,11 +85,12 @@ def plot_plan(
 
     for j, ts in enumerate(snapshot_times):
         k_time = int(round(ts / plan_dt))
-        if k_time >= grid.n_slices:
+        if scene.t_start + k_time * plan_dt > grid.t_end + 1e-9:
             continue
         k = min(k_time, states.shape[0] - 1)  # an executed trajectory that stopped early stays where it stopped
         a = fig.add_subplot(snapshot_cell(j))
-        show_occupancy(a, grid.slice(int(grid.slice_index(k_time * plan_dt))), _extent(scene))
+        show_occupancy(a, grid.slice(int(grid.slice_index(scene.t_start + k_time * plan_dt, clamp=True))),
+                       _extent(scene))
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
         if samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
@@ -135,7 +136,8 @@ def animate_plan(
     fig, ax = plt.subplots(figsize=(4.6, 6.2), dpi=72)
     for k in range(0, states.shape[0], every):
         ax.clear()
-        show_occupancy(ax, grid.slice(int(grid.slice_index(k * plan_dt))), _extent(scene))
+        show_occupancy(ax, grid.slice(int(grid.slice_index(scene.t_start + k * plan_dt, clamp=True))),
+                       _extent(scene))
         ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.8)
         ax.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.5)
         if samples_x is not None and samples_log_rho is not None:
