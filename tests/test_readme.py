@@ -25,3 +25,4 @@ def test_readme_python_example_runs():
     lines = out.getvalue().splitlines()
     assert lines[0] == "torch.Size([500, 101, 5]) torch.Size([500, 101])"
     assert lines[1].startswith("PlanStatus.SUCCESS")
+    assert lines[2].split()[0] in ("success", "failed")  # the verdict

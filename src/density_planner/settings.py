@@ -27,12 +27,15 @@ from .environment.commonroad import CommonRoadSceneConfig
 from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .evaluation.config import EvaluationConfig
+from .evaluation.verdict import VerdictConfig
+from .io.commonroad_solution import SolutionConfig
 from .planners.density_planner import DensityPlannerConfig
 from .planners.mpc import MPCConfig, TubeMPCConfig
 from .planners.oracle import OracleConfig
 from .planners.problem import PlanningConfig
 from .planners.sampling import SamplingConfig
 from .planners.search import SearchConfig
+from .risk.collision import RiskConfig
 
 __all__ = ["RunConfig"]
 
@@ -67,3 +70,9 @@ class RunConfig:
     commonroad: CommonRoadSceneConfig = field(default_factory=CommonRoadSceneConfig)
     #: [evaluation]: closed-loop evaluation and benchmarks (Monte-Carlo samples, failure thresholds, execution)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    #: [verdict]: how every plan is judged (vehicle rectangle, road tolerance; see evaluation/verdict.py)
+    verdict: VerdictConfig = field(default_factory=VerdictConfig)
+    #: [solution]: the CommonRoad solution file of `plan --env commonroad` (vehicle model and type, cost function)
+    solution: SolutionConfig = field(default_factory=SolutionConfig)
+    #: [risk]: collision with the vehicle's body and the estimator of its probability
+    risk: RiskConfig = field(default_factory=RiskConfig)

@@ -13,14 +13,15 @@ from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.scene import Scene
 from density_planner.planners.base import PlanStatus
 from density_planner.planners.problem import PlanningProblem
+from density_planner.risk import RiskConfig
 
 pytest.importorskip("casadi", reason="the MPC baselines need the optional 'mpc' extra (casadi)")
 
 from density_planner.planners.mpc import MPCConfig, MPCPlanner, tube_offsets  # noqa: E402
 
 
-def _problem(scene: Scene) -> PlanningProblem:
-    return PlanningProblem.from_scene(scene, seed=0)
+def _problem(scene: Scene, risk: RiskConfig | None = None) -> PlanningProblem:
+    return PlanningProblem.from_scene(scene, seed=0, risk=risk)
 
 
 def _cfg(**kwargs) -> MPCConfig:
@@ -108,7 +109,7 @@ def test_nlp_is_built_once_and_steps_do_not_rebuild(m0, empty_run):
         step = m0.solve(state, h)
         assert step.predicted.shape == (11, 4) and step.predicted_inputs.shape == (10, 2)
         assert step.step_time >= step.solve_time > 0
-        assert step.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_CpuTime_Exceeded")
+        assert step.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level", "Maximum_Iterations_Exceeded")
         state = step.predicted[1]
     res = m0.plan(problem)
     assert res.status == PlanStatus.SUCCESS
@@ -142,7 +143,9 @@ def test_nlp_collision_term_matches_the_grid(radius, method):
     us = torch.as_tensor(step.predicted_inputs, dtype=torch.float64)
     k = scene.grid.slice_index((step_index + torch.arange(1, 11, dtype=torch.float64)) * 0.1)
     d = torch.as_tensor(tube_offsets(radius, 0.1))
-    s_k = scene.grid.lookup(xs[1:, None, :2] + d[None], k[:, None]).sum(-1)
+    model = problem.collision()  # the body: disc centres on the disc-dilated grid
+    c = model.centres(xs[1:])  # (10, m, 2)
+    s_k = model.body_grid.lookup(c[:, :, None, :] + d[None, None], k[:, None, None]).sum(dim=(-1, -2))
     w = cfg.weights
     growth = (step_index / 100) ** 2
     goal = w.goal * growth * float((xs[-1, :2] - torch.tensor(scene.goal, dtype=torch.float64)).pow(2).sum())
@@ -153,7 +156,9 @@ def test_nlp_collision_term_matches_the_grid(radius, method):
 
 def test_precomputed_and_offset_tubes_give_the_same_step():
     scene = _field_scene()
-    problem = _problem(scene)
+    # a point vehicle: this checks the tube mechanism (with the 4.5-m car in this dense field IPOPT needs more
+    # than 300 iterations for either method)
+    problem = _problem(scene, RiskConfig(body=False))
     out = {}
     for method in ("precomputed", "offsets"):
         mpc = MPCPlanner(MPCConfig(tube_radius=0.3, tube_method=method, max_iter=100, max_cpu_time=None))

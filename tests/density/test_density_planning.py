@@ -62,7 +62,7 @@ def test_plan_command_with_learned_predictor_reports_exact_check(tmp_path):
             "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20"]
     rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density",
                str(tmp_path / "w.pt"), *fast, "-q", "--no-gif", "--out", str(tmp_path / "p")])
-    assert rc == 0
+    assert rc in (0, 3)  # a plan was made (3: its verdict failed; this short optimisation need not pass it)
     data = json.loads((tmp_path / "p" / "plan.json").read_text())
     assert data["density_predictor"] == "trajectory"
     assert data["extras"]["predictor"] == "trajectory"
@@ -77,7 +77,7 @@ def test_plan_command_default_falls_back_to_exact_for_other_controller(tmp_path)
             "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=10"]
     rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", *fast, "-q", "--no-gif",
                "--out", str(tmp_path / "p")])
-    assert rc == 0
+    assert rc in (0, 3)  # a plan was made (3: its verdict failed; this short optimisation need not pass it)
     data = json.loads((tmp_path / "p" / "plan.json").read_text())
     assert data["extras"]["predictor"] == "exact"
     assert "exact_check" not in data["extras"]  # no second exact propagation of the same plan

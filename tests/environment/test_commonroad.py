@@ -404,3 +404,21 @@ def test_goal_velocity_outside_the_model_domain_is_refused(tmp_path):
     with pytest.raises(DataError, match=r"goal's velocity interval \[12\.50, 18\.00\] m/s lies outside the "
                                         r"KinematicCar model's domain \(0 <= v <= 10 m/s"):
         load_commonroad_scene(write_scenario(tmp_path / "g.xml", goal=goal), _cfg())
+
+
+def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
+    """UTM-like coordinates (float32 resolution 0.5 m at 5e6 m) are moved by a whole-km offset, recorded."""
+    path = write_scenario(tmp_path / "s.xml")
+    root = ET.parse(path).getroot()
+    for tag, off in (("x", 686000.0), ("y", 5334000.0)):
+        for el in root.iter(tag):
+            el.text = str(float(el.text) + off)
+    far = tmp_path / "utm.xml"
+    ET.ElementTree(root).write(far)
+    scene = load_commonroad_scene(far, _cfg())
+    assert scene.meta["frame_offset"] == [686000.0, 5334000.0]
+    assert scene.start[:2] == pytest.approx((10.0, 1.75), abs=1e-6)
+    near = load_commonroad_scene(path, _cfg())
+    assert scene.goal == pytest.approx(near.goal, abs=1e-6)
+    assert scene.road.goal.shapes.equals_exact(near.road.goal.shapes, 1e-6)
+    assert near.meta["frame_offset"] == [0.0, 0.0]

@@ -3,8 +3,8 @@
 Each command lives in its own module with a ``register(subparsers, groups)`` function that adds its parser and
 sets ``func``. Grouped commands (``train controller``, ``validate density``, ``data density``) register into the
 shared groups. Every error is printed as one line (``--debug`` shows the traceback instead) with one exit-code
-rule: 2 for bad input (arguments, configuration, files, data), 1 for an internal failure (see
-:data:`EXIT_BAD_INPUT`, :func:`classify_error`).
+rule: 2 for bad input (arguments, configuration, files, data), 1 for an internal failure, 3 when ``plan`` made a
+plan that failed its verdict (see :data:`EXIT_BAD_INPUT`, :func:`classify_error`, :func:`plan_exit_code`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ..errors import DensityPlannerError
 __all__ = ["main", "build_parser"]
 
 #: command modules, in the order they appear in ``--help``
-COMMAND_MODULES = ("env", "density", "controller", "density_nn", "plan", "bench")
+COMMAND_MODULES = ("env", "density", "controller", "density_nn", "plan", "risk", "bench")
 
 #: command groups with sub-commands: name -> help
 GROUPS = {
@@ -60,8 +60,15 @@ def group(sub: argparse._SubParsersAction, groups: dict, name: str) -> argparse.
 
 #: exit codes (README, "Bad input"): 0 success; 1 internal failure (a bug, a solver or planner failure without a
 #: plan, out of memory, a full disk); 2 bad input (arguments, configuration, files, data, missing optional extras);
-#: 130 interrupted
-EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: 3 ``plan`` made a plan but it failed its verdict (every file still written); 130 interrupted
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_VERDICT_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+def plan_exit_code(verdict) -> int:
+    """Exit code of ``plan`` from its plan's verdict: 0 passed, 3 failed, 1 no plan (``None``)."""
+    if verdict is None:
+        return EXIT_FAILURE
+    return EXIT_OK if verdict.ok else EXIT_VERDICT_FAILED
 
 #: OSErrors that are the user's input (a path that is missing, not a directory, not readable)
 _INPUT_OS_ERRORS = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError, FileExistsError)

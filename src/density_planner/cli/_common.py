@@ -21,6 +21,8 @@ __all__ = [
     "resolve_dtype",
     "load_params_file",
     "out_dir",
+    "add_progress",
+    "show_progress",
     "check_out",
 ]
 
@@ -31,6 +33,29 @@ def add_out(p: argparse.ArgumentParser, required: bool = True) -> None:
 
 def add_seed(p: argparse.ArgumentParser, default: int = 0) -> None:
     p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default}; 0 <= S < 2^63)")
+
+
+def add_progress(p: argparse.ArgumentParser) -> None:
+    """``--progress/--no-progress`` (default: on when stderr is a terminal) and ``-q/--quiet`` (= --no-progress).
+    Progress bars written to a file or pipe would fill logs with carriage-return frames."""
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show progress bars (default: only when stderr is a terminal)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars (same as --no-progress)")
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether to draw progress bars: ``--progress``/``--no-progress`` if given, else stderr is a terminal."""
+    import sys
+
+    if getattr(args, "quiet", False):
+        return False
+    choice = getattr(args, "progress", None)
+    if choice is not None:
+        return bool(choice)
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
 
 
 def add_device(p: argparse.ArgumentParser) -> None:
@@ -66,7 +91,9 @@ def add_controller(p: argparse.ArgumentParser) -> None:
     )
 
 
-def add_config(p: argparse.ArgumentParser) -> None:
+def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:
+    """``--config FILE.toml`` and ``--set KEY=VALUE``; ``example`` is a valid key of the command's configuration
+    (tests/test_set_examples.py parses every example)."""
     p.add_argument("--config", type=Path, default=None, metavar="FILE.toml", help="configuration file (TOML)")
     p.add_argument(
         "--set",
@@ -74,7 +101,7 @@ def add_config(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override one configuration value, e.g. --set planner.n_candidates=50 (repeatable)",
+        help=f"override one configuration value, e.g. --set {example} (repeatable)",
     )
 
 

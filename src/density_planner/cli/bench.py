@@ -6,7 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import add_config, add_controller, add_out, add_threads, out_dir
+from ._common import add_config, add_controller, add_out, add_progress, add_threads, out_dir, show_progress
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
@@ -36,6 +36,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--data-dir", type=Path, default=None, metavar="D",
                    help="real: folder with inD recordings (NN_tracks.csv, ...) or CommonRoad scenarios (*.xml); "
                    "default: the two shipped CommonRoad NGSIM scenarios")
+    p.add_argument("--scenarios", type=Path, default=None, metavar="DIR",
+                   help="commonroad: folder of CommonRoad scenarios (*.xml), each planned with its own planning "
+                   "problem and judged by the verdict (--envs N / --seeds A:B pick scenarios by their sorted index)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local worker processes (default: the number of cores; 1 = serial in this process)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -45,13 +48,16 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_controller(p)
     add_config(p)
     add_threads(p)
+    p.add_argument("--validate-risk", action="store_true",
+                   help="check each tracked plan's collision probability against 10000 Monte-Carlo closed loops "
+                   "(risk.validate_samples; records gain risk_check, the summary the share of passing plans)")
     p.add_argument("--retry-errors", action="store_true", help="re-run records whose run raised or whose worker died")
     p.add_argument("--redo-stale", action="store_true",
                    help="recompute records of --out made with another configuration (e.g. new controller weights; "
                    "MPC and oracle records do not depend on the controller and predictor and are kept)")
     p.add_argument("--plot-envs", type=int, default=3, metavar="K",
                    help="trajectory figures for the first K environments (default 3)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run_bench)
 
@@ -101,6 +107,10 @@ def spec_from_args(args: argparse.Namespace, run_config):
         raise ValueError("give either --envs N or --seeds A:B, not both")
     if args.envs is not None and args.envs < 1:
         raise ValueError(f"--envs must be >= 1, got {args.envs}")
+    if args.setting == "commonroad":
+        return _commonroad_spec(args, run_config)
+    if args.scenarios is not None:
+        raise ValueError(f"--scenarios is only used by the commonroad setting, not {args.setting}")
     indices = parse_seeds(args.seeds) if args.seeds is not None else range(args.envs or setting.default_envs)
     if args.data_dir is not None:
         if args.setting != "real":
@@ -137,6 +147,58 @@ def spec_from_args(args: argparse.Namespace, run_config):
                          density=args.density)
 
 
+def _check_planners(args, default: tuple[str, ...]) -> tuple[str, ...]:
+    from ..planners.registry import planner_names
+
+    planners = _list(args.planners, "planners") or default
+    known = planner_names()
+    for name in planners:
+        if name not in known:
+            raise ValueError(f"unknown planner {name!r} in --planners; valid choices: {', '.join(known)}")
+    return planners
+
+
+def _commonroad_spec(args: argparse.Namespace, run_config):
+    """The spec of ``bench commonroad --scenarios DIR``: one environment per scenario file."""
+    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec
+    from ..evaluation.commonroad_bench import commonroad_envs
+
+    if args.scenarios is None:
+        raise ValueError("bench commonroad needs --scenarios DIR (a folder of CommonRoad *.xml files)")
+    if args.data_dir is not None:
+        raise ValueError("--data-dir is not used by bench commonroad (use --scenarios DIR)")
+    if args.variants is not None:
+        raise ValueError("--variants is not used by bench commonroad (every run uses the unbiased measurement)")
+    if args.envs is not None and args.seeds is not None:
+        raise ValueError("give either --envs N or --seeds A:B, not both")
+    envs = commonroad_envs(args.scenarios)
+    if args.envs is not None:
+        if args.envs < 1:
+            raise ValueError(f"--envs must be >= 1, got {args.envs}")
+        envs = envs[: args.envs]
+    elif args.seeds is not None:
+        r = parse_seeds(args.seeds)
+        envs = envs[r.start: r.stop]
+        if not envs:
+            raise ValueError(f"--seeds {args.seeds} selects no scenario of {args.scenarios}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    _check_scheduler(args)
+    planners = _check_planners(args, SETTINGS["commonroad"].planners)
+    return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config, controller=args.controller,
+                         density=args.density)
+
+
+def _check_scheduler(args: argparse.Namespace) -> None:
+    if args.scheduler is not None:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            from ..errors import OptionalDependencyError
+
+            raise OptionalDependencyError("distributed", "dask", "--scheduler (a Dask cluster)") from None
+
+
 def _resolve_components(spec):
     """Load the controller and the density predictor once here (a bad name fails before the sweep, exactly as the
     workers will resolve it) and put their names and the digest of their weights into the spec."""
@@ -158,7 +220,7 @@ def _resolve_components(spec):
 
 
 def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
-    """Tables and figures of ``out`` from its records."""
+    """Tables and figures of ``out`` from its records (and the verdict summary of a commonroad sweep)."""
     import sys
 
     from ..evaluation.benchmark import scan_records
@@ -170,7 +232,16 @@ def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     if bad:
         print(f"density-planner: warning: {len(bad)} record file(s) are not usable and count as missing runs in the "
               f"summary (first: {bad[0].path}: {bad[0].reason})", file=sys.stderr)
-    return paths + write_figures(out, rows, records, plot_envs=plot_envs)
+    paths += write_figures(out, rows, records, plot_envs=plot_envs)
+    if any(r.get("setting") == "commonroad" for r in records):
+        from ..evaluation.commonroad_bench import write_commonroad_summary
+
+        paths += write_commonroad_summary(out)
+    return paths
+
+
+def _commonroad_table(out: Path) -> str:
+    return (Path(out) / "summary_commonroad.md").read_text()
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -180,6 +251,10 @@ def run_bench(args: argparse.Namespace) -> int:
     from .plan import versions
 
     run_config = load_config(RunConfig, args.config, args.overrides)
+    if args.validate_risk and not run_config.risk.validate_samples:
+        from ..config import update
+
+        run_config = update(run_config, {"risk": {"validate_samples": 10_000}})
     spec = _resolve_components(spec_from_args(args, run_config))
     if args.plot_envs < 0:
         raise ValueError(f"--plot-envs must be >= 0, got {args.plot_envs}")
@@ -192,10 +267,17 @@ def run_bench(args: argparse.Namespace) -> int:
         threads = args.threads or None
     else:
         threads = spec.evaluation.threads_per_worker
-    report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=not args.quiet,
+    job_fn = None
+    if spec.setting == "commonroad":
+        from ..evaluation.commonroad_bench import run_commonroad_job
+
+        job_fn = run_commonroad_job
+    report = run_benchmark(spec, out, workers=args.workers, scheduler=args.scheduler, progress=show_progress(args),
                            retry_errors=args.retry_errors, redo_stale=args.redo_stale, run_info=info,
-                           threads_per_worker=threads)
+                           threads_per_worker=threads, job_fn=job_fn)
     paths = write_report(out, args.plot_envs)
+    if spec.setting == "commonroad":
+        print(_commonroad_table(out))
     print(f"bench {spec.setting}: {report.total} runs ({report.skipped} already done, {report.written} written, "
           f"{report.failed_runs} failed, {report.errors} errors) in {time.perf_counter() - t0:.1f} s; "
           f"wrote {out / 'summary.md'}, {out / 'summary.csv'} and {len(paths) - 2} figures in {out / 'figures'}")

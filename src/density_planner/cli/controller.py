@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from . import group
-from ._common import add_config, add_out, add_threads, out_dir, resolve_device
+from ._common import add_config, add_out, add_progress, add_threads, out_dir, resolve_device, show_progress
 
 logger = logging.getLogger(__name__)
 
@@ -35,13 +35,13 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     add_out(p)
     p.add_argument("--epochs", type=int, default=None, help="number of epochs (default from the configuration)")
-    add_config(p)
+    add_config(p, example="epochs=100")
     p.add_argument("--device", default=None, help="torch device for training: cpu (default), cuda, cuda:N or auto")
     add_threads(p)
     p.add_argument("--no-resume", action="store_true", help="start afresh even if DIR/checkpoint.pt exists")
     p.add_argument("--export", type=Path, default=None, metavar="FILE.pt",
                    help="also write the final weights to FILE.pt + FILE.json (e.g. the package's shipped weights)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress(p)
     p.add_argument("--check-samples", type=int, default=100_000,
                    help="fresh samples for the final contraction check (default 1e5)")
     p.add_argument("--check-references", type=int, default=1000,
@@ -147,7 +147,7 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError("--check-samples and --check-references must be >= 1")
     out = out_dir(args.out)
     t0 = time.perf_counter()
-    result = train_c3m(config, out, progress=not args.quiet, resume=not args.no_resume,
+    result = train_c3m(config, out, progress=show_progress(args), resume=not args.no_resume,
                        diagnostics_samples=args.check_samples)
     train_wall = time.perf_counter() - t0
     car = result.model.car

@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from . import group
-from ._common import add_config, add_out, out_dir
+from ._common import add_config, add_out, add_progress, out_dir, show_progress
 
 
 def _threads(p: argparse.ArgumentParser) -> None:
@@ -36,16 +36,21 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
         "Writes DIR/shard_NNNNN.pt (atomically, one task per shard) and DIR/manifest.json. Run the same command "
         "again to resume an interrupted run.",
     )
-    p.add_argument("--references", type=int, default=None, help="number of references (default 8192)")
-    p.add_argument("--samples", type=int, default=None, help="initial errors per reference (default 32)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default 0)")
+    from ..density.data import DensityDataConfig
+
+    dd = DensityDataConfig()  # the help states the dataclass's defaults (one place for each value)
+    p.add_argument("--references", type=int, default=None,
+                   help=f"number of references (default {dd.references})")
+    p.add_argument("--samples", type=int, default=None,
+                   help=f"initial errors per reference (default {dd.samples})")
+    p.add_argument("--seed", type=int, default=None, help=f"seed (default {dd.seed})")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
-                   help="tracking controller: c3m (default), analytic or a C3M weights file")
+                   help=f"tracking controller: c3m, analytic or a C3M weights file (default {dd.controller})")
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: number of cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786) to run the shards on a cluster")
-    add_config(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config(p, example="references_per_shard=128")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run_data)
 
@@ -67,9 +72,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--export", type=Path, default=None, metavar="FILE.pt",
                    help="also write the weights to FILE.pt + FILE.json (e.g. the package's shipped weights)")
     p.add_argument("--no-resume", action="store_true", help="start afresh even if DIR/checkpoint.pt exists")
-    add_config(p)
+    add_config(p, example="batch_size=1024")
     _threads(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run_train)
 
@@ -113,7 +118,7 @@ def run_data(args: argparse.Namespace) -> int:
     out = out_dir(args.out)
     t0 = time.perf_counter()
     manifest = generate_density_data(config, out, workers=args.workers, scheduler=args.scheduler,
-                                     progress=not args.quiet, command=_command(args))
+                                     progress=show_progress(args), command=_command(args))
     s = manifest["sizes"]
     print(f"wrote {config.n_shards} shards to {out} in {time.perf_counter() - t0:.1f} s "
           f"({s['references_train']} training + {s['references_val']} validation references x "
@@ -148,7 +153,7 @@ def run_train(args: argparse.Namespace) -> int:
     train = load_density_data(args.data, "train")
     val = load_density_data(args.data, "val")
     t_load = time.perf_counter() - t0
-    result = train_density(config, train, val, out, resume=not args.no_resume, progress=not args.quiet)
+    result = train_density(config, train, val, out, resume=not args.no_resume, progress=show_progress(args))
     atomic_write_json(out / "history.json", result.history)
     best = {k: v[result.history["epoch"].index(float(result.best_epoch))] for k, v in result.history.items()}
 

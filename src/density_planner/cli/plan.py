@@ -10,10 +10,12 @@ from ._common import (
     add_controller,
     add_device,
     add_out,
+    add_progress,
     check_out,
     out_dir,
     resolve_device,
     resolve_dtype,
+    show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
 
@@ -25,9 +27,13 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p = sub.add_parser(
         "plan",
         help="plan a motion in a scene (the main job)",
-        description="Build a scene, plan with the chosen planner and write DIR/plan.json (parameters, costs, "
-        "collision probability, timings, configuration, versions), DIR/plan.png, DIR/plan.gif, DIR/costs.png and "
-        "DIR/config.toml (the effective configuration; pass it back with --config to reproduce the run).",
+        description="Build a scene, plan with the chosen planner and write DIR/plan.json (the plan's verdict: "
+        "goal reached in its time interval, collision-free against the true shapes, on the road, within the model; "
+        "parameters, costs, collision probability, timings, configuration, versions), DIR/plan.png, DIR/plan.gif, "
+        "DIR/costs.png, DIR/config.toml (the effective configuration; pass it back with --config to reproduce the "
+        "run) and, on CommonRoad scenes, DIR/solution.xml (CommonRoad solution format; [solution] in the "
+        "configuration). Exit code 0: the plan passed its verdict; 3: a plan was made but failed it (every file is "
+        "still written); 1: no plan; 2: bad input.",
     )
     add_scene_args(p)
     p.add_argument("--planner", default="density", metavar="NAME", help=f"planner ({helps})")
@@ -42,7 +48,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_config(p)
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run)
 
@@ -91,18 +97,20 @@ def versions() -> dict[str, str]:
 
     out = {"density_planner": __version__, "python": sys.version.split()[0], "torch": torch.__version__,
            "numpy": numpy.__version__, "platform": platform.platform()}
-    try:
-        import casadi
+    from importlib.metadata import PackageNotFoundError, version
 
-        out["casadi"] = casadi.__version__
-    except ImportError:
-        pass
+    for package in ("casadi", "commonroad-io", "shapely"):  # without importing them (casadi alone takes ~0.3 s)
+        try:
+            out[package] = version(package)
+        except PackageNotFoundError:
+            pass
     return out
 
 
 def run(args: argparse.Namespace) -> int:
     from ..checks import check_seed
     from ..config import dumps_toml, load_config, to_dict
+    from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
@@ -112,23 +120,32 @@ def run(args: argparse.Namespace) -> int:
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
     run_config = load_config(RunConfig, args.config, args.overrides)
-    t0 = time.perf_counter()
+    clock = _Clock()
     scene = scene_from_args(args, run_config)
-    t_scene = time.perf_counter() - t0
+    t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     from ..control.registry import model_set_for_scene
     from ..systems.car import KinematicCar
 
     system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, system=system)
-    ctx = build_context(args, run_config, progress=not args.quiet, parameterization=problem.parameterization)
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
+                                         risk=run_config.risk, system=system)
+    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
+    clock.lap("setup")
     result = planner.plan(problem)
+    clock.lap("plan")
 
     atomic_write_text(out / "config.toml", dumps_toml(run_config))
+    verdict = judge_plan(scene, result, system=problem.system, dt=problem.parameterization.plan_dt,
+                         config=run_config.verdict, evaluation=run_config.evaluation)
+    clock.lap("verdict")
     summary = result.summary()
     summary.update({
+        "status": "failed" if verdict is None else verdict.status,
+        "planner_status": result.status.value,
+        "verdict": None if verdict is None else verdict.to_dict(),
         "scene": scene.to_json_dict(),
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
@@ -141,36 +158,115 @@ def run(args: argparse.Namespace) -> int:
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
+    if result.states is not None and args.kind == "commonroad":
+        write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
+        written.append("solution.xml")
+        clock.lap("solution")
     if result.states is not None:
-        from ..viz.plan import animate_plan, plot_costs, plot_plan
-
-        states = result.states.detach().cpu().numpy()
-        sx = slx = None
-        if result.samples is not None:
-            sx = result.samples.x.detach().cpu().numpy()
-            slx = result.samples.log_rho.detach().cpu().numpy()
-        p_max = float(result.collision.max) if result.collision is not None else float("nan")
-        title = (f"{scene.name}: {result.planner} ({result.status.value}), P_coll max {p_max:.3f}, "
-                 f"{result.timings.get('total', float('nan')):.1f} s")
-        label = "reference" if result.reference is not None else "executed (nominal model)"
-        plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label)
-        written.append("plan.png")
-        if not args.no_gif:
-            animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
-            written.append("plan.gif")
-        if result.cost_history:
-            plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
-            written.append("costs.png")
-    dist = float("nan")
-    if result.states is not None:
-        gx, gy = scene.goal
-        dist = float(((result.states[-1, 0] - gx) ** 2 + (result.states[-1, 1] - gy) ** 2).sqrt())
-    print(f"{result.planner} on {scene.name}: {result.status.value}; final distance to goal {dist:.2f} m; "
-          f"collision probability max "
-          f"{float(result.collision.max) if result.collision is not None else float('nan'):.3f}; "
-          f"planning time {result.timings.get('total', float('nan')):.2f} s; wrote "
-          f"{', '.join(str(out / w) for w in written)}")
-    if not result.ok:
+        body = problem.collision().outline(result.states.detach().cpu()).numpy()
+        written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock, body=body)
+    # wall time of each step of this command (start-up before run() excluded), for benchmarks/bench_plan_command.py
+    summary["command_timings"] = clock.laps
+    atomic_write_json(out / "plan.json", summary)
+    dist = float("nan") if verdict is None else verdict.details.get("final_goal_distance", float("nan"))
+    p_max = float(result.collision.max) if result.collision is not None else float("nan")
+    print(f"{result.planner} on {scene.name}: {'no plan' if verdict is None else verdict.summary()}; final "
+          f"distance to the goal {dist:.2f} m; collision probability max {p_max:.3f}; planning time "
+          f"{result.timings.get('total', float('nan')):.2f} s; wrote {', '.join(str(out / w) for w in written)}")
+    if verdict is None:
         print(f"density-planner: planning {result.status.value}: {result.message}", flush=True)
-        return 1
-    return 0
+    from . import plan_exit_code
+
+    return plan_exit_code(verdict)
+
+
+class _Clock:
+    """Wall time per named step (``laps``) and since creation (``laps["total"]``)."""
+
+    def __init__(self) -> None:
+        self.t0 = self.t = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> float:
+        now = time.perf_counter()
+        dt = now - self.t
+        self.laps[name] = self.laps.get(name, 0.0) + dt
+        self.laps["total"] = now - self.t0
+        self.t = now
+        return dt
+
+
+def write_plan_solution(path, scene, result, problem, run_config) -> None:
+    """``solution.xml`` of a plan on a CommonRoad scene (vehicle model and cost function of ``[solution]``)."""
+    from ..evaluation.verdict import plan_inputs
+    from ..io.commonroad_solution import write_solution
+
+    meta = scene.meta
+    scenario_dt = float(meta.get("scenario_dt") or problem.parameterization.plan_dt)
+    road = getattr(scene, "road", None)
+    t_start = float(road.t_start) if road is not None else float(scene.grid.t0)
+    pp = meta.get("planning_problem")
+    write_solution(path, result.states, plan_inputs(result), problem.parameterization.plan_dt,
+                   scenario_id=str(meta.get("scenario_id") or scene.name),
+                   planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
+                   scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
+                   config=run_config.solution, state_names=problem.system.state_names,
+                   computation_time=result.timings.get("total"))
+
+
+def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None,
+                       body=None) -> list[str]:
+    """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written.
+
+    The GIF is drawn in a forked child process while this one draws the PNGs (where ``fork`` exists; else in
+    turn): the command's wall time then holds only the slower of the two."""
+    import multiprocessing as mp
+
+    from ..viz.plan import animate_plan, plot_costs, plot_plan
+
+    clock = clock or _Clock()
+    states = result.states.detach().cpu().numpy()
+    sx = slx = None
+    if result.samples is not None:
+        sx = result.samples.x.detach().cpu().numpy()
+        slx = result.samples.log_rho.detach().cpu().numpy()
+    p_max = float(result.collision.max) if result.collision is not None else float("nan")
+    title = (f"{scene.name}: {result.planner}, P_coll max {p_max:.3f}, "
+             f"{result.timings.get('total', float('nan')):.1f} s")
+    label = "reference" if result.reference is not None else "executed (nominal model)"
+    written = []
+    child = None
+    if gif:
+        def draw_gif() -> None:
+            animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
+
+        if "fork" in mp.get_all_start_methods():
+            child = mp.get_context("fork").Process(target=_run_quietly, args=(draw_gif,), daemon=True)
+            child.start()
+        else:
+            draw_gif()
+            clock.lap("gif")
+    plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
+              verdict=verdict, body=body)
+    written.append("plan.png")
+    clock.lap("plan_png")
+    if result.cost_history:
+        plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
+        written.append("costs.png")
+        clock.lap("costs_png")
+    if child is not None:
+        child.join()
+        clock.lap("gif_wait")
+        if child.exitcode != 0:
+            raise RuntimeError(f"drawing {out / 'plan.gif'} failed (exit code {child.exitcode}); rerun with --no-gif")
+    if gif:
+        written.append("plan.gif")
+    return written
+
+
+def _run_quietly(fn) -> None:
+    """Target of the GIF process: one torch thread, then ``fn()``."""
+    import torch
+
+    torch.set_num_threads(1)
+    fn()

@@ -15,6 +15,8 @@ import torch
 from torch import Tensor
 
 from ..environment.scene import Scene
+from ..risk.collision import CollisionModel, RiskConfig
+from ..systems.base import System
 from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, InputCost
 
 __all__ = ["CostWeights", "CostConfig", "CostBreakdown", "WeightedCost", "build_cost", "TERM_NAMES"]
@@ -133,10 +135,14 @@ def build_cost(
     *,
     optimisation: bool = True,
     device: torch.device | str | None = None,
+    system: System | None = None,
+    risk: RiskConfig | None = None,
 ) -> WeightedCost:
     """The four cost terms for ``scene``: goal, input, bounds (planning box) and collision.
 
     With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``).
+    ``system`` (positions, heading, body) and ``risk`` define collision (:class:`CollisionModel`); without a
+    system the vehicle is a point at the first two state entries.
     """
     config = config or CostConfig()
     xmin, xmax, ymin, ymax = scene.planning_box
@@ -148,7 +154,9 @@ def build_cost(
         scene.goal,
         far_factor=config.goal_far_factor if optimisation else 1.0,
         close_threshold=config.goal_close_threshold,
+        positions=None if system is None else system.positions,
     )
     grid = scene.grid if device is None else scene.grid.to(device)
-    collision = CollisionCost(grid, beta=config.beta, plateau_scales=config.plateau_scales)
+    model = CollisionModel(grid, system, risk)
+    collision = CollisionCost(model, beta=config.beta, plateau_scales=config.plateau_scales)
     return WeightedCost([goal, InputCost(), bounds, collision], config.weights.as_dict())

@@ -9,13 +9,14 @@ densities ``rho(x_i(t_k), t_k)`` of the paper (a single trajectory has weight 1)
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from ..environment.grid import OccupancyGrid
+from ..risk.collision import CollisionModel
 
 __all__ = ["CostInputs", "CostTerm", "GoalCost", "InputCost", "BoundsCost", "CollisionCost", "desired_positions"]
 
@@ -68,7 +69,11 @@ class GoalCost(CostTerm):
 
     name = "goal"
 
-    def __init__(self, goal: Sequence[float] | Tensor, *, far_factor: float = 1.0, close_threshold: float = 3.0):
+    def __init__(self, goal: Sequence[float] | Tensor, *, far_factor: float = 1.0, close_threshold: float = 3.0,
+                 positions: Callable[[Tensor], Tensor] | None = None):
+        """``positions``: the system's position accessor (:meth:`System.positions`; default the first two
+        state entries)."""
+        self.positions = positions or (lambda x: x[..., 0:2])
         self.goal = torch.as_tensor(goal, dtype=torch.float64)
         if self.goal.shape != (2,):
             raise ValueError(f"goal must be a position (x, y), got shape {tuple(self.goal.shape)}")
@@ -77,7 +82,7 @@ class GoalCost(CostTerm):
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         goal = self.goal.to(inputs.x)
-        d2 = (inputs.x[..., -1, :2] - goal).pow(2).sum(-1)  # (*batch, N)
+        d2 = (self.positions(inputs.x[..., -1, :]) - goal).pow(2).sum(-1)  # (*batch, N)
         j = (inputs.weights[..., -1] * d2).sum(-1)
         if self.far_factor != 1.0:
             j = j * torch.where(j.detach() >= self.close_threshold, self.far_factor, 1.0)
@@ -253,26 +258,35 @@ class _DesiredPositionMemo:
 
 
 class CollisionCost(CostTerm):
-    """The paper's differentiable collision risk ``J_C`` (Eq. (10)) [m^2]::
+    """The paper's differentiable collision risk ``J_C`` (Eq. (10)) for the vehicle's body [m^2]::
 
-        J_C = sum_{i,k} w_i(t_k) P_occ(c_i, t_k) ||p_i(t_k) - p_des,i(t_k)||^2
+        J_C = sum_{i,k} w_i(t_k) sum_j P_j ||c_ij(t_k) - c_des,ij(t_k)||^2
 
-    with ``p_des`` from :func:`desired_positions` (step ``beta`` in cells). ``P_occ`` and ``p_des`` are constants;
-    gradients flow through the positions and the weights. It is the optimisation surrogate (reported as the
-    *collision cost*), not a probability. With ``memo`` (default) the desired positions of the cells already
-    seen are reused (identical values; the planner's iterations revisit most cells).
+    over the disc centres ``c_ij`` of the body (:meth:`CollisionModel.centres`; one centre, the position, for a
+    point vehicle as in the paper), with ``P_j`` the disc-dilated occupancy at the centre's cell and ``c_des`` from
+    :func:`desired_positions` on the disc-dilated grid (step ``beta`` in cells). ``P_j`` and ``c_des`` are
+    constants; gradients flow through the centres (positions *and* heading) and the weights. It is the
+    optimisation surrogate (reported as the *collision cost*), not a probability. With ``memo`` (default) the
+    desired positions of the cells already seen are reused (identical values; the planner's iterations revisit
+    most cells).
+
+    Args:
+        collision: the collision model (grid, system, body); an :class:`OccupancyGrid` means a point vehicle.
     """
 
     name = "collision"
 
-    def __init__(self, grid: OccupancyGrid, *, beta: float = 100.0, plateau_scales: Sequence[int] = (),
-                 memo: bool = True):
+    def __init__(self, collision: CollisionModel | OccupancyGrid, *, beta: float = 100.0,
+                 plateau_scales: Sequence[int] = (), memo: bool = True):
         if not math.isfinite(beta) or beta < 0:
             raise ValueError(f"beta must be a finite number >= 0, got {beta}")
-        self.grid = grid
+        if isinstance(collision, OccupancyGrid):
+            collision = CollisionModel(collision)
+        self.collision = collision
+        self.grid = collision.body_grid
         self.beta = float(beta)
         self.plateau_scales = tuple(int(s) for s in plateau_scales)
-        self._memo = _DesiredPositionMemo(grid, self.beta, self.plateau_scales) if memo else None
+        self._memo = _DesiredPositionMemo(self.grid, self.beta, self.plateau_scales) if memo else None
         if self._memo is not None and not self._memo.enabled:
             self._memo = None
 
@@ -284,8 +298,20 @@ class CollisionCost(CostTerm):
         return desired_positions(self.grid, pos, k, beta=self.beta, plateau_scales=self.plateau_scales)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
-        pos = inputs.x[..., :2]
-        k = inputs.slices.to(pos.device).clamp(0, self.grid.n_slices - 1)
-        p_des, p_occ = self.desired(pos.detach(), k)
-        d2 = (pos - p_des).pow(2).sum(-1)
-        return (inputs.weights * p_occ * d2).sum(dim=(-1, -2))
+        centres = self.collision.centres(inputs.x)  # (*batch, N, T, m, 2)
+        k = inputs.slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
+        read = centres.detach()
+        if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
+            read = self.collision.clamp_to_map(read)
+        with torch.no_grad():
+            # only centres in occupied cells contribute: the desired positions are looked up for those alone
+            # (most of a cloud is usually in free space; identical values)
+            kk = k.expand(read.shape[:-1])
+            c = torch.round(self.grid.world_to_cell(read)).long()
+            occupied = _gather(self.grid, kk, c[..., 0], c[..., 1], 1.0) > 0
+            p_des = read.clone()
+            p_occ = torch.zeros(read.shape[:-1], dtype=read.dtype, device=read.device)
+            if bool(occupied.any()):
+                p_des[occupied], p_occ[occupied] = self.desired(read[occupied], kk[occupied])
+        d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
+        return (inputs.weights * d2).sum(dim=(-1, -2))

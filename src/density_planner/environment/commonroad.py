@@ -143,6 +143,10 @@ class CommonRoadSceneConfig:
     ego_tolerance: float = 1.0
     #: ids of further dynamic or static obstacles to leave out
     exclude_obstacles: tuple[int, ...] = ()
+    #: scenarios whose start lies farther than this from the origin (e.g. UTM coordinates, where float32 has
+    #: 0.5-m resolution) are translated to a local frame: scene coordinates = file coordinates - frame_offset
+    #: (``meta["frame_offset"]``, a multiple of 1 km) [m]; 0 = never
+    recenter_above: float = 10_000.0
     #: id of the planning problem to use; negative = the one with the smallest id
     planning_problem_id: int = -1
     #: sample start and goal on the road (seeded) instead of using the planning problem; needed without one
@@ -703,6 +707,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             "goal on its road with --set commonroad.sample_start_goal=true"
         )
     start: tuple[float, ...] | None = None
+    frame_offset = (0.0, 0.0)
     t_start = 0.0
     goal: GoalRegion | None = None
     if problem is not None:
@@ -719,6 +724,14 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 f"{where}: the planning problem's initial state must have a finite position, orientation and "
                 f"velocity, got position {pos.tolist()}, orientation {th}, velocity {v}; fix the file"
             )
+        if cfg.recenter_above > 0 and float(np.abs(pos).max()) > cfg.recenter_above:
+            frame_offset = tuple(float(1000.0 * round(c / 1000.0)) for c in pos)
+            scenario.translate_rotate(-np.asarray(frame_offset), 0.0)
+            problem_set.translate_rotate(-np.asarray(frame_offset), 0.0)
+            drivable, road_notes = drivable_area(scenario, cfg, where=where)
+            pos = pos - np.asarray(frame_offset)
+            note("coordinates translated by (%.0f, %.0f) m to a local frame (float32 precision); scene coordinates "
+                 "= file coordinates - meta.frame_offset", -frame_offset[0], -frame_offset[1])
         start = (float(pos[0]), float(pos[1]), wrap_heading(th), float(v), 0.0)
         if not cfg.sample_start_goal:
             if not (v_min - 1e-9 <= v <= v_max + 1e-9):
@@ -893,7 +906,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         xmin, xmax, ymin, ymax = grid.bounds
         goal_xy = (min(max(goal_xy[0], xmin), xmax), min(max(goal_xy[1], ymin), ymax))
     road = RoadScene(drivable, tuple(tracks_true), goal, dt_src, t_start, where, cfg.vehicle_length,
-                     cfg.vehicle_width, meta={"notes": notes})
+                     cfg.vehicle_width, meta={"notes": notes, "frame_offset": list(frame_offset)})
     memory = n_slices * nx * ny * 4
     meta = {
         "source": "commonroad",
@@ -903,6 +916,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         "scenario_dt": dt_src,
         "t_start": t_start,
         "horizon": horizon,
+        "frame_offset": list(frame_offset),
         "planning_problem": None if problem is None else int(getattr(problem, "planning_problem_id", -1)),
         "start_goal_sampled": bool(cfg.sample_start_goal),
         "goal": {**goal.to_json_dict(), "point": list(goal_xy), "point_rule": goal_rule},

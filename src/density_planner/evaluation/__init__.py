@@ -9,7 +9,10 @@
 * :mod:`.benchmark`: the ``ablation``, ``artificial`` and ``real`` sweeps with one resumable JSON record per run,
   serial, joblib or Dask;
 * :mod:`.report`: ``summary.csv`` / ``summary.md`` from the records alone (figures:
-  :mod:`density_planner.viz.benchmark`).
+  :mod:`density_planner.viz.benchmark`);
+* :mod:`.verdict`: the verdict on every plan (goal region in time, true-shape collision, on road, within model),
+  shared by ``plan``, the benchmarks and this API;
+* :mod:`.commonroad_bench`: ``bench commonroad``, every scenario of a folder judged by the verdict.
 """
 
 from .benchmark import (
@@ -27,6 +30,7 @@ from .config import EvaluationConfig
 from .controller import TrackingEvaluation, evaluate_tracking
 from .metrics import MethodSummary, cost_increase, failure_flags, monte_carlo_metrics, run_metrics, summarise
 from .simulate import Execution, ExecutionMode, execute, execution_mode, monte_carlo
+from .verdict import Verdict, VerdictConfig, judge, judge_plan
 
 __all__ = [
     "TrackingEvaluation",
@@ -52,4 +56,8 @@ __all__ = [
     "real_envs",
     "run_benchmark",
     "load_records",
+    "Verdict",
+    "VerdictConfig",
+    "judge",
+    "judge_plan",
 ]

@@ -57,6 +57,7 @@ from ..systems.car import BIAS
 from .config import EvaluationConfig
 from .metrics import evaluation_box, failure_flags, monte_carlo_metrics, run_metrics
 from .simulate import ExecutionMode, execute, execution_mode, monte_carlo
+from .verdict import record_verdict
 
 __all__ = [
     "Setting",
@@ -125,6 +126,11 @@ SETTINGS: dict[str, Setting] = {
         "real", ("density", "mpc", "tube_mpc_0.5", "oracle"), ("unbiased", "biased"), 30, True,
         single_variant=("oracle",),
         description="density planner, M0, M2 and oracle on recorded traffic (inD, or the shipped CommonRoad scenes)",
+    ),
+    "commonroad": Setting(
+        "commonroad", ("density", "mpc"), ("unbiased",), 0, True,
+        description="every CommonRoad scenario of --scenarios DIR as its author posed it, judged by the verdict "
+        "(evaluation/commonroad_bench.py)",
     ),
 }
 
@@ -532,6 +538,18 @@ _PLAN_EXTRAS = ("predictor", "tube_radius", "biased_measurement", "n_failed_step
                 "best_restart", "n_tube_offsets")
 
 
+def _risk_check(job: Job, problem: PlanningProblem, plan: PlanResult, controller, eval_cfg) -> dict[str, Any]:
+    """Monte-Carlo check of the plan's collision probability (risk.validate_samples closed loops)."""
+    from .risk_validation import validate_risk
+
+    try:
+        check = validate_risk(problem, plan, controller, n=job.run_config.risk.validate_samples,
+                              seed=stable_seed("risk-check", job.env.name), config=eval_cfg)
+    except ValueError as exc:
+        return {"passed": None, "message": str(exc)}
+    return check.to_dict()
+
+
 def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
     if plan is None:
         return None
@@ -541,6 +559,9 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         "params": _floats(plan.params),
         "cost": plan.cost,
         "collision_probability_max": None if plan.collision is None else float(plan.collision.max),
+        "collision_probability_se_at_max": None if plan.collision is None or plan.collision.se is None
+        else plan.collision.to_dict()["se_at_max"],
+        "collision_estimator": None if plan.collision is None else plan.collision.estimator,
         "iterations": plan.iterations,
         "extras": {k: v for k, v in plan.extras.items() if k in _PLAN_EXTRAS},
     }
@@ -633,10 +654,12 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
         if plan.reference is not None:
             ref = plan.reference
             metrics = run_metrics(scene, ref.x_plan, ref.u_plan, ref.u_plan, box=box, cost_config=cost_cfg,
-                                  plan_dt=plan_dt)
+                                  plan_dt=plan_dt, collision=problem.collision())
             runs = monte_carlo(planner, problem, mc0, plan=plan, controller=ctx.controller, config=eval_cfg)
-            metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt))
+            metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
+                                               collision=problem.collision()))
             rec["trajectory"] = _floats(ref.x_plan)
+            rec["verdict"] = record_verdict(scene, ref.x_plan, ref.u_plan, plan, car, plan_dt, job.run_config)
         flags, reason = failure_flags(metrics, solved and not timeout, eval_cfg,
                                       cost_thresholds=eval_cfg.ablation_cost_failures)
         rec.update(status="timeout" if timeout else plan.status.value, metrics=metrics, failed=bool(reason),
@@ -651,14 +674,19 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
     metrics = None
     if run.states.shape[0] >= 2:
         metrics = run_metrics(scene, run.states, run.planned_inputs, run.applied_inputs, box=box,
-                              cost_config=cost_cfg, plan_dt=plan_dt)
+                              cost_config=cost_cfg, plan_dt=plan_dt, collision=problem.collision())
         t_mc = time.perf_counter()
         runs = monte_carlo(planner, problem, mc0, plan=plan, controller=ctx.controller, config=eval_cfg)
-        metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt))
+        metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
+                                               collision=problem.collision()))
         t_mc = time.perf_counter() - t_mc
+        if job.run_config.risk.validate_samples and mode == ExecutionMode.TRACK and variant == job.variants[0]:
+            rec["risk_check"] = _risk_check(job, problem, run.plan, ctx.controller, eval_cfg)
         rec["trajectory"] = _floats(run.states)
+        rec["applied_inputs"] = _floats(run.applied_inputs)
+        rec["verdict"] = record_verdict(scene, run.states, run.applied_inputs, run.plan, car, plan_dt, job.run_config)
         if mode == ExecutionMode.TRACK and run.plan.reference is not None:
-            rec["reference"] = _floats(run.plan.reference.x_plan[:, :2])
+            rec["reference"] = _floats(problem.system.positions(run.plan.reference.x_plan))
     else:
         t_mc = 0.0
     flags, reason = failure_flags(metrics, run.ok, eval_cfg)
@@ -690,6 +718,7 @@ def run_job(job: Job) -> JobResult:
         from ..systems.car import KinematicCar
 
         problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+                                             risk=job.run_config.risk,
                                              system=KinematicCar(model_set_for_scene(job.env.kind).car))
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
         ctx = _context(job, problem.parameterization)

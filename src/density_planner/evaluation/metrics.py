@@ -9,10 +9,11 @@ Per run (:func:`run_metrics`), on the executed trajectory ``x(t_k)`` (0.1-s grid
 * ``bounds_cost`` J_B of the *evaluation* box (the car's state box, or the map for recorded scenes: see
   :attr:`EvaluationConfig.position_bounds`), not the tighter planning box;
 * ``collision_cost`` J_C, the paper's surrogate (desired-position trick) along the trajectory;
-* ``collision_probability``: the paper's binned collision probability of the executed trajectory, which for a
-  single trajectory is the occupancy probability of its cell at every time (``per_slice``, ``max``, ``sum``);
+* ``collision_probability``: the collision probability of the executed trajectory, which for a single trajectory
+  is the occupancy seen by the vehicle's body at every time (``per_slice``, ``max``, ``sum``;
+  :class:`~density_planner.risk.collision.CollisionModel`);
 * Monte-Carlo collision frequency over ``M`` initial states drawn from the planner's initial distribution, each
-  executed like the run: ``mc_collision_mean`` = mean over samples of ``max_t P_occ(x_i(t), t)`` (expected worst
+  executed like the run: ``mc_collision_mean`` = mean over samples of ``max_t P_body(x_i(t), t)`` (expected worst
   occupancy met) and ``mc_collision_frequency`` = fraction of samples whose ``max_t P_occ`` exceeds
   :attr:`EvaluationConfig.collision_threshold` (0.5); also ``mc_final_distance_mean`` [m].
 
@@ -44,7 +45,7 @@ from torch import Tensor
 from ..cost.composite import CostConfig
 from ..cost.terms import BoundsCost, CollisionCost, CostInputs
 from ..environment.scene import Scene
-from ..risk.collision import collision_probability
+from ..risk.collision import CollisionModel
 from .config import EvaluationConfig
 
 __all__ = [
@@ -95,6 +96,7 @@ def run_metrics(
     box: tuple[Sequence[float], Sequence[float]],
     cost_config: CostConfig | None = None,
     plan_dt: float = 0.1,
+    collision: CollisionModel | None = None,
 ) -> dict[str, Any]:
     """Scores of one executed trajectory ``states (T, nx)`` (planning grid, step ``plan_dt`` [s]) with the inputs
     ``planned_inputs (T - 1, nu)`` (J_I) and ``applied_inputs`` (``input_cost_applied``); see the module
@@ -105,12 +107,13 @@ def run_metrics(
         raise ValueError(f"states must have shape (T, nx) with T >= 1, got {tuple(states.shape)}")
     T = states.shape[0]
     slices = _slices(scene, T, plan_dt)
+    model = (collision or CollisionModel(scene.grid)).to("cpu")
     goal = torch.tensor(scene.goal, dtype=states.dtype)
-    j_g = float((states[-1, :2] - goal).pow(2).sum())
+    j_g = float((model.positions(states[-1]) - goal).pow(2).sum())
     inputs = CostInputs.single(states, planned_inputs.detach().to("cpu", states.dtype), slices)
     bounds = BoundsCost(*box)
-    collision = CollisionCost(scene.grid.to("cpu"), beta=cost_config.beta, plateau_scales=cost_config.plateau_scales)
-    report = collision_probability(scene.grid.to("cpu"), states[None, :, :2], None, slices)
+    collision_cost = CollisionCost(model, beta=cost_config.beta, plateau_scales=cost_config.plateau_scales)
+    report = model.probability(states[None], slices)
     per_slice = [float(v) for v in report.per_slice]
     out = {
         "goal_cost": j_g,
@@ -119,7 +122,7 @@ def run_metrics(
         "input_cost_applied": float("nan") if applied_inputs is None else float(
             applied_inputs.detach().double().pow(2).sum()),
         "bounds_cost": float(bounds(inputs)),
-        "collision_cost": float(collision(inputs)),
+        "collision_cost": float(collision_cost(inputs)),
         "collision_probability_max": max(per_slice),
         "collision_probability_sum": float(sum(per_slice)),
         "collision_probability": per_slice,
@@ -135,6 +138,7 @@ def monte_carlo_metrics(
     *,
     threshold: float = 0.5,
     plan_dt: float = 0.1,
+    collision: CollisionModel | None = None,
 ) -> dict[str, Any]:
     """Collision frequency of Monte-Carlo trajectories (each ``(T_i, nx)``): ``mc_samples``, ``mc_collision_mean``
     (mean of ``max_t P_occ``), ``mc_collision_frequency`` (fraction with ``max_t P_occ > threshold``),
@@ -142,22 +146,22 @@ def monte_carlo_metrics(
     if not trajectories:
         return {"mc_samples": 0, "mc_collision_mean": None, "mc_collision_frequency": None,
                 "mc_final_distance_mean": None}
-    grid = scene.grid.to("cpu")
+    model = (collision or CollisionModel(scene.grid)).to("cpu")
     goal = torch.tensor(scene.goal, dtype=torch.float32)
     worst, dist = [], []
     lengths = {int(t.shape[0]) for t in trajectories}
     if len(lengths) == 1:  # one batched call
         x = torch.stack([t.detach().to("cpu", torch.float32) for t in trajectories])  # (M, T, nx)
         slices = _slices(scene, x.shape[1], plan_dt)
-        occ = collision_probability(grid, x[:, None, :, :2], None, slices).per_slice  # (M, T)
+        occ = model.occupancy(x, slices)  # (M, T)
         worst = occ.amax(-1).tolist()
-        dist = (x[:, -1, :2] - goal).norm(dim=-1).tolist()
+        dist = (model.positions(x[:, -1]) - goal).norm(dim=-1).tolist()
     else:
         for t in trajectories:
             x = t.detach().to("cpu", torch.float32)
             slices = _slices(scene, x.shape[0], plan_dt)
-            worst.append(float(collision_probability(grid, x[None, :, :2], None, slices).max))
-            dist.append(float((x[-1, :2] - goal).norm()))
+            worst.append(float(model.occupancy(x, slices).max()))
+            dist.append(float((model.positions(x[-1]) - goal).norm()))
     n = len(worst)
     return {
         "mc_samples": n,

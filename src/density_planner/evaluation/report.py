@@ -169,6 +169,19 @@ def summary_markdown(rows: Sequence[Mapping[str, Any]], records: Sequence[Mappin
                 f"{r['failure_reasons'] or '–'} |\n"
             )
         out.write("\n")
+        checks = [r["risk_check"] for r in records if r.get("setting") == setting
+                  and isinstance(r.get("risk_check"), Mapping) and r["risk_check"].get("passed") is not None]
+        if checks:
+            by_planner: dict[str, list[bool]] = {}
+            for r in records:
+                c = r.get("risk_check")
+                if r.get("setting") == setting and isinstance(c, Mapping) and c.get("passed") is not None:
+                    by_planner.setdefault(r["planner"], []).append(bool(c["passed"]))
+            parts = [f"{PLANNER_LABELS.get(k, k)}: {sum(v)} of {len(v)} ({100 * sum(v) / len(v):.0f} %)"
+                     for k, v in by_planner.items()]
+            out.write("Risk check (`--validate-risk`: reported collision probability within 3 standard errors of "
+                      f"{checks[0].get('n_monte_carlo')} Monte-Carlo closed loops at every time step): "
+                      + "; ".join(parts) + " of the plans pass.\n\n")
         lost = [r for r in rows if r["setting"] == setting and r.get("missing")]
         if lost:
             out.write("**Missing runs** (no usable record: unreadable or not a record, or not run yet; the rates "

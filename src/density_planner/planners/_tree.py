@@ -74,8 +74,8 @@ class TreeConfig:
     max_required_speed: float = 9.0
     #: "support" (uniform on the support of the initial law, density-weighted) or "distribution"
     sample_proposal: Literal["support", "distribution"] = "support"
-    #: sample weights: "density" (paper) or "mass"
-    weighting: Literal["density", "mass"] = "density"
+    #: sample weights: "mass" (importance weights rho0 / q0, unbiased, default) or "density" (paper)
+    weighting: Literal["density", "mass"] = "mass"
     #: seed of the samples and of the random choices
     seed: int = 0
     #: cost weights of the node scores (the planners override the defaults with their own)
@@ -280,10 +280,11 @@ class TreePlanner(Planner):
         start = problem.reference_start(self.dtype, self.device)
         x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
                                                      dtype=self.dtype, device=self.device)
-        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
+                               system=problem.system, risk=problem.risk)
         w0 = sample_weights(log_rho0[:, None], log_rho0, mode=cfg.weighting, log_q0=log_q0)[:, 0]
         goal = torch.tensor(problem.goal, dtype=self.dtype, device=self.device)
-        goal0 = float((w0 * (x0[:, :2] - goal).pow(2).sum(-1)).sum())
+        goal0 = float((w0 * (problem.system.positions(x0) - goal).pow(2).sum(-1)).sum())
         return _Context(problem, start, x0, log_rho0, log_q0, objective, problem.slices(device=self.device),
                         goal0, time.perf_counter())
 

@@ -59,7 +59,7 @@ class PlanResult:
         samples: predicted sample trajectories with log-densities for the final plan (density planners).
         cost: unweighted final cost terms and the weighted total (evaluation form: no goal-far factor).
         cost_history: per stage, per term, one value per iteration (the objective actually optimised).
-        collision: collision probability of the final sample cloud (paper §IV-B binning).
+        collision: collision probability of the final sample cloud with its standard error (:class:`CollisionReport`).
         timings: wall times [s] per stage and ``"total"``.
         iterations: iterations per stage.
         message: human-readable detail (e.g. why it failed).
@@ -92,11 +92,7 @@ class PlanResult:
             "message": self.message,
             "params": _to_list(self.params),
             "cost": self.cost,
-            "collision_probability": None if self.collision is None else {
-                "max": float(self.collision.max),
-                "sum": float(self.collision.sum),
-                "per_slice": _to_list(self.collision.per_slice),
-            },
+            "collision_probability": None if self.collision is None else self.collision.to_dict(),
             "timings": self.timings,
             "iterations": self.iterations,
             "states": _to_list(self.states),

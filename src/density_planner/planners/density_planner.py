@@ -7,9 +7,13 @@ goal cost falls below the threshold, and the collision term once it is also insi
 resets that candidate's Adam state). The candidate with the lowest full cost is kept.
 
 Stage 2, *local optimisation with density*: ``S`` initial states are drawn (by default uniformly on the support
-of the initial distribution and weighted by their density, as the paper's code does), their closed-loop
-trajectories and log-densities are predicted by a :class:`~density_planner.density.base.DensityPredictor`
-(exact Liouville or a learned network) and the density-weighted cost is minimised with all terms on.
+of the initial distribution, as the paper's code does), their closed-loop trajectories and log-densities are
+predicted by a :class:`~density_planner.density.base.DensityPredictor` (exact Liouville or a learned network) and
+the sample-weighted cost is minimised with all terms on. The weights are the importance weights
+``rho0(x0_i) / q0(x0_i)`` (``weighting = "mass"``, default: expectations over the initial law, docs/planner.md);
+the paper weighted by the predicted density values (``weighting = "density"``). The reported cost and collision
+probability (:class:`~density_planner.risk.collision.CollisionModel`, with its standard error) are measured on a
+fresh draw of ``S`` initial states (``fresh_evaluation_samples``).
 
 Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
 bounds after every step. Defaults are the paper's constants (``original.md`` §10).
@@ -31,7 +35,6 @@ from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
-from ..risk.collision import collision_probability
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
@@ -65,10 +68,15 @@ class DensityPlannerConfig:
     #: "support": samples uniform on the support box of the initial law, weighted by its density (paper's code);
     #: "distribution": samples drawn from the law itself
     sample_proposal: Literal["support", "distribution"] = "support"
-    #: "density": weights are the densities at the samples (paper); "mass": probability mass per sample
-    weighting: Literal["density", "mass"] = "density"
+    #: weights of the sample-averaged cost terms: "mass" = importance weights rho0(x0_i) / q0(x0_i), the
+    #: probability mass a sample carries (unbiased expectations, default; the same weights as risk.estimator =
+    #: "is"); "density" = the densities at the samples (paper; use with risk.estimator = "paper")
+    weighting: Literal["density", "mass"] = "mass"
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
+    #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
+    #: states (True), or on the samples it was optimised on (False, paper: optimistic, the plan is fitted to them)
+    fresh_evaluation_samples: bool = True
     #: random seed of the initial parameters and samples
     seed: int = 0
     #: cost terms and weights
@@ -176,7 +184,8 @@ class DensityPlanner(Planner):
         system, par = problem.system, problem.parameterization
         low, high = self._bounds(problem)
         start = problem.reference_start(self.dtype, self.device)
-        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
+                               system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
 
         p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
@@ -238,7 +247,8 @@ class DensityPlanner(Planner):
         """Stage 2: density-weighted local optimisation of ``params (nu, S)``."""
         cfg = self.config
         low, high = self._bounds(problem)
-        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device)
+        objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
+                               system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
         x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
                                                      dtype=self.dtype, device=self.device)
@@ -266,11 +276,12 @@ class DensityPlanner(Planner):
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
                  slices: Tensor) -> tuple[dict[str, float], object]:
         """Reported cost (no goal-far factor) and collision probability of a predicted sample cloud."""
-        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device)
+        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device,
+                                 system=problem.system, risk=problem.risk)
         with torch.no_grad():
             cost = report_cost(self._inputs(ref, traj, log_q0, slices)).select(0).to_dict()
-            coll = collision_probability(problem.scene.grid.to(self.device), traj.positions[0], traj.log_rho[0],
-                                         slices)
+            coll = problem.collision(self.device).probability(
+                traj.x[0], slices, log_rho0=traj.log_rho0[0], log_q0=log_q0, log_rho=traj.log_rho[0])
         return cost, coll
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
@@ -288,7 +299,13 @@ class DensityPlanner(Planner):
             timings["total"] = t2 - t_start
             return PlanResult(self.name, PlanStatus.FAILED, params=params1, cost_history={"stage1": hist1,
                               "stage2": hist2}, timings=timings, message="stage 2 produced no finite cost")
-        timings["total"] = t2 - t_start
+        if self.config.fresh_evaluation_samples:
+            x0, log_rho0, log_q0 = sample_initial_states(problem, self.config.n_samples, gen,
+                                                         self.config.sample_proposal, dtype=self.dtype,
+                                                         device=self.device)
+            with torch.no_grad():
+                ref, traj = self._predict(self.predictor, problem, params, x0, log_rho0)
+        timings["total"] = time.perf_counter() - t_start
         cost, coll = self.evaluate(problem, ref, traj, log_q0, slices)
         extras: dict = {"predictor": getattr(self.predictor, "name", type(self.predictor).__name__)}
         if self.exact_check is not None and self.exact_check is not self.predictor:
@@ -301,6 +318,7 @@ class DensityPlanner(Planner):
                 "cost": cost_e,
                 "collision_probability_max": float(coll_e.max),
                 "collision_probability_sum": float(coll_e.sum),
+                "collision_probability": coll_e.to_dict(),
                 "time": time.perf_counter() - t3,
             }
         return PlanResult(

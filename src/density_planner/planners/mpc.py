@@ -7,10 +7,12 @@ At every step ``h`` (``t_h = h * 0.1 s``) the controller solves, from the measur
           |omega_k|, |a_k| <= 3,  theta, v in the car's state box,
           p_k in the map, shrunk by the tube radius r      (tube MPC: constraints enforced within the tube)
 
-with ``x_0 = x_hat`` (4 states, no bias), ``H = 10`` stages of 0.1 s, and ``S_k = sum_{d in D_r} P_occ(p_k + d,
-t_{h+k})``: the bilinear interpolation of the occupancy at the predicted position (M0, ``D_0 = {0}``) or summed
-over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for r = 0.3 / 0.5 / 1 m, as
-the paper's code). This is the paper's ``J_MPC`` (Eq. (11)) with its weights ``alpha`` (``original.md`` §9, §12).
+with ``x_0 = x_hat`` (4 states, no bias), ``H = 10`` stages of 0.1 s, and ``S_k = sum_j sum_{d in D_r}
+D(c_j(x_k) + d, t_{h+k})``: the bilinear interpolation of the body occupancy ``D`` (the disc-dilated grid of
+:class:`~density_planner.risk.collision.CollisionModel`) at the body's disc centres ``c_j`` (the position for a point
+vehicle; the sum over the discs is a smooth stand-in for their maximum), at the predicted position (M0,
+``D_0 = {0}``) or summed over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for
+r = 0.3 / 0.5 / 1 m, as the paper's code). This is the paper's ``J_MPC`` (Eq. (11)) with its weights ``alpha`` (``original.md`` §9, §12).
 The stage-0 collision term depends on the measurement only and is left out of the NLP. ``w_G(h) = alpha_G`` (the
 paper) or ``alpha_G (h / N)^2`` (``goal_weight_growth``, the paper's code).
 
@@ -52,6 +54,7 @@ from torch import Tensor
 from ..checks import check_choice
 from ..cost.composite import CostConfig
 from ..environment.grid import OccupancyGrid
+from ..risk.collision import CollisionModel
 from ..systems.car import THETA, KinematicCar, V
 from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
 from ._report import evaluate_trajectory
@@ -269,8 +272,11 @@ class _Limits:
 class _MPCProgram:
     """The NLP of one MPC configuration for one map cell size: structure, windows and the buffered solver."""
 
-    def __init__(self, ca: Any, config: MPCConfig, cell: float, limits: _Limits, precomputed: bool):
+    def __init__(self, ca: Any, config: MPCConfig, cell: float, limits: _Limits, precomputed: bool,
+                 body: tuple[float, ...] = (0.0,)):
         self.config, self.cell, self.limits, self.precomputed = config, cell, limits, precomputed
+        #: longitudinal offsets [m] of the body's disc centres from the position (CollisionModel.cover.offsets)
+        self.body = tuple(body)
         H = config.horizon
         dt = config.stage_dt
         self.H = H
@@ -278,7 +284,7 @@ class _MPCProgram:
         self.tube = tube_offsets(config.tube_radius, config.tube_lattice)
         #: offsets evaluated by the NLP
         self.offsets = np.zeros((1, 2)) if precomputed else self.tube
-        radius = float(np.linalg.norm(self.offsets, axis=1).max())
+        radius = float(np.linalg.norm(self.offsets, axis=1).max()) + max(abs(v) for v in self.body)
         v_reach = max(abs(limits.v[0]), abs(limits.v[1])) + max(map(abs, limits.u_min + limits.u_max)) * dt
         #: reachable distance [m] after k stages (k = 1..H) from the measured position (exact bound of F)
         self.reach = np.array([k * dt * v_reach for k in range(1, H + 1)])
@@ -313,8 +319,11 @@ class _MPCProgram:
             origin = P[7 + 2 * k : 9 + 2 * k]
             start = int(self.win_start[k])
             values = P[start : start + s * s]
-            pts = ca.repmat(X[0:2, k] - origin, 1, M) + D
-            s_k = ca.sum2(occ(pts, values))
+            s_k = 0
+            for off in self.body:
+                centre = X[0:2, k] + (off * ca.vertcat(ca.cos(X[2, k]), ca.sin(X[2, k])) if off else 0)
+                pts = ca.repmat(centre - origin, 1, M) + D
+                s_k = s_k + ca.sum2(occ(pts, values))
             J = J + w.collision * s_k**2
         nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": P, "f": J, "g": ca.vertcat(*g)}
         opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
@@ -369,6 +378,7 @@ class _Binding:
     goal: np.ndarray
     n_steps: int
     outside: float = 1.0  # value of cells outside the map
+    edge: bool = False  # cells outside the map repeat the border (a body's disc centres; CollisionModel)
     warm: bool = False
 
 
@@ -437,13 +447,13 @@ class MPCPlanner(Planner):
                              f"number of map cells ({cell} m); use 'offsets' or 'auto'")
         return cfg.tube_method == "precomputed" or (cfg.tube_method == "auto" and exact)
 
-    def _program_for(self, cell: float, limits: _Limits) -> _MPCProgram:
+    def _program_for(self, cell: float, limits: _Limits, body: tuple[float, ...] = (0.0,)) -> _MPCProgram:
         prog = self._program
         pre = self._precomputed(cell)
         if (prog is None or not math.isclose(prog.cell, cell, rel_tol=1e-9) or prog.limits != limits
-                or prog.precomputed != pre):
+                or prog.precomputed != pre or prog.body != tuple(body)):
             t0 = time.perf_counter()
-            prog = _MPCProgram(self._ca, self.config, cell, limits, pre)
+            prog = _MPCProgram(self._ca, self.config, cell, limits, pre, body)
             self.build_time = time.perf_counter() - t0
             self.n_builds += 1
             self._program = prog
@@ -458,8 +468,9 @@ class MPCPlanner(Planner):
         if not isinstance(system, KinematicCar):
             raise ValueError(f"the MPC baselines need the KinematicCar system, got {type(system).__name__}")
         self.system = system
-        grid: OccupancyGrid = problem.scene.grid
-        prog = self._program_for(grid.cell_size, self._limits(system))
+        collision = problem.collision()
+        grid: OccupancyGrid = collision.body_grid  # occupancy seen by a body disc (the point's P_occ for a point)
+        prog = self._program_for(grid.cell_size, self._limits(system), collision.cover.offsets)
         cfg = self.config
         n_steps = cfg.n_steps or int(round(problem.parameterization.horizon / cfg.stage_dt))
         # occupancy slices of the absolute times t_start + k stage_dt: the closed loop's own steps must lie in the
@@ -494,6 +505,7 @@ class MPCPlanner(Planner):
             goal=np.asarray(problem.goal, dtype=float),
             n_steps=n_steps,
             outside=float(prog.tube.shape[0]) if prog.precomputed else 1.0,
+            edge=not collision.is_point,
         )
         prog.nlp.args["lam_x0"][:] = 0.0
         prog.nlp.args["lam_g0"][:] = 0.0
@@ -511,9 +523,15 @@ class MPCPlanner(Planner):
             a0, a1 = max(i0, 0), min(i0 + s, NX)
             c0, c1 = max(j0, 0), min(j0 + s, NY)
             sl = int(b.slices[min(step + k + 1, last)])
-            if a0 - i0 > 0 or c0 - j0 > 0 or a1 - i0 < s or c1 - j0 < s:
+            if (a0 - i0 > 0 or c0 - j0 > 0 or a1 - i0 < s or c1 - j0 < s) and b.edge:
+                ii = np.clip(np.arange(i0, i0 + s), 0, NX - 1)
+                jj = np.clip(np.arange(j0, j0 + s), 0, NY - 1)
+                win[:, :] = b.probs[sl][np.ix_(ii, jj)]
+            elif a0 - i0 > 0 or c0 - j0 > 0 or a1 - i0 < s or c1 - j0 < s:
                 win.fill(b.outside)  # part of the window lies outside the map
-            if a0 < a1 and c0 < c1:
+                if a0 < a1 and c0 < c1:
+                    win[a0 - i0 : a1 - i0, c0 - j0 : c1 - j0] = b.probs[sl, a0:a1, c0:c1]
+            elif a0 < a1 and c0 < c1:
                 win[a0 - i0 : a1 - i0, c0 - j0 : c1 - j0] = b.probs[sl, a0:a1, c0:c1]
             p[prog.i_org + 2 * k : prog.i_org + 2 * k + 2] = b.origin + b.cell * np.array([i0, j0])
 
@@ -606,7 +624,7 @@ class MPCPlanner(Planner):
                 inputs.append(torch.as_tensor(st.input, dtype=torch.float64))
                 if not bool(torch.isfinite(x).all()):
                     raise FloatingPointError(f"the state became non-finite at step {h}")
-                if stop > 0 and float(torch.linalg.norm(x[:2] - goal)) < stop:
+                if stop > 0 and float(torch.linalg.norm(problem.system.positions(x) - goal)) < stop:
                     break
         except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
             log.warning("%s failed: %s", self.name, exc)
@@ -649,6 +667,7 @@ class MPCPlanner(Planner):
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
                 result.extras["objective"] = mpc_objective(problem.scene.grid, x, u, problem.goal,
                                                            self.config.weights, dt=self.config.stage_dt,
+                                                           collision=problem.collision(),
                                                            t_start=problem.t_start)
             except Exception as exc:  # noqa: BLE001
                 result.message += f" (evaluation failed: {exc})"
@@ -670,26 +689,31 @@ def mpc_objective(
     *,
     offsets: np.ndarray | None = None,
     dt: float = 0.1,
+    collision: CollisionModel | None = None,
     t_start: float | None = None,
 ) -> dict[str, float]:
-    """``J_MPC`` (paper Eq. (11)) of a whole trajectory ``states (T, >=2)`` on the 0.1-s grid with
+    """``J_MPC`` (paper Eq. (11)) of a whole trajectory ``states (T, nx)`` on the 0.1-s grid with
     ``inputs (T - 1, 2)``, from ``h = 0`` over ``T - 1`` stages: the oracle's objective, also used to compare the
-    closed-loop MPC runs with it. Terms unweighted, ``total`` weighted; occupancy interpolated bilinearly (fill 1
-    outside the map), summed over ``offsets (M, 2)`` [m] if given. ``states[k]`` lies at the absolute time
-    ``t_start + k dt`` (default ``t_start``: the grid's ``t0``)."""
+    closed-loop MPC runs with it. Terms unweighted, ``total`` weighted; body occupancy (``collision``'s
+    disc-dilated grid at the disc centres, summed over the discs; default a point on ``grid``) interpolated
+    bilinearly (fill 1 outside the map), summed over ``offsets (M, 2)`` [m] if given. ``states[k]`` lies at the
+    absolute time ``t_start + k dt`` (default ``t_start``: the grid's ``t0``)."""
     states = states.detach().to("cpu", torch.float64)
     inputs = inputs.detach().to("cpu", torch.float64)
-    g = grid.to("cpu")
+    model = (collision or CollisionModel(grid)).to("cpu")
+    g = model.body_grid
     T = states.shape[0]
     k = g.slices_for(g.t0 if t_start is None else t_start, dt, T)
-    pos = states[:, :2]
+    pos = model.centres(states)  # (T, m, 2)
+    if not model.is_point:  # disc centres beyond the border read the border (CollisionModel)
+        pos = model.clamp_to_map(pos)
     if offsets is not None:
-        pos = pos[:, None, :] + torch.as_tensor(offsets, dtype=torch.float64)[None]
-        occ = g.lookup(pos, k[:, None]).sum(-1)
+        pos = pos[:, :, None, :] + torch.as_tensor(offsets, dtype=torch.float64)[None, None]
+        occ = g.lookup(pos, k[:, None, None]).sum(dim=(-1, -2))
     else:
-        occ = g.lookup(pos, k)
+        occ = g.lookup(pos, k[:, None]).sum(-1)
     terms = {
-        "goal": float((states[-1, :2] - torch.tensor(goal, dtype=torch.float64)).pow(2).sum()),
+        "goal": float((model.positions(states[-1]) - torch.tensor(goal, dtype=torch.float64)).pow(2).sum()),
         "input": float(inputs.pow(2).sum()),
         "collision": float(occ.pow(2).sum()),
     }

@@ -13,7 +13,9 @@ over the parameters ``p (2, 10)`` and the states ``x_1..x_N`` (multiple shooting
 linear interpolant over (x, y, slice) whose values are the scene's whole occupancy grid as constant data, so the
 NLP is built once per scene (``n_builds`` counts it; the restarts and later :meth:`OraclePlanner.plan_from`
 calls on the same scene reuse it): the full grid is 101 x 241 x 401 values, too many to pass as a parameter on
-every function evaluation.
+every function evaluation. With a body, the interpolated grid is the body's disc-dilated grid
+(:class:`~density_planner.risk.collision.CollisionModel`) and ``P_occ(p_k, t_k)`` becomes the sum of its values at
+the disc centres of ``x_k`` (a smooth stand-in for their maximum).
 
 Restarts (``original.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
 ``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every returned
@@ -89,7 +91,8 @@ class _OracleProgram:
 
     def __init__(self, ca: Any, config: OracleConfig, problem: PlanningProblem):
         par = problem.parameterization
-        grid = problem.scene.grid
+        collision = problem.collision()
+        grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
         car: KinematicCar = problem.system  # type: ignore[assignment]
         self.grid = grid
         self.n_seg = par.n_segments
@@ -118,8 +121,12 @@ class _OracleProgram:
         for k in range(self.N):
             g.append(X[:, k] - F(prev, Pm[:, k // per_seg]))
             prev = X[:, k]
-        pts = ca.vertcat(X[0:2, :], ca.DM([slices[1:]]))
-        J = (w.goal * ca.sumsqr(X[0:2, self.N - 1] - prm[4:6]) + w.collision * ca.sumsqr(occ(pts))
+        # body: the interpolated disc-dilated occupancy summed over the disc centres (a smooth stand-in for the max)
+        occ_sum = 0
+        for off in collision.cover.offsets:
+            centre = X[0:2, :] + (off * ca.vertcat(ca.cos(X[2, :]), ca.sin(X[2, :])) if off else 0)
+            occ_sum = occ_sum + occ(ca.vertcat(centre, ca.DM([slices[1:]])))
+        J = (w.goal * ca.sumsqr(X[0:2, self.N - 1] - prm[4:6]) + w.collision * ca.sumsqr(occ_sum)
              + w.input * per_seg * ca.sumsqr(Pm))
         nlp = {"x": ca.vertcat(ca.vec(Pm), ca.vec(X)), "p": prm, "f": J, "g": ca.vertcat(*g)}
         opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
@@ -183,7 +190,7 @@ class OraclePlanner(Planner):
         self._program_key: tuple | None = None
 
     def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
-        key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config)
+        key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config, problem.risk)
         if self._program is None or self._program_key is None or any(
             a is not b and a != b for a, b in zip(self._program_key, key)
         ):
@@ -255,7 +262,8 @@ class OraclePlanner(Planner):
                                        torch.tensor(lo, dtype=torch.float64)[:, None])
                 ref = make_reference(system, start, params, par)
                 obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
-                                    dt=par.plan_dt, t_start=problem.t_start)
+                                    collision=problem.collision(), dt=par.plan_dt,
+                                    t_start=problem.t_start)
                 feasible = prog.feasible(ref.x_plan)
                 entry["objective"] = obj["total"]
                 entry["feasible"] = feasible
@@ -284,7 +292,8 @@ class OraclePlanner(Planner):
         extras["best_restart"] = i_best
         extras["best_converged"] = bool(restarts[i_best]["success"])
         extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
-                                            dt=par.plan_dt, t_start=problem.t_start)
+                                            collision=problem.collision(), dt=par.plan_dt,
+                                            t_start=problem.t_start)
         n_conv = sum(1 for e in restarts if e["success"])
         message = (f"{n_conv} of {len(restarts)} restarts converged; kept restart {i_best} "
                    f"({restarts[i_best]['status']})")

@@ -20,6 +20,7 @@ from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import Scene, validate_scene
+from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from ..systems.car import BIAS, KinematicCar
 
@@ -38,16 +39,22 @@ class PlanningConfig:
 
     The horizon is ``horizon`` when given (explicit configuration wins); else the scene's suggestion
     ``scene.meta["horizon"]`` [s from the plan's start] (e.g. the end of a CommonRoad goal's time interval),
-    rounded up to whole segments and capped at ``max_horizon`` and at the scene's time span; else
-    :data:`DEFAULT_HORIZON` (10 s, the paper). The shipped learned density predictors are trained for 10 s of
-    1-s segments at 0.1 s: for other values the planner falls back to exact Liouville (logged warning) or, when a
-    learned predictor is named explicitly, refuses with an error.
+    rounded up to whole segments and clamped to ``[min_horizon, max_horizon]`` and to the scene's time span; else
+    :data:`DEFAULT_HORIZON` (10 s, the paper). Both bounds default to 10 s: the shipped learned density predictors
+    are trained for 10 s of 1-s segments at 0.1 s, and for other values the planner falls back to exact Liouville
+    (logged warning; minutes per plan instead of seconds) or, when a learned predictor is named explicitly,
+    refuses with an error. A goal whose time interval ends earlier is met inside the 10-s plan (the goal-region
+    cost is zero during its interval); one that starts later than ``max_horizon`` cannot be reached: raise
+    ``--set planning.max_horizon=20`` (exact Liouville) for such scenes.
     """
 
     #: planning horizon [s], a whole number of segments (None: the scene's suggestion, else 10 s)
     horizon: float | None = None
-    #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped)
-    max_horizon: float = 20.0
+    #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped); above 10 s the
+    #: shipped learned predictors do not apply (exact Liouville)
+    max_horizon: float = DEFAULT_HORIZON
+    #: floor of a horizon suggested by the scene [s] (a goal that ends earlier is met inside the longer plan)
+    min_horizon: float = DEFAULT_HORIZON
     #: duration of one piecewise-constant segment of the reference inputs [s]
     segment_duration: float = 1.0
     #: step of the planning grid on which costs, risks and metrics are evaluated [s]
@@ -56,7 +63,7 @@ class PlanningConfig:
     dt: float = 0.01
 
     def __post_init__(self) -> None:
-        for name in ("max_horizon", "segment_duration", "plan_dt", "dt"):
+        for name in ("max_horizon", "min_horizon", "segment_duration", "plan_dt", "dt"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"planning.{name} must be a finite number > 0, got {v!r}")
@@ -90,15 +97,15 @@ class PlanningConfig:
         if not math.isfinite(suggested) or suggested <= 0:
             raise ValueError(f"scene {scene.name!r}: suggested horizon must be > 0 s, got {suggested}")
         seg = self.segment_duration
-        n = max(1, math.ceil(suggested / seg - 1e-9))
+        n = max(1, math.ceil(max(suggested, min(self.min_horizon, self.max_horizon)) / seg - 1e-9))
         n = min(n, max(1, math.floor(self.max_horizon / seg + 1e-9)))
         span = scene.grid.t_end - scene.t_start
         n = min(n, max(1, math.floor(span / seg + 1e-9)))
         horizon = n * seg
         if not math.isclose(horizon, suggested):
             log.info("scene %s suggests a %.3g-s horizon; planning over %.3g s (whole %.3g-s segments, at most "
-                     "planning.max_horizon = %.3g s and the scene's %.3g s)", scene.name, suggested, horizon, seg,
-                     self.max_horizon, span)
+                     "planning.min_horizon/max_horizon = %.3g/%.3g s and the scene's %.3g s)", scene.name, suggested,
+                     horizon, seg, self.min_horizon, self.max_horizon, span)
         return horizon
 
     def parameterization(self, scene: Scene | None = None) -> PiecewiseConstantInputs:
@@ -118,12 +125,19 @@ class PlanningProblem:
         system: the dynamics (default: the kinematic car).
         parameterization: reference-input parameterisation (10 segments of 1 s, 0.01-s fine grid, 0.1-s planning
             grid); its horizon must not exceed the scene's time span.
+        risk: how collision is read (body) and its probability estimated (section ``[risk]``).
     """
 
     scene: Scene
     initial_distribution: InitialDistribution
     system: System = field(default_factory=KinematicCar)
     parameterization: PiecewiseConstantInputs = field(default_factory=PiecewiseConstantInputs)
+    risk: RiskConfig = field(default_factory=RiskConfig)
+
+    def collision(self, device: torch.device | str | None = None) -> CollisionModel:
+        """The collision model of this problem (scene grid, system, risk settings) on ``device``."""
+        grid = self.scene.grid if device is None else self.scene.grid.to(device)
+        return CollisionModel(grid, self.system, self.risk)
 
     def __post_init__(self) -> None:
         validate_scene(self.scene)
@@ -146,6 +160,7 @@ class PlanningProblem:
         seed: int = 0,
         system: System | None = None,
         parameterization: PiecewiseConstantInputs | None = None,
+        risk: RiskConfig | None = None,
         planning: PlanningConfig | None = None,
     ) -> PlanningProblem:
         """The paper's default problem: its 5-component Gaussian mixture on the XE0 box around the scene start,
@@ -159,7 +174,7 @@ class PlanningProblem:
         dist = paper_gaussian_mixture(scene.start, half_width, torch.Generator().manual_seed(seed))
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
-        return cls(scene, dist, system, parameterization)
+        return cls(scene, dist, system, parameterization, risk or RiskConfig())
 
     @property
     def t_start(self) -> float:

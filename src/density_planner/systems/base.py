@@ -6,25 +6,71 @@ device and floating dtype, and return tensors of the same dtype/device.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-__all__ = ["System", "ControlAffineSystem"]
+__all__ = ["System", "ControlAffineSystem", "Footprint"]
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """The vehicle's body: a rectangle ``length x width`` [m] centred on the position, its long side along the
+    heading. ``0 x 0`` is a point (the paper's assumption). A system without heading needs ``length == width``
+    (a disc of that diameter, or a point); how collision reads the body is decided in :mod:`density_planner.risk`.
+    """
+
+    #: extent along the heading [m]
+    length: float = 0.0
+    #: extent across the heading [m]
+    width: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("length", "width"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"footprint {name} must be a finite number >= 0 [m], got {v!r}")
+
+    @property
+    def is_point(self) -> bool:
+        return self.length == 0 and self.width == 0
 
 
 class System(ABC):
     """A controlled dynamical system ``x' = f(x, u)``.
 
-    Subclasses set :attr:`state_names`, :attr:`input_names` and the bounds, and implement :meth:`f`.
+    Subclasses set :attr:`state_names`, :attr:`input_names` and the bounds, and implement :meth:`f`. The
+    geometric facts used by collision checking live here too: which state entries are the position
+    (:attr:`position_indices`) and the heading (:attr:`heading_index`, ``None`` when the system has none), and
+    the body (:attr:`footprint`). Code outside the system reads positions with :meth:`positions`, never by
+    indexing a state itself.
     """
 
     #: names of the state components, in order
     state_names: tuple[str, ...] = ()
     #: names of the input components, in order
     input_names: tuple[str, ...] = ()
+    #: indices of the planar position (x, y) [m] in the state
+    position_indices: tuple[int, int] = (0, 1)
+    #: index of the heading [rad] in the state (counter-clockwise from the x axis), ``None`` without heading
+    heading_index: int | None = None
+    #: the body; a point unless the system says otherwise
+    footprint: Footprint = Footprint()
+
+    def positions(self, x: Tensor) -> Tensor:
+        """Planar positions ``(..., 2)`` [m] of states ``x (..., nx)`` (a view when the indices are adjacent)."""
+        i, j = self.position_indices
+        if j == i + 1:
+            return x[..., i:j + 1]
+        return x[..., [i, j]]
+
+    def headings(self, x: Tensor) -> Tensor | None:
+        """Headings ``(...)`` [rad] of states ``x (..., nx)``, or ``None`` for a system without heading."""
+        return None if self.heading_index is None else x[..., self.heading_index]
 
     @property
     def nx(self) -> int:

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ..checks import broadcast_shape
-from .base import ControlAffineSystem
+from .base import ControlAffineSystem, Footprint
 
 __all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "PX", "PY", "THETA", "V",
            "BIAS", "OMEGA", "ACC"]
@@ -64,8 +64,13 @@ class CarConfig:
     actuator_lateral_accel_max: float = math.inf
     #: name of the domain (``"paper"`` or ``"road"``, see :data:`CAR_DOMAINS`; free text for custom boxes)
     domain: str = "paper"
+    #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
+    length: float = 4.5
+    #: body width [m]
+    width: float = 1.8
 
     def __post_init__(self) -> None:
+        Footprint(self.length, self.width)  # validates
         for lo_name, hi_name in [
             ("state_min", "state_max"),
             ("input_min", "input_max"),
@@ -176,8 +181,16 @@ class KinematicCar(ControlAffineSystem):
     input_names = ("omega", "a")
     constant_input_matrix = ((0.0, 0.0), (0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (0.0, 0.0))
 
+    position_indices = (PX, PY)
+    heading_index = THETA
+
     def __init__(self, config: CarConfig | None = None):
         self.config = config or CarConfig()
+
+    @property
+    def footprint(self) -> Footprint:  # type: ignore[override]
+        """The car's rectangle ``length x width`` (:class:`CarConfig`), centred on ``(p_x, p_y)``."""
+        return Footprint(self.config.length, self.config.width)
 
     @property
     def state_bounds(self):

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .base import ControlAffineSystem
+from .base import ControlAffineSystem, Footprint
 
 __all__ = ["LinearSystem"]
 
@@ -25,7 +25,10 @@ class LinearSystem(ControlAffineSystem):
         B: Sequence[Sequence[float]],
         *,
         input_bounds: tuple[Sequence[float], Sequence[float]] | None = None,
+        footprint: Footprint | None = None,
     ):
+        """``footprint``: the body (no heading, so ``length == width``: a disc; default a point); the position is
+        the first two state components."""
         a = torch.as_tensor(A, dtype=torch.float64)
         b = torch.as_tensor(B, dtype=torch.float64)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
@@ -39,6 +42,10 @@ class LinearSystem(ControlAffineSystem):
         self.constant_input_matrix = tuple(tuple(float(v) for v in row) for row in b.tolist())
         inf = float("inf")
         self._input_bounds = input_bounds or ((-inf,) * b.shape[1], (inf,) * b.shape[1])
+        if footprint is not None:
+            if footprint.length != footprint.width:
+                raise ValueError("a LinearSystem has no heading: its footprint must be a disc (length == width)")
+            self.footprint = footprint
 
     @property
     def state_bounds(self):

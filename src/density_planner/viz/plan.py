@@ -15,6 +15,9 @@ from .style import DENSITY_CMAP, plt, save_figure
 
 __all__ = ["plot_plan", "animate_plan", "plot_costs", "plot_plans"]
 
+#: background outside the map (no occupancy data there)
+_OUTSIDE_MAP = "#d9e2ec"
+
 _PLANNER_COLOURS = ("tab:orange", "tab:blue", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan",
                     "tab:red", "tab:green", "black")
 
@@ -30,6 +33,121 @@ def _cloud(ax, x: np.ndarray, log_rho: np.ndarray, k: int, size: float = 4.0):
                       linewidths=0, zorder=3)
 
 
+def _geometry_patches(geom) -> list[np.ndarray]:
+    """Exterior rings ``(M, 2)`` of the polygons in a shapely geometry (polygon, multi-polygon, collection)."""
+    if geom is None or geom.is_empty:
+        return []
+    if hasattr(geom, "geoms"):
+        return [r for g in geom.geoms for r in _geometry_patches(g)]
+    if hasattr(geom, "exterior"):
+        return [np.asarray(geom.exterior.coords)]
+    return []
+
+
+def _draw_goal(ax, scene: Scene, *, label: bool = True) -> None:
+    """The goal region's shapes (hatched) where the scene has road data, and the goal point."""
+    road = getattr(scene, "road", None)
+    shapes = road.goal.shapes if road is not None else None
+    first = True
+    for ring in _geometry_patches(shapes):
+        ax.fill(ring[:, 0], ring[:, 1], facecolor=(0.84, 0.15, 0.16, 0.12), edgecolor="tab:red", lw=0.9,
+                hatch="///", zorder=2, label="goal region" if (label and first) else None)
+        first = False
+    ax.plot(*scene.goal, "*", color="tab:red", ms=11, mec="white", zorder=6,
+            label=("goal" if shapes is None else None) if label else None)
+
+
+def _draw_obstacle_paths(ax, scene: Scene, t_abs: np.ndarray) -> None:
+    """Centre paths of the recorded road users over the plan's times (thin) and their true shapes at the
+    start (outlined)."""
+    road = getattr(scene, "road", None)
+    if road is None:
+        return
+    first = True
+    for track in road.obstacles:
+        if track.static:
+            continue
+        poses = track.poses_at(t_abs)
+        ok = np.isfinite(poses[:, 0])
+        if ok.sum() < 2:
+            continue
+        ax.plot(poses[ok, 0], poses[ok, 1], "-", color="tab:blue", lw=0.6, alpha=0.6, zorder=2,
+                label="road users' paths" if first else None)
+        first = False
+        poly = track.polygons_at(t_abs[:1])[0]
+        for ring in _geometry_patches(poly):
+            ax.plot(ring[:, 0], ring[:, 1], "-", color="tab:blue", lw=0.8, zorder=2)
+
+
+def _window(points: np.ndarray, bounds: tuple[float, float, float, float], margin: float,
+            max_aspect: float = 3.0) -> tuple[float, float, float, float]:
+    """Bounding box of ``points (N, 2)`` plus ``margin``, widened to an aspect ratio <= ``max_aspect``, clipped to
+    ``bounds``."""
+    pts = points[np.isfinite(points).all(axis=1)]
+    x0, y0 = pts.min(axis=0) - margin
+    x1, y1 = pts.max(axis=0) + margin
+    w, h = x1 - x0, y1 - y0
+    if w > max_aspect * h:
+        pad = (w / max_aspect - h) / 2
+        y0, y1 = y0 - pad, y1 + pad
+    elif h > max_aspect * w:
+        pad = (h / max_aspect - w) / 2
+        x0, x1 = x0 - pad, x1 + pad
+    bx0, bx1, by0, by1 = bounds
+    return (max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1))
+
+
+def _region_of_interest(scene: Scene, states: np.ndarray, samples_x: np.ndarray | None) -> tuple[float, ...]:
+    """What the overview shows: the trajectory, the sample cloud (1-99 % quantiles), start, goal and goal region,
+    with a margin, inside the map."""
+    pts = [states[:, :2], np.asarray([scene.start[:2], scene.goal])]
+    if samples_x is not None:
+        flat = samples_x[..., :2].reshape(-1, 2)
+        pts.append(np.nanquantile(flat, [0.01, 0.99], axis=0))
+    road = getattr(scene, "road", None)
+    if road is not None and road.goal.shapes is not None:
+        gx0, gy0, gx1, gy1 = road.goal.shapes.bounds
+        pts.append(np.array([[gx0, gy0], [gx1, gy1]]))
+    return _window(np.concatenate(pts), _extent(scene), margin=12.0)
+
+
+def _emptiest_corner(points: np.ndarray, window: tuple[float, float, float, float]) -> str:
+    """The legend corner of ``window`` with the fewest ``points`` in its quarter (matplotlib's ``loc="best"``
+    tests every artist and costs a third of the figure's drawing time)."""
+    x0, x1, y0, y1 = window
+    pts = points[np.isfinite(points).all(axis=1)]
+    right = pts[:, 0] > 0.5 * (x0 + x1)
+    upper = pts[:, 1] > 0.5 * (y0 + y1)
+    counts = {"upper left": int((upper & ~right).sum()), "upper right": int((upper & right).sum()),
+              "lower left": int((~upper & ~right).sum()), "lower right": int((~upper & right).sum())}
+    return min(counts, key=counts.get)
+
+
+def _verdict_line(verdict, width: int = 150) -> tuple[str, str]:
+    """(text, colour) of a verdict for a figure (wrapped to ``width`` characters, at most three lines)."""
+    import textwrap
+
+    if verdict is None:
+        return "no verdict (no trajectory)", "black"
+    if verdict.ok:
+        return "verdict: success (goal reached, collision-free, on road, within model)", "tab:green"
+    text = "verdict: failed: " + "; ".join(verdict.reasons)
+    return "\n".join(textwrap.wrap(text, width)[:3]), "tab:red"
+
+
+def _mark_failures(ax, states: np.ndarray, verdict, plan_dt: float) -> None:
+    if verdict is None:
+        return
+    for key, marker, label in (("first_collision_time", "X", "first collision"),
+                               ("off_road_first_time", "P", "leaves the road")):
+        t = verdict.details.get(key)
+        if t is None:
+            continue
+        k = min(int(round(t / plan_dt)), len(states) - 1)
+        ax.plot(states[k, 0], states[k, 1], marker, color="tab:red", ms=9, mec="white", zorder=7,
+                label=f"{label} (t = {t:.1f} s)")
+
+
 def plot_plan(
     scene: Scene,
     states: np.ndarray,
@@ -38,69 +156,132 @@ def plot_plan(
     samples_x: np.ndarray | None = None,
     samples_log_rho: np.ndarray | None = None,
     title: str | None = None,
-    snapshot_times: Sequence[float] = (0.0, 2.5, 5.0, 7.5, 10.0),
+    snapshot_times: Sequence[float] | None = None,
     plan_dt: float = 0.1,
     label: str = "reference",
+    verdict=None,
+    body: np.ndarray | None = None,
 ) -> Path:
-    """Plan over the time-max occupancy (left) and occupancy snapshots with the sample cloud (right).
+    """The plan over the scene (overview) and six occupancy snapshots with the sample cloud around the vehicle.
+
+    The overview shows the region that matters (trajectory, sample cloud, start, goal region, plus a margin) over
+    the occupancy at the start, with the swept occupancy of the horizon faintly (so the road stays visible in dense
+    traffic), the recorded road users' paths and the goal region where the scene has road data, and the verdict
+    (its failures marked on the trajectory). Snapshots are square windows of one size that follow the vehicle.
 
     Args:
         states: ``(T, nx)`` planned states on the planning grid (a reference, or an executed trajectory that may
             stop early: later snapshots then show where it stopped).
         label: legend label of ``states``.
         samples_x: ``(N, T, nx)`` predicted sample trajectories; samples_log_rho: ``(N, T)``.
+        snapshot_times: times [s] of the snapshots (default: six, evenly over the trajectory).
+        verdict: the plan's :class:`~density_planner.evaluation.verdict.Verdict` (drawn when given).
+        body: ``(T, 4, 2)`` corners of the vehicle's footprint along ``states``
+            (:meth:`~density_planner.risk.collision.CollisionModel.outline`), drawn in the snapshots.
     """
     grid = scene.grid
+    T = states.shape[0]
+    if snapshot_times is None:
+        snapshot_times = np.round(np.linspace(0.0, (T - 1) * plan_dt, 6) / plan_dt) * plan_dt
+    snapshot_times = list(snapshot_times)
     n_snap = len(snapshot_times)
-    ncol = (n_snap + 1) // 2
-    x0, x1, y0, y1 = _extent(scene)
+    ncol = max((n_snap + 1) // 2, 1)
+    has_cloud = samples_x is not None and samples_log_rho is not None
+    roi = _region_of_interest(scene, states, samples_x if has_cloud else None)
+    x0, x1, y0, y1 = roi
     aspect = (x1 - x0) / max(y1 - y0, 1e-9)
-    if aspect > 1.3:  # wide map (e.g. a recorded intersection): overview on top, snapshots in two rows below
-        width = 13.0
-        row = width / ncol / aspect + 0.6
-        fig = plt.figure(figsize=(width, width / aspect + 0.9 + 2 * row))
-        gs = fig.add_gridspec(3, ncol, height_ratios=[width / aspect + 0.9, row, row])
+    wide = aspect > 2.2
+    over_h = 11.0 / aspect + 0.9  # wide: the overview's row fits its aspect over the figure's width
+    fig = plt.figure(figsize=(13.0, 0.6 + over_h + 6.4) if wide else (13.0 + max(0.0, aspect - 1.0) * 3.0, 7.8),
+                     layout="constrained")
+    outer = fig.add_gridspec(2, 1, height_ratios=[0.6, over_h + 6.4] if wide else [0.06, 1])
+    header = fig.add_subplot(outer[0])  # the verdict, coloured, over the whole width
+    header.axis("off")
+    text, colour = _verdict_line(verdict, width=170)
+    header.text(0.0, 0.5, text, color=colour, fontsize=8.5, va="center", ha="left", transform=header.transAxes)
+    if wide:  # wide: overview on top, snapshots in two rows below
+        gs = outer[1].subgridspec(3, ncol, height_ratios=[over_h, 3.2, 3.2])
         ax = fig.add_subplot(gs[0, :])
 
         def snapshot_cell(j: int):
             return gs[1 + j // ncol, j % ncol]
-    else:  # tall or square map: overview on the left, snapshots in two rows on the right
-        fig = plt.figure(figsize=(4.2 + 2.3 * ncol, 7.2))
-        gs = fig.add_gridspec(2, 1 + ncol, width_ratios=[1.8] + [1] * ncol)
+    else:  # tall or square: overview on the left, snapshots in two rows on the right
+        gs = outer[1].subgridspec(2, 1 + ncol, width_ratios=[float(np.clip(1.7 * aspect, 1.7, 3.6))] + [1] * ncol)
         ax = fig.add_subplot(gs[:, 0])
 
         def snapshot_cell(j: int):
             return gs[j // ncol, 1 + j % ncol]
-    show_occupancy(ax, grid.max_over_time(), _extent(scene), alpha=0.85)
+    # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
+    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    k0 = int(grid.slice_index(t0, clamp=True))
+    (i0, i1, j0, j1), extent, st = _crop(grid, roi, 700)
+    show_occupancy(ax, grid.probs[k0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
+    swept = grid.probs[k0:, i0:i1:st, j0:j1:st].amax(dim=0)
+    show_occupancy(ax, swept, extent, alpha=0.3)  # swept occupancy, faint
+    t_abs = (getattr(scene.road, "t_start", 0.0) if getattr(scene, "road", None) is not None else 0.0) + (
+        plan_dt * np.arange(T))
+    _draw_obstacle_paths(ax, scene, t_abs)
+    _draw_goal(ax, scene)
     sc = None
-    if samples_x is not None and samples_log_rho is not None:
-        for k in range(0, states.shape[0], 10):
+    if has_cloud:
+        for k in range(0, T, 10):
             sc = _cloud(ax, samples_x, samples_log_rho, k, size=2.0)
-    ax.plot(states[:, 0], states[:, 1], "-", color="tab:orange", lw=1.6, label=label, zorder=4)
-    _decorate(ax, scene)
-    ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
-    ax.set_title(title or f"{scene.name}: plan", fontsize=9)
+    ax.plot(states[:, 0], states[:, 1], "-", color="tab:orange", lw=1.8, label=label, zorder=5)
+    sx, sy = scene.start[:2]
+    ax.plot(sx, sy, "o", color="tab:green", ms=7, mec="white", zorder=6, label=f"start ({scene.start[3]:.1f} m/s)")
+    _mark_failures(ax, states, verdict, plan_dt)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal", anchor="C")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.tick_params(labelsize=7)
+    ax.set_facecolor(_OUTSIDE_MAP)
+    ax.legend(loc=_emptiest_corner(states[:, :2], roi), fontsize=7, framealpha=0.8)
+    fig.suptitle(title or f"{scene.name}: plan", fontsize=10)
     if sc is not None:
-        fig.colorbar(sc, ax=ax, label=r"$\rho/\max\rho$ (per time)", shrink=0.6, pad=0.02)
+        fig.colorbar(sc, ax=ax, label=r"$\rho/\max\rho$ (per time)", shrink=0.5, aspect=25, pad=0.01)
 
-    for j, ts in enumerate(snapshot_times):
-        k_time = int(round(ts / plan_dt))
-        if scene.t_start + k_time * plan_dt > grid.t_end + 1e-9:
-            continue
-        k = min(k_time, states.shape[0] - 1)  # an executed trajectory that stopped early stays where it stopped
+    # snapshots: one window size for all, following the vehicle (and its sample cloud)
+    ks = [min(int(round(ts / plan_dt)), T - 1) for ts in snapshot_times]
+    half = 12.0
+    for k in ks:
+        if has_cloud and k < samples_x.shape[1]:
+            dev = np.nanquantile(np.abs(samples_x[:, k, :2] - states[k, :2]), 0.98, axis=0)
+            half = max(half, float(dev.max()) + 4.0)
+    half = min(half, 0.5 * max(x1 - x0, y1 - y0))
+    for j, (ts, k) in enumerate(zip(snapshot_times, ks)):
         a = fig.add_subplot(snapshot_cell(j))
-        show_occupancy(a, grid.slice(int(grid.slice_index(scene.t_start + k_time * plan_dt, clamp=True))),
-                       _extent(scene))
+        k_time = int(round(ts / plan_dt))
+        cx, cy = states[k, 0], states[k, 1]
+        (i0, i1, j0, j1), extent, st = _crop(grid, (cx - half, cx + half, cy - half, cy + half), 300)
+        k_slice = int(grid.slice_index(t0 + k_time * plan_dt, clamp=True))  # absolute time on the grid's clock
+        show_occupancy(a, grid.probs[k_slice, i0:i1:st, j0:j1:st], extent)
+        _draw_goal(a, scene, label=False)
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
-        if samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
+        if has_cloud and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
-        a.plot(*scene.goal, "*", color="tab:red", ms=8)
-        a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3)
+        a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3, zorder=6)
+        a.set_xlim(cx - half, cx + half)
+        a.set_ylim(cy - half, cy + half)
+        a.set_aspect("equal")
+        a.set_facecolor(_OUTSIDE_MAP)
+        if body is not None and k < body.shape[0]:
+            a.fill(body[k, :, 0], body[k, :, 1], facecolor="none", edgecolor="tab:orange", lw=1.0, zorder=5)
         a.set_title(f"t = {k_time * plan_dt:.1f} s" + (" (stopped)" if k < k_time else ""), fontsize=8)
         a.tick_params(labelsize=6)
-        a.set_aspect("equal")
-    fig.tight_layout()
-    return save_figure(fig, path)
+        a.locator_params(nbins=4)
+    return _save_laid_out(fig, path)
+
+
+def _save_laid_out(fig, path: str | Path) -> Path:
+    """Save a figure with constrained layout atomically, without a second 'tight' bounding-box pass (the layout
+    already fits; the extra pass costs a whole draw)."""
+    path = Path(path)
+    fmt = path.suffix.lstrip(".") or "png"
+    _atomic(path, lambda fh: fig.savefig(fh, format=fmt))
+    plt.close(fig)
+    return path
 
 
 def plot_plans(scene: Scene, plans: Mapping[str, np.ndarray], path: str | Path, *, title: str | None = None) -> Path:
@@ -116,6 +297,38 @@ def plot_plans(scene: Scene, plans: Mapping[str, np.ndarray], path: str | Path, 
     return save_figure(fig, path)
 
 
+def _gif_palette_image():
+    """A fixed 256-colour palette for plan GIFs: greys (occupancy), the density colour map, the marker colours.
+    Quantising every frame to one fixed palette is fast and keeps colours stable between frames."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_rgb
+    from PIL import Image
+
+    colours = [(v, v, v) for v in np.linspace(0, 255, 160).round().astype(int)]
+    cmap = colormaps[DENSITY_CMAP]
+    colours += [tuple(int(round(255 * c)) for c in cmap(x)[:3]) for x in np.linspace(0, 1, 64)]
+    for name in ("tab:orange", "tab:red", "tab:green", "tab:blue", _OUTSIDE_MAP, "#f4b183", "#f4a6a6",
+                 "#a6d8a6", "#a6c8ec"):
+        colours.append(tuple(int(round(255 * c)) for c in to_rgb(name)))
+    colours += [(255, 255, 255)] * (256 - len(colours))
+    pal = Image.new("P", (1, 1))
+    pal.putpalette([c for rgb in colours[:256] for c in rgb])
+    return pal
+
+
+def _crop(grid, window: tuple[float, float, float, float], max_cells: int) -> tuple[np.ndarray, tuple, int]:
+    """Index ranges of the cells inside ``window`` and a display stride so that the longest side has at most
+    ``max_cells`` cells: ``(slices (i0, i1, j0, j1), extent, stride)``."""
+    x0, x1, y0, y1 = window
+    (ox, oy), c = grid.origin, grid.cell_size
+    _, NX, NY = grid.shape
+    i0, i1 = int(np.clip(np.floor((x0 - ox) / c), 0, NX - 1)), int(np.clip(np.ceil((x1 - ox) / c) + 1, 1, NX))
+    j0, j1 = int(np.clip(np.floor((y0 - oy) / c), 0, NY - 1)), int(np.clip(np.ceil((y1 - oy) / c) + 1, 1, NY))
+    stride = max(1, int(np.ceil(max(i1 - i0, j1 - j0) / max_cells)))
+    extent = (ox + (i0 - 0.5) * c, ox + (i1 - 0.5) * c, oy + (j0 - 0.5) * c, oy + (j1 - 0.5) * c)
+    return (i0, i1, j0, j1), extent, stride
+
+
 def animate_plan(
     scene: Scene,
     states: np.ndarray,
@@ -126,35 +339,80 @@ def animate_plan(
     every: int = 2,
     plan_dt: float = 0.1,
     fps: int = 10,
+    max_cells: int = 320,
 ) -> Path:
     """GIF of the occupancy slices with the density cloud and the reference so far (one frame per ``every``
-    planning steps)."""
+    planning steps), over the region that matters (trajectory, cloud, start, goal region; as in :func:`plot_plan`).
+
+    Fast: the figure is drawn once and only its data change per frame, the occupancy is cropped to the region and
+    strided to at most ``max_cells`` cells per side for display, and every frame is quantised to one fixed
+    palette.
+    """
     from PIL import Image
 
     grid = scene.grid
+    T = states.shape[0]
+    has_cloud = samples_x is not None and samples_log_rho is not None
+    window = _region_of_interest(scene, states, samples_x if has_cloud else None)
+    (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
+    ks = list(range(0, T, every))
+    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    slices = sorted({int(grid.slice_index(t0 + k * plan_dt, clamp=True)) for k in ks})
+    sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
+    where = {s: n for n, s in enumerate(slices)}
+    w, h = window[1] - window[0], window[3] - window[2]
+    aspect = w / max(h, 1e-9)
+    size = (6.4, float(np.clip(6.4 / aspect, 2.4, 6.4)) + 0.9) if aspect >= 1 else (
+        float(np.clip(5.6 * aspect, 2.6, 5.6)) + 1.2, 5.6)
+    fig, ax = plt.subplots(figsize=size, dpi=90, layout="constrained")
+    ax.set_facecolor(_OUTSIDE_MAP)
+    img = ax.imshow(sub[0].T, origin="lower", extent=extent, cmap="Greys", vmin=0.0, vmax=1.0,
+                    interpolation="nearest")
+    before = set(ax.get_children())
+    _draw_goal(ax, scene, label=False)
+    ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.9)
+    (done,) = ax.plot([], [], "-", color="tab:orange", lw=1.8)
+    (now,) = ax.plot([], [], "o", color="tab:orange", ms=4, zorder=6)
+    cloud = None
+    if has_cloud:
+        cloud = ax.scatter(samples_x[:, 0, 0], samples_x[:, 0, 1], c=np.zeros(samples_x.shape[0]), s=4.0,
+                           cmap=DENSITY_CMAP, vmin=0, vmax=1, linewidths=0, zorder=4)
+    overlays = sorted(set(ax.get_children()) - before, key=lambda a: a.get_zorder())
+    ax.set_xlim(window[0], window[1])
+    ax.set_ylim(window[2], window[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.tick_params(labelsize=7)
+    title = ax.set_title(f"{scene.name}  t = 00.0 s", fontsize=9)
+    # blitting: axes, ticks and labels are drawn (and laid out) once; each frame redraws only what changes
+    moving = [img, *overlays, title]
+    for a in moving:
+        a.set_animated(True)
+    fig.canvas.draw()
+    fig.set_layout_engine("none")
+    background = fig.canvas.copy_from_bbox(fig.bbox)
+    palette = _gif_palette_image()
     frames = []
-    fig, ax = plt.subplots(figsize=(4.6, 6.2), dpi=72)
-    for k in range(0, states.shape[0], every):
-        ax.clear()
-        show_occupancy(ax, grid.slice(int(grid.slice_index(scene.t_start + k * plan_dt, clamp=True))),
-                       _extent(scene))
-        ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.8)
-        ax.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.5)
-        if samples_x is not None and samples_log_rho is not None:
-            _cloud(ax, samples_x, samples_log_rho, k, size=3.0)
-        ax.plot(*scene.goal, "*", color="tab:red", ms=10)
-        ax.set_title(f"{scene.name}  t = {k * plan_dt:4.1f} s", fontsize=9)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_aspect("equal")
-        fig.canvas.draw()
-        rgba = np.asarray(fig.canvas.buffer_rgba())
-        frames.append(Image.fromarray(rgba[..., :3]).quantize(colors=128, method=Image.Quantize.MEDIANCUT))
+    for k in ks:
+        img.set_data(sub[where[int(grid.slice_index(t0 + k * plan_dt, clamp=True))]].T)
+        done.set_data(states[: k + 1, 0], states[: k + 1, 1])
+        now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
+        if cloud is not None and k < samples_x.shape[1]:
+            rel = _rel_density(samples_log_rho[:, k])
+            order = np.argsort(rel)
+            cloud.set_offsets(samples_x[order, k, :2])
+            cloud.set_array(rel[order])
+        title.set_text(f"{scene.name}  t = {k * plan_dt:4.1f} s")
+        fig.canvas.restore_region(background)
+        for a in moving:
+            (ax if a is not title else fig).draw_artist(a)
+        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+        frames.append(Image.fromarray(rgb).quantize(palette=palette, dither=Image.Dither.NONE))
     plt.close(fig)
 
     def write(fh):
-        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0,
-                       optimize=True)
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
 
     path = Path(path)
     _atomic(path, write)

@@ -1,0 +1,141 @@
+"""``bench commonroad``: every scenario of a folder, refused ones as records, the verdict in every record, resumable;
+``solution.xml`` round trip through commonroad-io's reader."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from eval_testdata import TINY_DP
+
+from density_planner.cli import main
+from density_planner.evaluation.benchmark import shipped_commonroad_dir
+from density_planner.evaluation.commonroad_bench import commonroad_summary, summary_markdown
+from density_planner.io.commonroad_solution import SolutionConfig, read_solution, write_solution
+
+TINY = [f"--set=density_planner.{k}={v}" for k, v in TINY_DP.items()] + ["--set=evaluation.mc_samples_tracked=2"]
+SHIPPED = shipped_commonroad_dir() / "USA_US101-4_1_T-1.xml"
+
+
+def _folder(tmp_path):
+    d = tmp_path / "scenarios"
+    d.mkdir()
+    shutil.copy(SHIPPED, d / SHIPPED.name)
+    text = SHIPPED.read_text()
+    (d / "broken.xml").write_text(text[: len(text) // 3])  # truncated: refused with one line
+    return d
+
+
+@pytest.mark.slow
+def test_bench_commonroad_records_verdicts_and_refusals(tmp_path, capsys):
+    scen = _folder(tmp_path)
+    out = tmp_path / "out"
+    args = ["bench", "commonroad", "--scenarios", str(scen), "--planners", "density", "--workers", "1",
+            "--no-progress", "--plot-envs", "0", *TINY, "--out", str(out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    recs = {p.name.split("__")[0]: json.loads(p.read_text()) for p in (out / "records" / "commonroad").glob("*.json")}
+    assert set(recs) == {"cr-broken", "cr-USA_US101-4_1_T-1"}
+    refused = recs["cr-broken"]
+    assert refused["status"] == "refused" and refused["verdict"] is None and "\n" not in refused["message"]
+    planned = recs["cr-USA_US101-4_1_T-1"]
+    v = planned["verdict"]
+    assert v["status"] in ("success", "failed")
+    assert all(isinstance(v[k], bool) for k in ("goal_reached", "collision_free", "on_road", "within_model"))
+    assert v["details"]["n_states"] == len(planned["trajectory"])
+    table = (out / "summary_commonroad.md").read_text()
+    assert "| density | 2 | 1 | 1 (0) |" in table and "Refused scenarios" in table and table in printed
+    # resumable: nothing left to do
+    assert main(args) == 0
+    assert "2 already done, 0 written" in capsys.readouterr().out
+
+
+def test_summary_counts_parts_and_refusals():
+    def rec(env, status, verdict=None, msg=""):
+        return {"setting": "commonroad", "planner": "density", "env": env, "status": status, "verdict": verdict,
+                "message": msg, "timings": {"offline": 2.0}}
+
+    ok = {"status": "success", "goal_reached": True, "collision_free": True, "on_road": True, "within_model": True,
+          "p_coll_max": 0.1, "details": {"final_goal_distance": 0.0}}
+    bad = dict(ok, status="failed", on_road=False, p_coll_max=0.3, details={"final_goal_distance": 2.0})
+    s = commonroad_summary([rec("a", "success", ok), rec("b", "success", bad),
+                            rec("c", "refused", msg="c.xml (C): start speed 42.0 m/s > 10 m/s"),
+                            rec("d", "refused", msg="d.xml (D): start speed 30.5 m/s > 10 m/s")])
+    row = s["rows"][0]
+    assert row["scenarios"] == 4 and row["refused"] == 2 and row["planned"] == 2 and row["success"] == 1
+    assert row["success_rate"] == 0.25 and row["success_rate_planned"] == 0.5
+    assert row["on_road_rate"] == 0.5 and row["goal_reached_rate"] == 1.0
+    assert row["p_coll_max_mean"] == pytest.approx(0.2) and row["final_goal_distance_median"] == pytest.approx(1.0)
+    assert sum(s["refusals"]["density"].values()) == 2 and len(s["refusals"]["density"]) == 1  # one reason
+    assert "2 x c: c.xml" in summary_markdown(s).replace("cr-", "")
+
+
+def test_bench_commonroad_needs_scenarios(tmp_path, capsys):
+    assert main(["bench", "commonroad", "--out", str(tmp_path)]) == 2
+    assert "needs --scenarios DIR" in capsys.readouterr().err
+    assert main(["bench", "commonroad", "--scenarios", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "holds no CommonRoad scenarios" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", ["KS", "ST", "PM"])
+def test_solution_round_trips_through_commonroad_reader(tmp_path, model):
+    t = 0.1 * np.arange(31)
+    x = np.stack([3.0 * t, 0.5 * t**2, 0.2 * t, 3.0 + 0 * t, 0 * t], axis=1)  # turning at 0.2 rad/s, 3 m/s
+    u = np.tile([0.2, 0.0], (30, 1))
+    path = write_solution(tmp_path / "solution.xml", x, u, 0.1, scenario_id="USA_US101-4_1_T-1",
+                          planning_problem_id=458, scenario_dt=0.1, initial_time_step=5,
+                          config=SolutionConfig(vehicle_model=model, cost_function="WX1" if model == "PM" else "SM1"),
+                          computation_time=1.5)
+    sol = read_solution(path)
+    assert str(sol.scenario_id) == "USA_US101-4_1_T-1"
+    pps = sol.planning_problem_solutions[0]
+    assert pps.planning_problem_id == 458 and pps.vehicle_model.name == model
+    states = pps.trajectory.state_list
+    assert [s.time_step for s in states] == list(range(5, 36))
+    np.testing.assert_allclose([s.position for s in states], x[:, :2], atol=1e-9)
+    if model == "PM":
+        np.testing.assert_allclose([s.velocity for s in states], 3.0 * np.cos(x[:, 2]), atol=1e-9)
+    else:
+        np.testing.assert_allclose([s.orientation for s in states], x[:, 2], atol=1e-9)
+        # kinematic single-track: theta' = v / l_wb tan(delta) reproduces the car's yaw rate
+        wheelbase = 1.1561957064 + 1.4227170936  # BMW 320i (vehicle type 2)
+        np.testing.assert_allclose([3.0 / wheelbase * np.tan(s.steering_angle) for s in states], 0.2, atol=1e-9)
+
+
+def test_solution_resamples_to_the_scenario_time_step(tmp_path):
+    t = 0.1 * np.arange(21)
+    x = np.stack([2.0 * t, 0 * t, 0 * t, 2.0 + 0 * t, 0 * t], axis=1)
+    path = write_solution(tmp_path / "s.xml", x, None, 0.1, scenario_id="ZAM_Test-1_1_T-1", planning_problem_id=1,
+                          scenario_dt=0.04, initial_time_step=0)
+    states = read_solution(path).planning_problem_solutions[0].trajectory.state_list
+    assert len(states) == 51  # 0 .. 2.0 s every 0.04 s
+    np.testing.assert_allclose([s.position[0] for s in states], 2.0 * 0.04 * np.arange(51), atol=1e-9)
+
+
+def test_solution_config_rejects_unknown_names():
+    with pytest.raises(ValueError, match="vehicle_model"):
+        SolutionConfig(vehicle_model="XX")
+    with pytest.raises(ValueError, match="cost_function"):
+        SolutionConfig(cost_function="NOPE")
+    with pytest.raises(ValueError, match="for vehicle model PM"):
+        SolutionConfig(vehicle_model="PM", cost_function="SM1")
+
+
+@pytest.mark.slow
+def test_plan_commonroad_writes_verdict_and_solution(tmp_path, capsys):
+    out = tmp_path / "p"
+    rc = main(["plan", "--env", "commonroad", "--file", str(SHIPPED), *TINY, "--no-progress", "--no-gif",
+               "--out", str(out)])
+    data = json.loads((out / "plan.json").read_text())
+    v = data["verdict"]
+    assert v["basis"] == "road" and data["status"] == v["status"]
+    assert rc == (0 if v["status"] == "success" else 3)  # a failed verdict still writes every file
+    for name in ("plan.json", "config.toml", "plan.png", "solution.xml"):
+        assert (out / name).stat().st_size > 0
+    sol = read_solution(out / "solution.xml")
+    states = sol.planning_problem_solutions[0].trajectory.state_list
+    planned = np.asarray(data["states"])
+    np.testing.assert_allclose([s.position for s in states[: len(planned)]], planned[: len(states), :2], atol=1e-4)
+    assert v["status"] in capsys.readouterr().out
