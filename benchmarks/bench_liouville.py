@@ -1,13 +1,20 @@
 """Benchmark: exact Liouville density for 500 samples x 10 s with the car (float32, CPU threads as available).
 
-Prints, for each integration scheme, the median wall time over repeats, the peak resident memory of a fresh
-process that runs only that propagation, and the error against a fine reference solution (RK4 at 0.005 s in
-float64): maximum position error [m] and maximum / median absolute log-density error.
+Part 1 (speed): for each integration scheme, the median wall time over repeats on one reference, the peak resident
+memory of a fresh process that runs only that propagation, and its error against a fine solution (RK4 at
+0.005 s in float64).
+
+Part 2 (accuracy, issue 14): the errors on ``--accuracy-references`` random feasible references spread over the
+model set's whole domain (initial errors uniform in XE0, heading bias included), against a converged float64
+solution (RK4 at 0.005 s; its own difference to 0.01 s is printed): max / 99th percentile / median absolute
+log-density error over samples and times [nats], max position error [m]. Target for the default (RK4 0.1 s):
+max <= 0.1 nats.
 
 Targets (issue 2): <= 3 s for Euler at dt = 0.01 s, <= 1.5 s for the default integrator at equal or better
 accuracy, peak memory <= 500 MB.
 
-    python benchmarks/bench_liouville.py [--controller c3m|analytic] [--samples 500] [--repeats 5] [--threads 1]
+    python benchmarks/bench_liouville.py [--models paper|road] [--controller c3m|analytic] [--samples 500]
+        [--repeats 5] [--threads 1] [--accuracy-references 100] [--accuracy-samples 20]
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ import time
 import torch
 
 from density_planner.control.reference import make_reference
-from density_planner.control.registry import load_controller
+from density_planner.control.registry import load_controller, model_set
 from density_planner.density.distributions import paper_gaussian_mixture
 from density_planner.density.liouville import LiouvilleConfig, propagate_density
 from density_planner.systems.car import KinematicCar
@@ -31,11 +38,12 @@ from density_planner.systems.car import KinematicCar
 SCHEMES = [("euler", 0.01), ("rk4", 0.1), ("rk4", 0.05), ("euler", 0.005)]
 
 
-def setup(n: int, controller_name: str | None, dtype: torch.dtype):
-    car = KinematicCar()
-    controller = load_controller(controller_name).to(dtype)
+def setup(n: int, controller_name: str | None, dtype: torch.dtype, models: str | None = None):
+    mset = model_set(models)
+    car = KinematicCar(mset.car)
+    controller = load_controller(controller_name, models=mset).to(dtype)
     g = torch.Generator().manual_seed(0)
-    start = torch.tensor([0.0, -28.0, 1.5, 3.0, 0.0], dtype=torch.float64)
+    start = torch.tensor([0.0, -28.0, 1.5, 3.0 if mset.speed_max <= 10 else 20.0, 0.0], dtype=torch.float64)
     params = torch.tensor(
         [[0.3, 0.3, 0.0, -0.3, -0.3, 0.0, 0.2, 0.2, 0.0, 0.0], [0.8, 0.5, 0.3, 0.0, 0.0, 0.0, 0.0, -0.3, -0.5, -0.5]],
         dtype=dtype,
@@ -48,7 +56,7 @@ def setup(n: int, controller_name: str | None, dtype: torch.dtype):
 
 def run_once(args) -> dict:
     """Child process: one propagation, report time and peak RSS."""
-    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32)
+    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32, args.models)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt)
     t0 = time.perf_counter()
@@ -62,6 +70,10 @@ def run_once(args) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--controller", default=None)
+    p.add_argument("--models", default=None, help="model set: paper (default) or road")
+    p.add_argument("--accuracy-references", type=int, default=100,
+                   help="random references of the accuracy part (default 100; 0 skips it)")
+    p.add_argument("--accuracy-samples", type=int, default=20, help="samples per reference (default 20)")
     p.add_argument("--samples", type=int, default=500)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; 0 = torch's default)")
@@ -74,11 +86,11 @@ def main() -> None:
         print(json.dumps(run_once(args)))
         return
 
-    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32)
+    car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32, args.models)
     ctrl_name = type(controller).__name__
-    print(f"exact Liouville, {args.samples} samples x 10 s, float32, controller {ctrl_name}, "
-          f"torch {torch.__version__}, {torch.get_num_threads()} threads")
-    car64, ctrl64, x064, lr064, ref64 = setup(args.samples, args.controller, torch.float64)
+    print(f"exact Liouville, {args.samples} samples x 10 s, float32, controller {ctrl_name}, model set "
+          f"{model_set(args.models).name}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+    car64, ctrl64, x064, lr064, ref64 = setup(args.samples, args.controller, torch.float64, args.models)
     with torch.no_grad():
         fine = propagate_density(car64, ctrl64, x064, ref64, log_rho0=lr064, config=LiouvilleConfig("rk4", 0.005))
     print(f"{'scheme':>14} {'median s':>9} {'min s':>7} {'peak MB':>8} {'max pos err m':>14} "
@@ -94,7 +106,8 @@ def main() -> None:
         child = subprocess.run(
             [sys.executable, __file__, "--samples", str(args.samples), "--threads", str(args.threads),
              "--child-integrator", integrator,
-             "--child-dt", str(dt)] + (["--controller", args.controller] if args.controller else []),
+             "--child-dt", str(dt)] + (["--controller", args.controller] if args.controller else [])
+            + (["--models", args.models] if args.models else []),
             capture_output=True, text=True, check=True,
         )
         mem = json.loads(child.stdout.strip().splitlines()[-1])
@@ -104,6 +117,21 @@ def main() -> None:
               f"{mem['peak_mb']:8.0f} {pos_err:14.2e} {float(lr_err.max()):14.2e} {float(lr_err.median()):17.2e}")
     print("peak MB = peak resident memory of a fresh process running one propagation (includes the torch runtime, "
           f"~{mem['base_mb']:.0f} MB before propagating)")
+    if args.accuracy_references > 0:
+        from density_planner.density.validation import liouville_accuracy
+
+        rep = liouville_accuracy(car, controller, n_references=args.accuracy_references,
+                                 samples=args.accuracy_samples, seed=0, schemes=SCHEMES[:3])
+        r = rep["reference"]
+        print(f"\naccuracy on {rep['n_references']} random references x {rep['samples_per_reference']} samples "
+              f"(start speeds {rep['start_speed']['min']:.1f}-{rep['start_speed']['max']:.1f} m/s, up to "
+              f"{rep['max_speed']:.1f} m/s) against float64 {r['integrator']} {r['dt']} s (which differs from "
+              f"{2 * r['dt']:g} s by at most {r['reference_self_error']:.1e} nats)")
+        print(f"{'scheme':>14} {'max |dlogrho|':>14} {'p99':>9} {'median':>9} {'max pos err m':>14} {'time s':>7}")
+        for name, e in rep["schemes"].items():
+            print(f"{name:>14} {e['max_abs_log_density_error']:14.2e} {e['p99_abs_log_density_error']:9.2e} "
+                  f"{e['median_abs_log_density_error']:9.2e} {e['max_position_error_m']:14.2e} "
+                  f"{e['wall_time_s']:7.2f}")
 
 
 if __name__ == "__main__":

@@ -23,6 +23,10 @@ class DataError(DensityPlannerError, ValueError):
     """An input data file (scenario, recording, data set shard) is missing, malformed or inconsistent."""
 
 
+class DomainError(DensityPlannerError, ValueError):
+    """An input lies outside the domain a learned model was trained on (e.g. a start speed above its range)."""
+
+
 class ResourceError(DensityPlannerError, ValueError):
     """A request needs more memory (or another resource) than the machine has; the message names the setting."""
 

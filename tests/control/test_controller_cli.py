@@ -27,7 +27,7 @@ def test_train_controller_writes_weights_with_diagnostics(trained):
     assert "--set epochs=1" in meta["command"]
     d = meta["diagnostics"]
     assert set(d["tracking"]) == {"c3m", "analytic"} and d["tracking"]["c3m"]["unbiased"]["t"] == [0, 1, 5, 10]
-    assert "frac_holds" in d["contraction"] and "met" in d["targets"]["frac_holds"]
+    assert "frac_holds" in d["contraction"] and "met" in d["targets"]["frac_holds_v_ge_0.5"]
     assert (trained / "export" / "c.pt").is_file() and (trained / "export" / "c.json").is_file()
     assert json.loads((trained / "export" / "c.json").read_text())["diagnostics"] == d
 

@@ -67,7 +67,12 @@ def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "-
         _reject(args, where, ("--data-dir", "--recording", "--start-time"))
         if not getattr(args, "verbose", 0):  # commonroad-io warns about every legacy element it converts
             logging.getLogger("commonroad").setLevel(logging.ERROR)
-        return load_commonroad_scene(args.file, update(run_config.commonroad, seed))
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
+        # the domain checks (start speed, reachable region) use the car of the scene's model set (road: 0-40 m/s)
+        system = KinematicCar(model_set_for_scene(kind, getattr(args, "models", None)).car)
+        return load_commonroad_scene(args.file, update(run_config.commonroad, seed), system=system)
     if kind == "file":
         from ..environment.scene import load_scene
 

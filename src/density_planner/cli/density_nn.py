@@ -93,6 +93,8 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                         "(default: trajectory,pointwise)")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
                    help="tracking controller (default: the one the predictor was trained for, c3m)")
+    p.add_argument("--models", default=None, metavar="SET",
+                   help="model set whose shipped predictors and controller the names mean: paper (default) or road")
     p.add_argument("--references", type=int, default=200, help="fresh references (default 200)")
     p.add_argument("--samples", type=int, default=100, help="initial errors per reference (default 100)")
     p.add_argument("--seed", type=int, default=1_000_003, help="seed of the fresh references (default 1000003)")
@@ -214,9 +216,12 @@ def _fresh_validation(model, manifest: dict, *, n_references: int, samples: int,
     from ..density.validation import compare_with_exact, fresh_references
     from ..systems.car import KinematicCar
 
-    car = KinematicCar()
-    controller = load_controller(manifest["config"]["controller"])
-    ref, x0 = fresh_references(n_references, samples, seed)
+    from ..systems.car import car_domain
+
+    domain = manifest["config"].get("domain", "paper")
+    car = KinematicCar(car_domain(domain))
+    controller = load_controller(manifest["config"]["controller"], models=domain)
+    ref, x0 = fresh_references(n_references, samples, seed, domain=domain)
     cmp = compare_with_exact(LearnedDensity(model), ExactLiouville(car, controller), ref, x0)
     s = cmp.summary()
     for key in ("position_error_m", "log_density_abs_error", "log_density_relative_abs_error"):
@@ -241,23 +246,28 @@ def run_validate(args: argparse.Namespace) -> int:
     if args.references < 1 or args.samples < 1 or args.figure_samples < 1:
         raise ValueError("--references, --samples and --figure-samples must be >= 1")
     out = out_dir(args.out)
-    car = KinematicCar()
+    from ..control.registry import model_set
+
+    mset = model_set(args.models)
+    car = KinematicCar(mset.car)
     specs = [s.strip() for s in str(args.density).split(",") if s.strip()]
     predictors = {}
     for spec in specs:
-        pred = load_learned_predictor(spec)
+        pred = load_learned_predictor(spec, models=mset.name)
         name = pred.name if spec in ("trajectory", "pointwise", "learned") else Path(spec).stem
         if name in predictors:
             name = f"{name} ({spec})"
         predictors[name] = pred
     first = next(iter(predictors.values()))
     ctrl_spec = args.controller or (first.meta.get("controller") or {}).get("spec") or None
-    controller = load_controller(ctrl_spec)
-    predictors = {name: load_learned_predictor(spec, controller) for name, spec in zip(predictors, specs)}
+    controller = load_controller(ctrl_spec, models=mset.name)
+    predictors = {name: load_learned_predictor(spec, controller, models=mset.name)
+                  for name, spec in zip(predictors, specs)}
     exact = ExactLiouville(car, controller)
 
-    ref, x0 = fresh_references(args.references, args.samples, args.seed)
-    report: dict = {"seed": args.seed, "controller": ctrl_spec, "initial_errors": "uniform in the XE0 box",
+    ref, x0 = fresh_references(args.references, args.samples, args.seed, domain=mset.domain)
+    report: dict = {"seed": args.seed, "controller": ctrl_spec, "models": mset.name,
+                    "initial_errors": "uniform in the XE0 box",
                     "exact": {"integrator": exact.config.integrator, "dt": exact.config.dt},
                     "threads": torch.get_num_threads(), "predictors": {}}
     summaries = {}
@@ -274,7 +284,7 @@ def run_validate(args: argparse.Namespace) -> int:
                               f"{args.samples} samples")
 
     # the paper-style figure: one fresh reference, many samples
-    fig_ref, fig_x0 = fresh_references(1, args.figure_samples, args.seed + 1)
+    fig_ref, fig_x0 = fresh_references(1, args.figure_samples, args.seed + 1, domain=mset.domain)
     lr0 = torch.zeros(fig_x0.shape[:-1])
     clouds = {}
     with torch.no_grad():
@@ -294,5 +304,10 @@ def run_validate(args: argparse.Namespace) -> int:
               f"{s['error_state_mse']:.4f} (paper 0.018), log-density RMSE {s['log_density_rmse']:.2f} (paper 9.3); "
               f"{s['time_predictor_per_500_trajectories_s'] * 1e3:.1f} ms vs exact "
               f"{s['time_exact_per_500_trajectories_s'] * 1e3:.0f} ms per 500 trajectories")
+        for band, b in s["by_speed_band"].items():
+            print(f"{'':10s} {band:16s} ({b['n_references']:3d} refs) position error median/95th "
+                  f"{b['position_error_m']['median']:.3f}/{b['position_error_m']['p95']:.3f} m; |log-density "
+                  f"error| median/95th {b['log_density_abs_error']['median']:.2f}/"
+                  f"{b['log_density_abs_error']['p95']:.2f}")
     print(f"wrote {out / 'density_report.json'}, {out / 'density_errors.png'}, {out / 'density_heatmaps.png'}")
     return 0

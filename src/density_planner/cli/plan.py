@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--distribution-seed", type=int, default=None, metavar="S",
                    help="seed of the random initial distribution (default: --seed)")
     add_controller(p)
+    p.add_argument("--models", default=None, metavar="SET",
+                   help="model set (car domain, controller and density weights): paper or road (default: by scene "
+                        "kind, road for recorded road scenes, paper for the paper's random scenes)")
     add_config(p)
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
@@ -52,16 +55,18 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 
 def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
     """Planner context (system, controller, predictor factories) from the command-line arguments; a learned
-    predictor must fit ``parameterization`` (the plan's horizon) when given."""
-    from ..control.registry import load_controller
+    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (car domain, controller
+    and density weights) follows the scene kind unless ``--models`` names one."""
+    from ..control.registry import load_controller, model_set_for_scene
     from ..density.liouville import ExactLiouville
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
     device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
-    car = KinematicCar()
-    controller = load_controller(args.controller).to(device=device, dtype=dtype)
+    models = model_set_for_scene(getattr(args, "kind", None), getattr(args, "models", None))
+    car = KinematicCar(models.car)
+    controller = load_controller(args.controller, models=models).to(device=device, dtype=dtype)
     # None: the default learned predictor if it was trained for this controller, else exact Liouville
     predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville,
                                parameterization=parameterization)
@@ -119,8 +124,12 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
+    from ..control.registry import model_set_for_scene
+    from ..systems.car import KinematicCar
+
+    system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
-                                         risk=run_config.risk)
+                                         risk=run_config.risk, system=system)
     ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
@@ -141,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
+        "models": getattr(getattr(ctx.controller, "car", None), "domain", None),
         "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
         "config": to_dict(run_config),
         "versions": versions(),

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ..systems.car import ACC, OMEGA, PX, PY, THETA, CarConfig, V
-from .base import TrackingController
+from .base import SmoothSaturation, TrackingController
 
 __all__ = ["CarTrackingGains", "CarTrackingController", "LinearFeedbackController"]
 
@@ -55,7 +55,9 @@ class CarTrackingController(TrackingController):
 
     def __init__(self, gains: CarTrackingGains | None = None, car: CarConfig | None = None):
         car = car or CarConfig()
-        super().__init__(car.input_min, car.input_max)
+        super().__init__(car.input_min, car.input_max, SmoothSaturation.from_car(car))
+        #: the car domain the controller is for (its speed range bounds where it may be used)
+        self.car = car
         self.gains = gains or CarTrackingGains()
 
     def raw(self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor) -> Tensor:

@@ -12,22 +12,148 @@ default uses ``torch.func.jvp`` and learned controllers override it with a hand-
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["TrackingController"]
+__all__ = ["TrackingController", "SmoothSaturation", "soft_clip"]
+
+
+def soft_clip(z: Tensor, knee_lo: Tensor, knee_hi: Tensor, ceil_lo: Tensor, ceil_hi: Tensor
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Smooth saturation: the identity on ``[knee_lo, knee_hi]``, a tanh tail towards ``ceil_lo`` / ``ceil_hi``::
+
+        s(z) = knee_hi + d tanh((z - knee_hi) / d),   d = ceil_hi - knee_hi,   for z > knee_hi  (mirrored below)
+
+    ``s`` is twice continuously differentiable (the tanh has zero curvature at 0), strictly increasing and
+    strictly inside ``(ceil_lo, ceil_hi)``. Needs ``ceil_lo < knee_lo <= knee_hi < ceil_hi`` (broadcasting).
+
+    Returns ``(s, ds/dz, ds/dknee, ds/dceil)``: the last two are the derivatives with respect to the bound that is
+    active on each side (``knee_hi`` / ``ceil_hi`` above, ``knee_lo`` / ``ceil_lo`` below, zero inside).
+    """
+    above, below = z > knee_hi, z < knee_lo
+    d_hi, d_lo = ceil_hi - knee_hi, knee_lo - ceil_lo
+    w_hi = torch.where(above, (z - knee_hi) / d_hi, torch.zeros_like(z))
+    w_lo = torch.where(below, (knee_lo - z) / d_lo, torch.zeros_like(z))
+    t_hi, t_lo = torch.tanh(w_hi), torch.tanh(w_lo)
+    g_hi, g_lo = 1.0 - t_hi * t_hi, 1.0 - t_lo * t_lo
+    s = torch.where(above, knee_hi + d_hi * t_hi, torch.where(below, knee_lo - d_lo * t_lo, z))
+    ds = torch.where(above, g_hi, torch.where(below, g_lo, torch.ones_like(z)))
+    # s = k + d tanh((z - k) / d) with d = c - k: ds/dk = 1 - t + g (w - 1), ds/dc = t - g w (both 0 at the knee)
+    dk = torch.where(above, 1.0 - t_hi + g_hi * (w_hi - 1.0),
+                     torch.where(below, 1.0 - t_lo + g_lo * (w_lo - 1.0), torch.zeros_like(z)))
+    dc = torch.where(above, t_hi - g_hi * w_hi, torch.where(below, t_lo - g_lo * w_lo, torch.zeros_like(z)))
+    return s, ds, dk, dc
+
+
+@dataclass(frozen=True)
+class SmoothSaturation:
+    """Smooth bound of a controller's output (instead of the hard clip): the identity on the reference input box
+    ``[input_min, input_max]`` and a C^2 tanh tail (:func:`soft_clip`) towards the actuator limits ``[actuator_min,
+    actuator_max]``. Optionally the turn-rate channel's box shrinks with speed (lateral-acceleration limit,
+    :func:`density_planner.systems.car.turn_rate_limit`): knee ``+-turn_rate_limit(v, input_max, a_lat)`` and
+    ceiling ``+-turn_rate_limit(v, actuator_max, a_lat_act)``, with ``v`` the measured speed ``x_hat[speed_index]``.
+
+    A reference input inside the reference box passes unchanged, so an unbiased reference is still tracked
+    exactly, and the closed loop stays smooth: the exact Liouville integration stays accurate (docs/core.md).
+    """
+
+    input_min: tuple[float, ...]
+    input_max: tuple[float, ...]
+    actuator_min: tuple[float, ...]
+    actuator_max: tuple[float, ...]
+    #: index of the turn-rate input whose box depends on the speed, and of the speed in the measured state
+    turn_index: int = 0
+    speed_index: int = 3
+    #: lateral-acceleration limits of the knee and the ceiling [m/s^2] (inf: no speed dependence)
+    lateral_accel_max: float = math.inf
+    actuator_lateral_accel_max: float = math.inf
+
+    @classmethod
+    def from_car(cls, car) -> SmoothSaturation | None:
+        """The saturation of a :class:`~density_planner.systems.car.CarConfig` (``None`` for a hard clip)."""
+        if car is None or getattr(car, "actuator_min", None) is None:
+            return None
+        return cls(tuple(car.input_min), tuple(car.input_max), tuple(car.actuator_min), tuple(car.actuator_max),
+                   lateral_accel_max=float(car.lateral_accel_max),
+                   actuator_lateral_accel_max=float(car.actuator_lateral_accel_max))
+
+    @property
+    def speed_dependent(self) -> bool:
+        return math.isfinite(self.lateral_accel_max)
+
+    def _limits(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, ...]:
+        """Knee and ceiling bounds ``(*batch, nu)`` and their derivatives w.r.t. the speed (turn channel)."""
+        def vec(values):
+            return torch.as_tensor(values, dtype=u.dtype, device=u.device)
+
+        k_lo, k_hi, c_lo, c_hi = (vec(b) for b in (self.input_min, self.input_max, self.actuator_min,
+                                                   self.actuator_max))
+        shape = u.shape
+        k_hi, c_hi = k_hi.expand(shape), c_hi.expand(shape)
+        dk = dc = None
+        if self.speed_dependent:
+            v = x_hat[..., self.speed_index]
+            v = v.expand(shape[:-1]) if v.shape != shape[:-1] else v
+            k, dk = _turn_limit_and_slope(v, self.input_max[self.turn_index], self.lateral_accel_max)
+            c, dc = _turn_limit_and_slope(v, self.actuator_max[self.turn_index], self.actuator_lateral_accel_max)
+            i = self.turn_index
+            k_hi = torch.cat([k_hi[..., :i], k.unsqueeze(-1), k_hi[..., i + 1:]], dim=-1)
+            c_hi = torch.cat([c_hi[..., :i], c.unsqueeze(-1), c_hi[..., i + 1:]], dim=-1)
+            mirror = torch.zeros(shape[-1], dtype=u.dtype, device=u.device)
+            mirror[i] = 1.0
+            # the turn channel is symmetric: lower bounds are the negated upper ones
+            k_lo = torch.where(mirror.bool(), -k_hi, k_lo.expand(shape))
+            c_lo = torch.where(mirror.bool(), -c_hi, c_lo.expand(shape))
+        else:
+            k_lo, c_lo = k_lo.expand(shape), c_lo.expand(shape)
+        return k_lo, k_hi, c_lo, c_hi, dk, dc
+
+    def __call__(self, u: Tensor, x_hat: Tensor) -> Tensor:
+        return soft_clip(u, *self._limits(u, x_hat)[:4])[0]
+
+    def with_tangents(self, u: Tensor, du: Tensor, x_hat: Tensor, dx_hat: Tensor) -> tuple[Tensor, Tensor]:
+        """Saturated ``u`` and its tangents from those of the raw law ``du (K, *batch, nu)`` and of the measured
+        state ``dx_hat (K, *batch, nx)`` (through the speed-dependent turn-rate box)."""
+        k_lo, k_hi, c_lo, c_hi, dk, dc = self._limits(u, x_hat)
+        s, ds, dsk, dsc = soft_clip(u, k_lo, k_hi, c_lo, c_hi)
+        out = ds * du
+        if dk is not None:
+            i = self.turn_index
+            # bounds of the turn channel: +-k(v), +-c(v); above the knee d s / d v = dsk k' + dsc c', below the
+            # mirrored bounds move with -k', -c'
+            sign = torch.where(u[..., i] < 0, -torch.ones_like(dk), torch.ones_like(dk))
+            slope = sign * (dsk[..., i] * dk + dsc[..., i] * dc)
+            dv = dx_hat[..., self.speed_index]
+            extra = torch.zeros_like(out)
+            extra[..., i] = slope * dv
+            out = out + extra
+        return s, out
+
+
+def _turn_limit_and_slope(v: Tensor, omega_max: float, a_lat: float) -> tuple[Tensor, Tensor]:
+    """``L(v) = (omega_max^-4 + (|v| / a_lat)^4)^(-1/4)`` and ``dL/dv``."""
+    r4 = (v / a_lat) ** 4
+    q = omega_max ** -4 + r4
+    lim = q ** -0.25
+    slope = -(q ** -1.25) * (v ** 3) / a_lat ** 4
+    return lim, slope
 
 
 class TrackingController(nn.Module):
     """Base class: implement :meth:`raw` (the unclipped control law); clipping and tangents are handled here."""
 
-    def __init__(self, input_min: Sequence[float], input_max: Sequence[float]):
+    def __init__(self, input_min: Sequence[float], input_max: Sequence[float],
+                 saturation: SmoothSaturation | None = None):
         super().__init__()
         self.register_buffer("input_min", torch.as_tensor(input_min, dtype=torch.get_default_dtype()))
         self.register_buffer("input_max", torch.as_tensor(input_max, dtype=torch.get_default_dtype()))
+        #: smooth output bound (``None``: hard clip to ``[input_min, input_max]``, the paper's controller)
+        self.saturation = saturation
 
     @property
     def nu(self) -> int:
@@ -60,14 +186,19 @@ class TrackingController(nn.Module):
         return self.input_min.to(like), self.input_max.to(like)
 
     def forward(self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor) -> Tensor:
+        if self.saturation is not None:
+            return self.saturation(self.raw(x_hat, x_ref, u_ref), x_hat)
         lo, hi = self._bounds(x_hat)
         return torch.clamp(self.raw(x_hat, x_ref, u_ref), lo, hi)
 
     def forward_with_tangents(
         self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor, dx_hat: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """Clipped input and its directional derivatives (zero in channels where the clip is active)."""
+        """Bounded input and its directional derivatives (hard clip: zero in channels where it is active; smooth
+        saturation: chain rule through :class:`SmoothSaturation`)."""
         u, du = self.raw_with_tangents(x_hat, x_ref, u_ref, dx_hat)
+        if self.saturation is not None:
+            return self.saturation.with_tangents(u, du, x_hat, dx_hat)
         lo, hi = self._bounds(u)
         inside = (u > lo) & (u < hi)
         return torch.clamp(u, lo, hi), du * inside.to(du.dtype)

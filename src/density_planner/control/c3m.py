@@ -40,7 +40,7 @@ from torch import Tensor, nn
 
 from ..errors import CheckpointError
 from ..systems.car import PX, PY, THETA, CarConfig, V
-from .base import TrackingController
+from .base import SmoothSaturation, TrackingController
 
 __all__ = [
     "C3MArchitecture",
@@ -200,7 +200,9 @@ class C3MController(TrackingController):
 
     def __init__(self, architecture: C3MArchitecture | None = None, car: CarConfig | None = None):
         car = car or CarConfig()
-        super().__init__(car.input_min, car.input_max)
+        super().__init__(car.input_min, car.input_max, SmoothSaturation.from_car(car))
+        #: the car domain the controller is for (its speed range bounds where it may be used)
+        self.car = car
         if len(car.input_min) != N_U:
             raise ValueError(f"C3MController needs a car with {N_U} inputs, got {len(car.input_min)}")
         self.architecture = architecture or C3MArchitecture()
@@ -363,7 +365,9 @@ class C3MModel(nn.Module):
     def __init__(self, architecture: C3MArchitecture | None = None, car: CarConfig | None = None):
         super().__init__()
         self.architecture = architecture or C3MArchitecture()
-        self.controller = C3MController(self.architecture, car)
+        #: the car domain the model is for (boxes, input bounds and saturation)
+        self.car = car or CarConfig()
+        self.controller = C3MController(self.architecture, self.car)
         self.metric = ContractionMetric(self.architecture)
 
 
@@ -400,6 +404,9 @@ def load_c3m_model(
 ) -> tuple[C3MModel, dict[str, Any]]:
     """Load a weights file written by :func:`save_c3m_model` (default: the shipped weights).
 
+    ``car`` defaults to the domain the weights were trained for (``training_config.domain`` of the JSON,
+    ``"paper"`` when absent).
+
     The architecture is read from the JSON metadata; the ``state_dict`` is checked against the model it
     describes. Returns ``(model, meta)``; the model is in ``eval`` mode with ``requires_grad`` off.
 
@@ -415,6 +422,14 @@ def load_c3m_model(
         arch = C3MArchitecture.from_dict(meta["architecture"])
     except ValueError as exc:
         raise CheckpointError(f"{json_path}: invalid architecture ({exc})") from exc
+    if car is None:
+        from ..systems.car import car_domain
+
+        domain = (meta.get("training_config") or {}).get("domain", "paper")
+        try:
+            car = car_domain(domain)
+        except ValueError as exc:
+            raise CheckpointError(f"{json_path}: {exc}") from exc
     model = C3MModel(arch, car)
     check_state_dict(model, state, pt_path)
     model.load_state_dict(state)

@@ -22,7 +22,8 @@ import torch
 
 from ..checks import check_positive, check_seed
 from ..errors import CheckpointError
-from ..systems.car import CarConfig
+from ..systems.car import CarConfig, car_domain
+from .base import soft_clip
 from .c3m import SHIPPED_C3M_WEIGHTS, C3MArchitecture, C3MModel, save_c3m_model
 from .contraction import car_contraction_terms, condition_holds, contraction_loss, eigenvalues, max_eigenvalue
 from .sampling import TrackingSamples, sample_tracking_states
@@ -91,6 +92,13 @@ class C3MTrainConfig:
     device: str = "cpu"
     #: floating point precision of training
     dtype: Literal["float32", "float64"] = "float32"
+    #: car domain whose boxes are sampled: "paper" (v in [0, 10] m/s) or "road" (v in [0, 40] m/s, smooth
+    #: saturation, lateral-acceleration limit); see :data:`density_planner.systems.car.CAR_DOMAINS`
+    domain: str = "paper"
+    #: training samples have a true speed of at least this much [m/s] (0: the plain box). At standstill the lateral
+    #: error is uncontrollable and the condition cannot hold for any metric (docs/controller.md), so samples there
+    #: only waste the budget; the checks still sample the whole box
+    min_speed: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("epochs", "steps_per_epoch", "batch_size", "eval_samples", "checkpoint_every"):
@@ -110,6 +118,11 @@ class C3MTrainConfig:
         for name in ("margin", "margin_c1", "weight_c1", "weight_c2", "grad_clip", "max_rate", "weight_max_rate",
                      "max_divergence"):
             check_positive(f"C3MTrainConfig.{name}", getattr(self, name), allow_zero=True)
+        from ..systems.car import CAR_DOMAINS
+
+        if self.domain not in CAR_DOMAINS:
+            raise ValueError(f"C3MTrainConfig.domain must be one of {sorted(CAR_DOMAINS)}, got {self.domain!r}")
+        check_positive("C3MTrainConfig.min_speed", self.min_speed, allow_zero=True)
         if self.dtype not in _DTYPES:
             raise ValueError(f"C3MTrainConfig.dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         try:
@@ -128,6 +141,9 @@ class C3MTrainConfig:
         d.pop("epochs")
         d.pop("device")
         d.pop("checkpoint_every")
+        for key, default in (("domain", "paper"), ("min_speed", 0.0)):
+            if d.get(key) == default:
+                d.pop(key)  # keys added later: checkpoints of paper runs written before them still resume
         return d
 
 
@@ -219,7 +235,7 @@ def train_c3m(
         progress: show a tqdm progress bar over the optimisation steps.
         resume: continue from ``out_dir/checkpoint.pt`` if it exists (its settings must match ``config`` except
             ``epochs``, ``device`` and ``checkpoint_every``); otherwise start from scratch.
-        car: car boxes (default ``CarConfig()``).
+        car: car boxes (default: the domain ``config.domain``).
         callback: called as ``callback(epoch, history)`` after every epoch.
         diagnostics_samples: fresh samples for the final :func:`contraction_diagnostics`.
 
@@ -235,7 +251,7 @@ def train_c3m(
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("C3MTrainConfig.device is cuda but no CUDA device is available")
     dtype = _DTYPES[config.dtype]
-    car = car or CarConfig()
+    car = car or car_domain(config.domain)
 
     model = _new_model(config, car).to(device=device, dtype=dtype)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
@@ -292,7 +308,8 @@ def train_c3m(
                 lr = _lr_at(config, global_step)
                 for group in optimiser.param_groups:
                     group["lr"] = lr
-                batch = sample_tracking_states(config.batch_size, generator, car, dtype=dtype, device=device)
+                batch = sample_tracking_states(config.batch_size, generator, car, dtype=dtype, device=device,
+                                               min_speed=config.min_speed)
                 terms = _terms(model, batch, config.rate)
                 loss = contraction_loss(
                     terms, margin=config.margin, margin_c1=config.margin_c1, weight_c1=config.weight_c1,
@@ -376,12 +393,13 @@ def contraction_diagnostics(
     ``return_samples`` the
     per-sample eigenvalues are included as tensors under ``"_samples"``.
     """
-    car = car or CarConfig()
+    car = car or getattr(model, "car", None) or CarConfig()
     gen = torch.Generator().manual_seed(seed)
     p = next(model.parameters())
     samples = sample_tracking_states(n, gen, car, dtype=p.dtype, device=p.device)
     holds, lam, lam_n, lam1, c2 = [], [], [], [], []
-    clipped, lam_low, div = [], [], []
+    clipped, lam_low, div, deep = [], [], [], []
+    saturation = model.controller.saturation
     lo = torch.as_tensor(car.input_min, dtype=p.dtype, device=p.device)
     hi = torch.as_tensor(car.input_max, dtype=p.dtype, device=p.device)
     for i in range(0, n, chunk):
@@ -397,13 +415,22 @@ def contraction_diagnostics(
         lam1.append(max_eigenvalue(terms.c1))
         c2.append(terms.c2_norm())
         u = model.controller.raw(s.x_hat, s.x_ref, s.u_ref)
-        clipped.append(((u < lo) | (u > hi)).any(-1))
+        if saturation is None:
+            clipped.append(((u < lo) | (u > hi)).any(-1))
+        else:
+            # smooth saturation: "clipped" = the raw law leaves the reference box (the tanh tail is used);
+            # "deep" = the saturation's slope is below 1/2 (the applied gain is less than half the certified one)
+            k_lo, k_hi, c_lo, c_hi, _, _ = saturation._limits(u, s.x_hat)
+            clipped.append(((u < k_lo) | (u > k_hi)).any(-1))
+            deep.append((soft_clip(u, k_lo, k_hi, c_lo, c_hi)[1] < 0.5).any(-1))
     holds_t, lam_t, lam_n_t = torch.cat(holds), torch.cat(lam), torch.cat(lam_n)
     lam1_t, c2_t, clipped_t = torch.cat(lam1), torch.cat(c2), torch.cat(clipped)
     lam_low_t, div_t = torch.cat(lam_low), torch.cat(div)
     v = samples.x[:, 3]
     bands = {}
-    for v0, v1 in ((-1.0, 0.0), (0.0, 0.5), (0.5, 2.0), (2.0, 11.0)):
+    v_top = car.speed_max + car.error_max[3]
+    edges = [-car.error_max[3], 0.0, 0.5, 2.0] + ([10.0, 20.0, 30.0] if car.speed_max > 20 else []) + [v_top]
+    for v0, v1 in zip(edges[:-1], edges[1:]):
         sel = (v >= v0) & (v < v1)
         if bool(sel.any()):
             bands[f"v_in_[{v0:g},{v1:g})"] = {"n": int(sel.sum()), "frac_holds": float(holds_t[sel].float().mean())}
@@ -423,7 +450,10 @@ def contraction_diagnostics(
         "frac_input_clipped": float(clipped_t.float().mean()),
         "frac_holds_where_not_clipped": float(holds_t[~clipped_t].float().mean()) if bool((~clipped_t).any())
         else None,
+        "domain": car.domain,
     }
+    if deep:
+        out["frac_saturation_slope_below_half"] = float(torch.cat(deep).float().mean())
     if return_samples:
         out["_samples"] = {"lambda_max": lam_t, "lambda_max_generalised": lam_n_t, "v": v}
     return out

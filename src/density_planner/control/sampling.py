@@ -14,13 +14,14 @@ seed gives the same numbers for every dtype and device.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..systems.car import BIAS, CarConfig, KinematicCar
+from ..systems.car import ACC, BIAS, OMEGA, V, CarConfig, KinematicCar
 from .reference import PiecewiseConstantInputs, Reference, make_reference
 
 __all__ = [
@@ -112,6 +113,8 @@ def sample_feasible_references(
         st = sample_box(m, s_lo, s_hi, generator)
         p = param_scale * torch.randn(m, system.nu, par.n_segments, generator=generator, dtype=torch.float64)
         p = torch.maximum(torch.minimum(p, u_hi), u_lo)
+        if math.isfinite(cfg.lateral_accel_max):
+            p[:, OMEGA] = _lateral_limited_turn_rates(cfg, st[:, V], p, par, generator)
         drawn += m
         ref = make_reference(system, st, p, par)
         ok = box_violation_fraction(ref.x, x_lo, x_hi) <= max_violation
@@ -127,6 +130,19 @@ def sample_feasible_references(
         )
     logger.debug("sampled %d feasible references from %d draws (acceptance %.3f)", n, drawn, n / drawn)
     return make_reference(system, starts.to(dtype=dtype, device=device), params.to(dtype=dtype, device=device), par)
+
+
+def _lateral_limited_turn_rates(cfg: CarConfig, v0: Tensor, p: Tensor, par: PiecewiseConstantInputs,
+                                generator: torch.Generator) -> Tensor:
+    """Turn rates ``(m, S)`` of references under a lateral-acceleration limit: on segment ``k`` uniform in
+    ``+-turn_rate_limit(max(|v_k|, |v_k+1|))``, with ``v_k`` the speed at the segment's start (from the
+    acceleration parameters ``p[:, ACC]``), so that ``|omega| <= turn_rate_limit(|v|)`` at every instant (the bound
+    decreases with the speed, and ``v`` is linear within a segment)."""
+    acc = p[:, ACC]
+    v = torch.cat([v0[:, None], v0[:, None] + torch.cumsum(acc * par.segment_duration, dim=-1)], dim=-1)
+    v_seg = torch.maximum(v[:, :-1].abs(), v[:, 1:].abs())
+    frac = 2.0 * torch.rand(v_seg.shape, generator=generator, dtype=torch.float64) - 1.0
+    return cfg.turn_rate_limit(v_seg) * frac
 
 
 def sample_initial_errors(
@@ -184,12 +200,18 @@ def sample_tracking_states(
     error_box: Sequence[float] | None = None,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
+    min_speed: float = 0.0,
 ) -> TrackingSamples:
     """Samples for the contraction conditions (``original.md`` §1 boxes).
 
     ``x_ref`` uniform in the state box X_MIN/X_MAX (positions included, bias 0), the error ``e`` uniform in
     ``[-error_box, error_box]`` (default XE: +-(2 m, 2 m, 1 rad, 1 m/s, pi/8 rad), whose last entry is the heading
-    bias), ``u_ref`` uniform in the input box.
+    bias), ``u_ref`` uniform in the input box; with a lateral-acceleration limit (road domain) the turn rate is
+    uniform in ``+-turn_rate_limit(v_ref)``.
+
+    ``min_speed > 0`` redraws the samples whose true speed ``v_ref + e_v`` is below it: their true speed becomes
+    uniform in ``[min_speed, v_max]``, the reference speed ``v - e_v`` clamped to the box (training only: the
+    contraction condition cannot hold at standstill).
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
@@ -202,6 +224,15 @@ def sample_tracking_states(
     half = _as_float64(car.error_max if error_box is None else error_box, "error_box")
     e = sample_box(n, -half, half, generator)
     u_ref = sample_box(n, car.input_min, car.input_max, generator)
+    if min_speed > 0:
+        slow = (x_ref[:, V] + e[:, V]) < min_speed
+        v_true = min_speed + (hi[V] - min_speed) * torch.rand(n, generator=generator, dtype=torch.float64)
+        v_ref = torch.clamp(v_true - e[:, V], lo[V], hi[V])
+        x_ref[:, V] = torch.where(slow, v_ref, x_ref[:, V])
+        e[:, V] = torch.where(slow, v_true - v_ref, e[:, V])
+    if math.isfinite(car.lateral_accel_max):
+        u_ref[:, OMEGA] = car.turn_rate_limit(x_ref[:, V]) * (2.0 * torch.rand(n, generator=generator,
+                                                                              dtype=torch.float64) - 1.0)
     x = x_ref + e
     x_hat = system.measure(x)
     return TrackingSamples(x, x_hat, x_ref, u_ref).to(dtype=dtype, device=device)

@@ -82,8 +82,11 @@ class DensityDataConfig:
     validation_fraction: float = 0.05
     #: seed; shard ``i`` uses a generator seeded from ``(seed, i)``
     seed: int = 0
-    #: tracking controller: ``"c3m"`` (shipped), ``"analytic"`` or a C3M weights file
+    #: tracking controller: ``"c3m"`` (shipped weights of the model set ``domain``), ``"analytic"`` or a C3M
+    #: weights file
     controller: str = "c3m"
+    #: car domain and model set (``"paper"`` or ``"road"``): the car's boxes and the controller behind "c3m"
+    domain: str = "paper"
     #: reference parameters are ``clamp(param_scale N(0, 1))`` to the input bounds
     param_scale: float = 2.0
     #: lower corner of the reference-start box ``(p_x, p_y, theta, v, bias)``; ``None``: the car's box of
@@ -101,6 +104,9 @@ class DensityDataConfig:
     liouville: LiouvilleConfig = field(default_factory=LiouvilleConfig)
     #: floating point precision of the propagation (shards are always stored in float32)
     dtype: Literal["float32", "float64"] = "float32"
+    #: torch device of the propagation ("cpu", "cuda"); sampling stays on the CPU (same draws everywhere). Not part
+    #: of the resume key: a run may continue on another device
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         check_seed("seed", self.seed)
@@ -155,13 +161,13 @@ def shard_seed(seed: int, index: int) -> int:
 _CONTROLLERS: dict[str, Any] = {}
 
 
-def _controller(spec: str, dtype: torch.dtype):
-    """Controller ``spec`` (cached per process: workers load it once)."""
-    key = f"{spec}|{dtype}"
+def _controller(spec: str, dtype: torch.dtype, domain: str = "paper"):
+    """Controller ``spec`` of the model set ``domain`` (cached per process: workers load it once)."""
+    key = f"{spec}|{dtype}|{domain}"
     if key not in _CONTROLLERS:
         from ..control.registry import load_controller
 
-        _CONTROLLERS[key] = load_controller(spec).to(dtype)
+        _CONTROLLERS[key] = load_controller(spec, models=domain).to(dtype)
     return _CONTROLLERS[key]
 
 
@@ -171,14 +177,15 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
     ``controller`` overrides ``config.controller`` (for tests); by default it is loaded from its name.
     """
     from ..control.sampling import sample_feasible_references, sample_initial_errors
-    from ..systems.car import KinematicCar
+    from ..systems.car import KinematicCar, car_domain
     from .liouville import propagate_density
 
     if not 0 <= index < config.n_shards:
         raise ValueError(f"shard index {index} out of range [0, {config.n_shards})")
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
-    car = KinematicCar()
-    controller = controller.to(dtype) if controller is not None else _controller(config.controller, dtype)
+    car = KinematicCar(car_domain(config.domain))
+    controller = (controller.to(dtype) if controller is not None
+                  else _controller(config.controller, dtype, config.domain))
     gen = torch.Generator().manual_seed(shard_seed(config.seed, index))
     b, n = config.shard_references(index), config.samples
     ref = sample_feasible_references(car, b, gen, param_scale=config.param_scale, start_low=config.start_low,
@@ -186,6 +193,12 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
     box = [config.error_scale * v for v in car.config.initial_error_max]
     xe0 = sample_initial_errors(b * n, gen, box=box, dtype=dtype).reshape(b, n, car.nx)
     x0 = ref.start.unsqueeze(-2) + xe0
+    device = torch.device(config.device)
+    if device.type != "cpu":
+        from ..control.reference import Reference
+
+        ref = Reference(ref.params.to(device), ref.x.to(device), ref.u.to(device), ref.parameterization)
+        x0, xe0, controller = x0.to(device), xe0.to(device), controller.to(device)
     with torch.no_grad():
         traj = propagate_density(car, controller, x0, ref, config=config.liouville)
     x_ref = ref.x_plan
@@ -205,7 +218,7 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
         "x_ref": x_ref.to(f32),
     }
     # own storage for every tensor (views such as the reference start would save the whole fine-grid reference)
-    out = {k: v.contiguous().clone() for k, v in out.items()}
+    out = {k: v.cpu().contiguous().clone() for k, v in out.items()}
     if not all(bool(torch.isfinite(v).all()) for v in out.values()):
         raise FloatingPointError(f"shard {index}: non-finite values in the propagated trajectories")
     return out
@@ -246,7 +259,9 @@ def _config_key(config: DensityDataConfig) -> str:
     import hashlib
     import json
 
-    return hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+    d = config.to_dict()
+    d.pop("device")
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _shard_task(task: tuple[dict[str, Any], int, str]) -> dict[str, Any]:
@@ -325,7 +340,7 @@ def generate_density_data(
     ]
     from .network import controller_fingerprint
 
-    fingerprint = controller_fingerprint(_controller(config.controller, torch.float32))
+    fingerprint = controller_fingerprint(_controller(config.controller, torch.float32, config.domain))
     if previous.get("controller_fingerprint") not in (None, fingerprint):
         raise DataError(
             f"{out} was generated with another controller {config.controller!r} (fingerprint "

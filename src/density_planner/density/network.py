@@ -44,6 +44,7 @@ and start (the planner's second stage backpropagates through it).
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 from dataclasses import asdict, dataclass
 from importlib import resources
@@ -55,7 +56,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..control.reference import Reference
-from ..errors import CheckpointError
+from ..errors import CheckpointError, DomainError
 from ..systems.car import BIAS, THETA, V
 from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 
@@ -70,6 +71,8 @@ __all__ = [
     "save_density_model",
     "load_density_model",
 ]
+
+logger = logging.getLogger(__name__)
 
 Arch = Literal["pointwise", "trajectory"]
 ARCHITECTURES: tuple[str, ...] = ("trajectory", "pointwise")
@@ -354,16 +357,38 @@ def controller_fingerprint(controller: nn.Module) -> str:
     gains = getattr(controller, "gains", None)
     if gains is not None:
         h.update(repr(gains).encode())
+    saturation = getattr(controller, "saturation", None)
+    if saturation is not None:  # the hard clip (None) leaves the fingerprints of older weights unchanged
+        h.update(repr(saturation).encode())
     return h.hexdigest()[:16]
 
 
 class LearnedDensity(DensityPredictor):
     """:class:`DensityPredictor` backed by a trained :class:`DensityNetwork` (either architecture)."""
 
-    def __init__(self, model: DensityNetwork, *, meta: dict[str, Any] | None = None):
+    def __init__(self, model: DensityNetwork, *, meta: dict[str, Any] | None = None,
+                 fallback: DensityPredictor | None = None):
         self.model = model.eval().requires_grad_(False)
         self.meta = dict(meta or {})
         self.name = model.architecture.arch
+        #: predictor used (with a logged warning) for references outside the training domain; ``None``: refuse
+        self.fallback = fallback
+        #: ``(v_min, v_max)`` of the reference start speeds of the training data [m/s] (``None``: unknown)
+        self.speed_range = training_speed_range(self.meta)
+
+    def domain_problem(self, reference: Reference) -> str | None:
+        """Why ``reference`` lies outside the training domain (its start speed outside the training data's range),
+        or ``None`` when it lies inside."""
+        if self.speed_range is None:
+            return None
+        lo, hi = self.speed_range
+        v = reference.start[..., V]
+        bad = (v < lo - _SPEED_TOLERANCE) | (v > hi + _SPEED_TOLERANCE)
+        if not bool(bad.any()):
+            return None
+        worst = float(v[bad].flatten()[0])
+        return (f"reference start speed {worst:.2f} m/s lies outside the speed range [{lo:g}, {hi:g}] m/s the learned "
+                f"density predictor {self.name!r} was trained on")
 
     @property
     def architecture(self) -> DensityNetArchitecture:
@@ -409,6 +434,15 @@ class LearnedDensity(DensityPredictor):
 
     def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
         self._check_reference(reference)
+        problem = self.domain_problem(reference)
+        if problem is not None:
+            if self.fallback is None:
+                raise DomainError(f"{problem}; use --density exact or a predictor trained for this domain "
+                                  "(--models road for road traffic)")
+            if not self._warned:
+                logger.warning("%s: using exact Liouville instead", problem)
+                self._warned = True
+            return self.fallback.predict(x0, log_rho0, reference)
         dtype, device = reference.x.dtype, reference.x.device
         x0 = expand_samples(x0, reference, N_ERR)
         log_rho0 = expand_log_rho0(log_rho0, x0)
@@ -423,12 +457,31 @@ class LearnedDensity(DensityPredictor):
                                  log_rho0=log_rho0)
 
 
+    _warned = False
+
+
+#: reference start speeds this far outside the training range [m/s] are still accepted (float rounding, the
+#: planner's start mean against the data's sampled box edge)
+_SPEED_TOLERANCE = 0.05
+
+
+def training_speed_range(meta: dict[str, Any]) -> tuple[float, float] | None:
+    """``(v_min, v_max)`` of the reference start speeds of a predictor's training data (from its JSON ``data``
+    entry), or ``None`` when the JSON does not record it."""
+    cfg = ((meta or {}).get("data") or {}).get("config") or {}
+    lo, hi = cfg.get("start_low"), cfg.get("start_high")
+    if lo is None or hi is None:
+        return None
+    return float(lo[V]), float(hi[V])
+
+
 # ------------------------------------------------------------------------------------------------------ files
-def shipped_density_path(arch: str) -> Path:
-    """Path (``.pt``) of the shipped weights of ``arch`` ("trajectory" or "pointwise")."""
+def shipped_density_path(arch: str, models: str = "paper") -> Path:
+    """Path (``.pt``) of the shipped weights of ``arch`` ("trajectory" or "pointwise") of a model set."""
     if arch not in ARCHITECTURES:
         raise ValueError(f"unknown density architecture {arch!r}; valid choices: {', '.join(ARCHITECTURES)}")
-    return Path(str(resources.files("density_planner") / "weights" / f"density_{arch}.pt"))
+    suffix = "" if models == "paper" else f"_{models}"
+    return Path(str(resources.files("density_planner") / "weights" / f"density_{arch}{suffix}.pt"))
 
 
 def save_density_model(

@@ -3,7 +3,9 @@
 Names:
 
 * ``"exact"``: :class:`~density_planner.density.liouville.ExactLiouville` (always available, any controller);
-* ``"trajectory"`` / ``"pointwise"``: the shipped learned predictors (``density_planner/weights/density_*.pt``);
+* ``"trajectory"`` / ``"pointwise"``: the shipped learned predictors of the controller's model set
+  (``density_planner/weights/density_{arch}.pt`` for ``paper``, ``density_{arch}_road.pt`` for ``road``; the
+  sets are registered in :mod:`density_planner.control.registry`);
 * ``"learned"``: the default learned predictor (:data:`DEFAULT_LEARNED`, the faster one at equal or better
   accuracy);
 * a path ``NAME.pt`` (with ``NAME.json`` beside it) written by ``density-planner train density``.
@@ -37,23 +39,30 @@ DEFAULT_PREDICTOR = "learned"
 PREDICTOR_CHOICES = ("exact", "learned", "trajectory", "pointwise")
 
 
-def load_learned_predictor(spec: str | Path, controller: TrackingController | None = None):
+def load_learned_predictor(spec: str | Path, controller: TrackingController | None = None, *,
+                           models: str | None = None, fallback: DensityPredictor | None = None):
     """The learned predictor ``spec`` ("learned", "trajectory", "pointwise" or a weights path).
 
-    If ``controller`` is given, it must be the controller the predictor was trained for.
+    If ``controller`` is given, it must be the controller the predictor was trained for. ``models`` names the
+    model set whose shipped weights the names refer to (default: the set of ``controller``'s car domain, else
+    ``"paper"``). References outside the training domain (start speed) raise
+    :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use it with a logged warning.
 
     Raises:
         CheckpointError: missing/corrupt/mismatched weights, or a controller other than the training one.
     """
     from .network import LearnedDensity, controller_fingerprint, load_density_model, shipped_density_path
 
+    if models is None:
+        models = getattr(getattr(controller, "car", None), "domain", None) or "paper"
     name = DEFAULT_LEARNED if spec == "learned" else spec
     if name in ("trajectory", "pointwise"):
-        path, arch = shipped_density_path(str(name)), str(name)
+        path, arch = shipped_density_path(str(name), models), str(name)
         if not path.is_file():
             raise CheckpointError(
-                f"the package ships no weights for the {name!r} density predictor ({path}); train them with "
-                f"`density-planner train density --arch {name}` (see docs/density.md) or use --density exact"
+                f"the package ships no weights for the {name!r} density predictor of the model set {models!r} "
+                f"({path}); train them with `density-planner train density --arch {name}` (see docs/density.md) "
+                "or use --density exact"
             )
     else:
         path, arch = Path(name), None
@@ -68,7 +77,7 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
                 f"(fingerprint {trained}), not for this {type(controller).__name__} (fingerprint {found}); use "
                 "--density exact or train a predictor for this controller"
             )
-    return LearnedDensity(model, meta=meta)
+    return LearnedDensity(model, meta=meta, fallback=fallback)
 
 
 def load_predictor(
@@ -89,7 +98,9 @@ def load_predictor(
     """
     if spec is None:
         try:
-            learned = load_learned_predictor(DEFAULT_PREDICTOR, controller)
+            # outside the training domain the default falls back to exact Liouville (logged), never extrapolates
+            learned = load_learned_predictor(DEFAULT_PREDICTOR, controller,
+                                             fallback=ExactLiouville(system, controller, liouville))
         except CheckpointError as exc:
             logger.info("default density predictor %r not usable (%s); using exact Liouville",
                            DEFAULT_PREDICTOR, exc)

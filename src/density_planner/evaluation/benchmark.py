@@ -267,7 +267,10 @@ def build_scene(env: EnvSpec, run_config: Any):
             file = str(shipped_commonroad_dir() / file[len(_SHIPPED) + 1 :])
         if env.seed > 0:  # a start and goal sampled on the road instead of the planning problem
             cfg = update(cfg, {"sample_start_goal": True, "seed": env.seed})
-        scene = load_commonroad_scene(file, cfg)
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
+        scene = load_commonroad_scene(file, cfg, system=KinematicCar(model_set_for_scene(env.kind).car))
     elif env.kind == "ind":
         from ..environment.ind import load_ind_scene
 
@@ -460,15 +463,16 @@ _SCENES: dict[Any, Any] = {}
 
 
 def _context(job: Job, parameterization=None):
-    from ..control.registry import load_controller
+    from ..control.registry import load_controller, model_set_for_scene
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
     from ..systems.car import KinematicCar
 
-    key = (job.controller, job.density, job.run_config.liouville, parameterization)
+    models = model_set_for_scene(job.env.kind)  # recorded road scenes: the road set; the paper's scenes: paper
+    key = (job.controller, job.density, job.run_config.liouville, parameterization, models.name)
     if key not in _CONTEXTS:
-        car = KinematicCar()
-        controller = load_controller(job.controller)
+        car = KinematicCar(models.car)
+        controller = load_controller(job.controller, models=models)
         predictor: list[Any] = []
 
         def factory():
@@ -710,8 +714,12 @@ def run_job(job: Job) -> JobResult:
     torch.manual_seed(stable_seed("job", job.env.name, job.planner))
     try:
         scene = _scene(job)
+        from ..control.registry import model_set_for_scene
+        from ..systems.car import KinematicCar
+
         problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
-                                             risk=job.run_config.risk)
+                                             risk=job.run_config.risk,
+                                             system=KinematicCar(model_set_for_scene(job.env.kind).car))
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
         ctx = _context(job, problem.parameterization)
     except Exception:  # noqa: BLE001 - recorded, the sweep goes on

@@ -24,7 +24,8 @@ from torch import Tensor
 from ..checks import broadcast_shape
 from .base import ControlAffineSystem, Footprint
 
-__all__ = ["KinematicCar", "CarConfig", "PX", "PY", "THETA", "V", "BIAS", "OMEGA", "ACC"]
+__all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "PX", "PY", "THETA", "V",
+           "BIAS", "OMEGA", "ACC"]
 
 #: state indices
 PX, PY, THETA, V, BIAS = 0, 1, 2, 3, 4
@@ -51,6 +52,18 @@ class CarConfig:
     #: box of reference start states used to generate training data (artificial map, any heading, 1-8 m/s)
     reference_start_min: tuple[float, float, float, float, float] = (-12.0, -30.0, 0.0, 1.0, 0.0)
     reference_start_max: tuple[float, float, float, float, float] = (12.0, 10.0, 2 * _PI, 8.0, 0.0)
+    #: lateral-acceleration limit of the reference inputs [m/s^2]: ``|omega| <= turn_rate_limit(v)``, a smooth
+    #: form of ``min(omega_max, a_lat_max / |v|)`` (see :func:`turn_rate_limit`); ``inf``: no limit (the paper)
+    lateral_accel_max: float = math.inf
+    #: physical input limits reached by the controller's *smooth* saturation (``None``: hard clip at the input
+    #: bounds, the paper's controller). The reference box ``input_min/max`` then lies inside them; the controller
+    #: output is the identity there and bends smoothly (C^2, tanh) towards these limits outside
+    actuator_min: tuple[float, float] | None = None
+    actuator_max: tuple[float, float] | None = None
+    #: lateral-acceleration limit of the actuators [m/s^2] (the smooth saturation's ceiling of ``|omega|``)
+    actuator_lateral_accel_max: float = math.inf
+    #: name of the domain (``"paper"`` or ``"road"``, see :data:`CAR_DOMAINS`; free text for custom boxes)
+    domain: str = "paper"
     #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
     length: float = 4.5
     #: body width [m]
@@ -69,6 +82,96 @@ class CarConfig:
         for name in ("error_max", "initial_error_max"):
             if any(v < 0 for v in getattr(self, name)):
                 raise ValueError(f"CarConfig.{name} must be non-negative")
+        for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
+        if (self.actuator_min is None) != (self.actuator_max is None):
+            raise ValueError("CarConfig.actuator_min and actuator_max must both be set or both be None")
+        if self.actuator_min is not None:
+            assert self.actuator_max is not None
+            if not all(a < lo <= 0 <= hi < b for a, lo, hi, b in zip(self.actuator_min, self.input_min,
+                                                                     self.input_max, self.actuator_max)):
+                raise ValueError(
+                    "CarConfig: the actuator box must strictly contain the reference input box, which must contain "
+                    f"0 (got actuator {self.actuator_min}..{self.actuator_max}, inputs {self.input_min}.."
+                    f"{self.input_max})"
+                )
+            if self.actuator_lateral_accel_max <= self.lateral_accel_max and math.isfinite(self.lateral_accel_max):
+                raise ValueError("CarConfig.actuator_lateral_accel_max must exceed lateral_accel_max")
+
+    @property
+    def speed_max(self) -> float:
+        """Largest speed of the domain [m/s] (upper speed bound of the state box): starts above it are out of the
+        domain of the controller and of the density predictors trained for it."""
+        return float(self.state_max[V])
+
+    @property
+    def smooth_saturation(self) -> bool:
+        """Whether the controller output is bounded by a smooth saturation (else a hard clip)."""
+        return self.actuator_min is not None
+
+    def turn_rate_limit(self, v: Tensor, actuator: bool = False) -> Tensor:
+        """``|omega|`` bound at speed ``v`` of the references (or, with ``actuator``, of the actuators) [rad/s]."""
+        if actuator and self.actuator_max is not None:
+            return turn_rate_limit(v, self.actuator_max[OMEGA], self.actuator_lateral_accel_max)
+        return turn_rate_limit(v, self.input_max[OMEGA], self.lateral_accel_max)
+
+    @classmethod
+    def paper(cls) -> CarConfig:
+        """The paper's box (``original.md`` §1): v in [0, 10] m/s, inputs +-3, hard clip, no lateral limit."""
+        return cls()
+
+    @classmethod
+    def road(cls) -> CarConfig:
+        """Road traffic: v in [0, 40] m/s, passenger-car input limits, lateral-acceleration limit (docs/controller.md,
+        "Road domain", gives the sources).
+
+        * References (what the planner may ask): ``a in [-6, 3] m/s^2`` (firm braking / brisk acceleration of a
+          passenger car), ``|omega| <= min(1 rad/s, 4 m/s^2 / v)`` (a lateral acceleration of 4 m/s^2, the upper
+          end of everyday driving).
+        * Actuators (reached by the controller's smooth saturation): ``a in [-9, 4.5] m/s^2`` (full braking at a
+          tyre-road friction of about 0.9, full acceleration of a typical car in low gear), ``|omega| <= min(
+          1.5 rad/s, 8 m/s^2 / v)`` (the friction limit of the lateral acceleration on dry asphalt).
+        * Heading unwrapped over +-4 pi (headings enter the controller through cos / sin); positions +-1 km.
+        """
+        return cls(
+            state_min=(-1000.0, -1000.0, -4 * _PI, 0.0, -_PI / 8),
+            state_max=(1000.0, 1000.0, 4 * _PI, 40.0, _PI / 8),
+            input_min=(-1.0, -6.0),
+            input_max=(1.0, 3.0),
+            reference_start_min=(-10.0, -10.0, -_PI, 0.5, 0.0),
+            reference_start_max=(10.0, 10.0, _PI, 38.0, 0.0),
+            lateral_accel_max=4.0,
+            actuator_min=(-1.5, -9.0),
+            actuator_max=(1.5, 4.5),
+            actuator_lateral_accel_max=8.0,
+            domain="road",
+        )
+
+
+def turn_rate_limit(v: Tensor, omega_max: float, lateral_accel_max: float) -> Tensor:
+    """Smooth turn-rate bound ``(omega_max^-4 + (|v| / a_lat_max)^4)^(-1/4)`` [rad/s] at speeds ``v`` [m/s].
+
+    It never exceeds ``min(omega_max, a_lat_max / |v|)`` (the lateral acceleration ``|v omega|`` stays below
+    ``a_lat_max``), is within 16 % of it (at the crossing speed ``v = a_lat_max / omega_max``; a few per cent away
+    from it), and is infinitely differentiable in ``v``. ``a_lat_max = inf`` gives ``omega_max``.
+    """
+    if math.isinf(lateral_accel_max):
+        return torch.full_like(v, float(omega_max))
+    r = v.abs() / lateral_accel_max
+    return (omega_max ** -4 + r ** 4) ** -0.25
+
+
+def car_domain(name: str) -> CarConfig:
+    """The car configuration of a named domain (``"paper"`` or ``"road"``)."""
+    try:
+        return CAR_DOMAINS[name]()
+    except KeyError:
+        raise ValueError(f"unknown car domain {name!r}; valid choices: {', '.join(CAR_DOMAINS)}") from None
+
+
+#: named car domains: the paper's box and road traffic (0-40 m/s)
+CAR_DOMAINS = {"paper": CarConfig.paper, "road": CarConfig.road}
 
 
 class KinematicCar(ControlAffineSystem):
@@ -96,6 +199,15 @@ class KinematicCar(ControlAffineSystem):
     @property
     def input_bounds(self):
         return self.config.input_min, self.config.input_max
+
+    @property
+    def speed_max(self) -> float:
+        """Largest speed of the car's domain [m/s] (``config.speed_max``)."""
+        return self.config.speed_max
+
+    def turn_rate_limit(self, v: Tensor) -> Tensor:
+        """``|omega|`` bound of the references at speed ``v`` (``config.turn_rate_limit``) [rad/s]."""
+        return self.config.turn_rate_limit(v)
 
     # ---------------------------------------------------------------- dynamics
     def drift(self, x: Tensor) -> Tensor:

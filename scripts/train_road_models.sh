@@ -1,0 +1,82 @@
+#!/usr/bin/env bash
+# Train the "road" model set (docs/controller.md, docs/density.md): the C3M controller on the road domain,
+# its density training data (exact Liouville) and both density predictors, with the package's own commands.
+#
+#   bash scripts/train_road_models.sh controller   # phase 1: C3M (GPU if present), then the density data
+#   bash scripts/train_road_models.sh density      # phase 2: both density networks (in parallel on one GPU)
+#   bash scripts/train_road_models.sh all          # both phases
+#
+# Environment: PY (python, default python3), RES (work directory, default results/road), OUT (where copies of the
+# weights and logs go, default $RES/out), DEVICE (cuda or cpu, default: cuda if torch sees one), C3M_EPOCHS,
+# C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network), THREADS / DENSITY_THREADS. The defaults suit a
+# GPU machine. The shipped road weights were made on a 2-core CPU machine (no GPU was available) with
+#   RES=results/road DEVICE=cpu THREADS=1 C3M_EPOCHS=20 C3M_BATCH=2048 bash scripts/train_road_models.sh controller
+#   (then the data with --references 4096 --workers 2, and) DENSITY_TIME=480 bash scripts/train_road_models.sh density
+# (docs/controller.md and docs/density.md record the exact commands and times).
+set -eo pipefail
+PHASE=${1:-all}
+PY=${PY:-python3}
+RES=${RES:-results/road}
+OUT=${OUT:-$RES/out}
+export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
+DEVICE=${DEVICE:-$($PY -c 'import torch; print("cuda" if torch.cuda.is_available() else "cpu")')}
+W=src/density_planner/weights
+DP="$PY -m density_planner"
+mkdir -p "$RES" "$OUT"
+log() { echo "[$(date -u +%H:%M:%S) +${SECONDS}s] $*" | tee -a "$OUT/train_road.log"; }
+log "phase $PHASE on $DEVICE; torch $($PY -c 'import torch; print(torch.__version__)'); $(nproc) cores"
+[ "$DEVICE" = cuda ] && nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/train_road.log"
+
+C3M_SET=(--set domain=road --set min_speed=0.3 --set 'architecture.v_range=[0,40]')
+START_SET=(--set 'start_low=[-10,-10,-3.14159,0.5,0]' --set 'start_high=[10,10,3.14159,38,0]')
+
+if [ "$PHASE" = controller ] || [ "$PHASE" = all ]; then
+  C3M_BATCH=${C3M_BATCH:-8192}
+  if [ -z "${C3M_EPOCHS:-}" ]; then
+    # time one epoch (200 steps) in a scratch directory, then fit the run into C3M_SECONDS of training
+    t0=$SECONDS
+    $DP train controller --out "$RES/c3m_probe" --no-resume --epochs 1 "${C3M_SET[@]}" --set batch_size=$C3M_BATCH \
+      --device "$DEVICE" --check-samples 1000 --check-references 10 --quiet > /dev/null
+    probe=$((SECONDS - t0))
+    C3M_EPOCHS=$($PY -c "import json; h=json.load(open('$RES/c3m_probe/history.json')); t=h['wall_time'][-1]; \
+print(max(10, min(60, int(${C3M_SECONDS:-170} / max(t, 1e-3)))))")
+    log "probe: one epoch in $($PY -c "import json; print(round(json.load(open('$RES/c3m_probe/history.json'))['wall_time'][-1], 2))") s (command ${probe} s) -> $C3M_EPOCHS epochs"
+  fi
+  log "C3M: $C3M_EPOCHS epochs x 200 steps, batch $C3M_BATCH"
+  $DP train controller --out "$RES/c3m" --epochs "$C3M_EPOCHS" "${C3M_SET[@]}" --set batch_size=$C3M_BATCH \
+    --device "$DEVICE" --threads "${THREADS:-$(nproc)}" --export $W/controller_c3m_road.pt --quiet 2>&1 | tee -a "$OUT/train_road.log"
+  cp $W/controller_c3m_road.pt $W/controller_c3m_road.json "$OUT/"
+  cp "$RES/c3m/history.json" "$OUT/c3m_history.json"
+
+  DATA_REFS=${DATA_REFS:-32768}
+  log "density data: $DATA_REFS references x 8 samples on $DEVICE"
+  if [ "$DEVICE" = cuda ]; then
+    DATA_DEV=(--set device=cuda --set references_per_shard=${SHARD:-2048} --workers 1)
+  else
+    DATA_DEV=(--set references_per_shard=${SHARD:-256} --workers "$(nproc)")
+  fi
+  if ! $DP data density --out "$RES/density_data" --references "$DATA_REFS" --samples 8 --set domain=road \
+      "${START_SET[@]}" "${DATA_DEV[@]}" --quiet 2>&1 | tee -a "$OUT/train_road.log"; then
+    log "data generation on $DEVICE failed; again with CPU workers"
+    $DP data density --out "$RES/density_data" --references "$DATA_REFS" --samples 8 --set domain=road \
+      "${START_SET[@]}" --set references_per_shard=${SHARD:-256} --workers "$(nproc)" --quiet 2>&1 | tee -a "$OUT/train_road.log"
+  fi
+fi
+
+if [ "$PHASE" = density ] || [ "$PHASE" = all ]; then
+  DENSITY_TIME=${DENSITY_TIME:-170}
+  log "density networks: both in parallel, at most $DENSITY_TIME s of training each"
+  $DP train density --arch trajectory --data "$RES/density_data" --out "$RES/train_trajectory" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
+    --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
+  p1=$!
+  $DP train density --arch pointwise --data "$RES/density_data" --out "$RES/train_pointwise" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
+    --epochs 20 --set batch_size=1024 --time-limit "$DENSITY_TIME" --export $W/density_pointwise_road.pt --quiet \
+    > "$OUT/train_pointwise.log" 2>&1 &
+  p2=$!
+  wait $p1 || log "trajectory training failed"
+  wait $p2 || log "pointwise training failed"
+  tail -n 3 "$OUT/train_trajectory.log" "$OUT/train_pointwise.log" | tee -a "$OUT/train_road.log"
+fi
+# one archive with everything the package ships for the road set (the device returns at most 8 files)
+tar czf "$OUT/road_weights.tar.gz" $W/*_road.pt $W/*_road.json 2>/dev/null || true
+log "done"
