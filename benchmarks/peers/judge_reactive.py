@@ -35,14 +35,10 @@ from density_planner.io.atomic import atomic_write_json, atomic_write_text
 
 def judging_system():
     """The car whose bounds the verdict's ``within_model`` uses: the road domain where the package has it."""
-    try:
-        from density_planner.systems.registry import make_system  # type: ignore[attr-defined]
+    from density_planner.control.registry import model_set_for_scene
+    from density_planner.systems.car import KinematicCar
 
-        return make_system("car", model_set="road")
-    except Exception:  # noqa: BLE001 - older layouts: the default car
-        from density_planner.systems.car import KinematicCar
-
-        return KinematicCar()
+    return KinematicCar(model_set_for_scene("commonroad").car)
 
 
 def judge_one(xml: Path, runs: Path, system, timeout: float) -> dict:
