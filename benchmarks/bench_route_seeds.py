@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
             x, _ = plan_grid_reference(problem.system, problem.reference_start(), seeds.params, par)
             times = road.t_start + np.arange(par.n_plan) * par.plan_dt
 
-            def ok(states: np.ndarray) -> tuple[bool, bool]:
+            def ok(states: np.ndarray, road=road, times=times) -> tuple[bool, bool]:
                 reach = [bool(road.goal.contains(s[:, :2], times, s[:, 3], s[:, 2]).any()) for s in states]
                 onroad = [bool(road.on_road(road.vehicle_polygons(s[:, :3])).all()) for s in states]
                 return any(r and o for r, o in zip(reach, onroad)), any(onroad)

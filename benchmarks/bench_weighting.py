@@ -55,12 +55,12 @@ def main() -> None:
             dist = float((car.positions(plan.states[-1]).double() - goal).norm())
             row = (seed, weighting, float(mc.max()), float(mc.sum()), float(plan.collision.max), dist, t_plan)
             rows.append(row)
-            print(f"| {seed} | {weighting} | {row[2]:.4f} | {row[3]:.3f} | {row[4]:.4f} | {row[5]:.2f} | {row[6]:.1f} |",
+            print(f"| {seed} | {weighting} | {row[2]:.4f} | {row[3]:.3f} | {row[4]:.4f} | {row[5]:.2f} | {row[6]:.1f} |",  # noqa: E501
                   flush=True)
     for weighting in ("mass", "density"):
         sel = [r for r in rows if r[1] == weighting]
         print(f"mean over {len(sel)} scenes, {weighting}: MC max {statistics.mean(r[2] for r in sel):.4f}, "
-              f"MC sum {statistics.mean(r[3] for r in sel):.3f}, goal distance {statistics.mean(r[5] for r in sel):.2f} m")
+              f"MC sum {statistics.mean(r[3] for r in sel):.3f}, goal distance {statistics.mean(r[5] for r in sel):.2f} m")  # noqa: E501
 
 
 if __name__ == "__main__":

@@ -9,7 +9,6 @@ import pytest
 from env_testdata import two_tracks
 
 
-
 @pytest.fixture
 def ind_dir(tmp_path: Path) -> Path:
     """A folder with recording 7: a car driving along +x at 5 m/s and a pedestrian appearing at t = 4 s."""

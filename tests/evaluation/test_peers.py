@@ -3,8 +3,6 @@ exists) one real run."""
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np

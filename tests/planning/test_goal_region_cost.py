@@ -8,14 +8,13 @@ import math
 import pytest
 import shapely
 import torch
+from helpers import empty_scene
+from road_helpers import road_scene
 
 from density_planner.cost.composite import CostConfig, build_cost
 from density_planner.cost.goal_region import GoalRegionCost, distance_to_polygons, polygon_edges
 from density_planner.cost.terms import CostInputs, GoalCost
 from density_planner.environment.road import GoalRegion
-
-from helpers import empty_scene
-from road_helpers import road_scene
 
 BOX = shapely.box(10.0, -1.0, 14.0, 1.0)  # 4 m x 2 m
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import shapely
 import torch
+from road_helpers import drivable, lane_graph, road_scene
 
 from density_planner.cost.composite import CostConfig, build_cost
 from density_planner.cost.road import RoadBarrierCost, vehicle_outline
@@ -15,8 +16,6 @@ from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.road import GoalRegion
 from density_planner.environment.road_sdf import RoadSDF
 from density_planner.risk.collision import CollisionModel
-
-from road_helpers import drivable, lane_graph, road_scene
 
 ROAD = shapely.box(0, 0, 100, 7)  # two 3.5-m lanes
 

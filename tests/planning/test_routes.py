@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import shapely
 import torch
+from helpers import empty_scene
+from road_helpers import lane_graph, road_scene
 
 from density_planner.control.reference import PiecewiseConstantInputs, plan_grid_reference
 from density_planner.environment.lanes import Lane, LaneGraph
@@ -23,9 +25,6 @@ from density_planner.planners.routes import (
     speed_profiles,
 )
 from density_planner.systems.car import KinematicCar
-
-from helpers import empty_scene
-from road_helpers import lane_graph, road_scene
 
 
 def _box(x0, x1, y0, y1):

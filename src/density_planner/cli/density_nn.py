@@ -214,9 +214,7 @@ def _fresh_validation(model, manifest: dict, *, n_references: int, samples: int,
     from ..density.liouville import ExactLiouville
     from ..density.network import LearnedDensity
     from ..density.validation import compare_with_exact, fresh_references
-    from ..systems.car import KinematicCar
-
-    from ..systems.car import car_domain
+    from ..systems.car import KinematicCar, car_domain
 
     domain = manifest["config"].get("domain", "paper")
     car = KinematicCar(car_domain(domain))

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..systems.car import ACC, BIAS, OMEGA, V, CarConfig, KinematicCar
+from ..systems.car import ACC, BIAS, OMEGA, CarConfig, KinematicCar, V
 from .reference import PiecewiseConstantInputs, Reference, make_reference
 
 __all__ = [

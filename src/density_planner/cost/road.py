@@ -15,7 +15,8 @@ weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.1
 more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= 0.1 * (beta * h / 2)^2``: 2.5 at
 0.1-m cells, 10 at 0.2 m, with the default ``beta = 100`` cells), so leaving the road never pays for avoiding an
 obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
-1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road for goal
+either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
 into it by more than ``margin`` between two points.
 """

@@ -38,7 +38,8 @@ and recorded in ``scene.meta`` (``scene.json``).
    cover; past their last set the last set moves on at the initial velocity. A missing velocity is taken from
    the positions' finite differences; a missing orientation from the direction of motion.
 7. **Map**: the region the car can reach within the grid's duration (the horizon, at least ``min_duration``;
-   start speed, the system's speed and acceleration bounds), cut to the drivable area, plus the goal region and ``area_margin``; ``area`` overrides it. The cell
+   start speed, the system's speed and acceleration bounds), cut to the drivable area, plus the goal region and
+   ``area_margin``; ``area`` overrides it. The cell
    size is ``cell_size`` unless the grid (``T x NX x NY`` float32) would exceed ``memory_budget_gib``; then the
    smallest multiple of 0.05 m that fits (up to ``max_cell_size``, else an error naming the keys to change).
 """
@@ -677,7 +678,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
     """
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
-    import shapely.affinity  # noqa: F401  (submodules used below)
+    import shapely.affinity  # noqa: F401, F811  (submodules used below)
     import shapely.ops  # noqa: F401
 
     path = Path(path)

@@ -62,10 +62,10 @@ from density_planner.config import to_dict
 from density_planner.errors import DataError
 
 from .footprints import (
-    extrapolate_tracks,
     ROAD_USER_CLASSES,
     FootprintConfig,
     RoadUserTracks,
+    extrapolate_tracks,
     rasterise_road_users,
     resample_tracks,
 )

@@ -2,7 +2,8 @@
 
 The density planner evaluates its final sample cloud with the cost in *evaluation form* (no goal-far factor) and
 the collision probability of :class:`~density_planner.risk.collision.CollisionModel` (the problem's ``risk``
-settings: importance-weighted by default, the paper's binning on request). The baselines use the same functions: planners with a sample
+settings: importance-weighted by default, the paper's binning on request). The baselines use the same functions:
+planners with a sample
 cloud (search, sampling) through :func:`evaluate_samples`, single-trajectory planners (MPC, oracle) through
 :func:`evaluate_trajectory` (one sample of weight one).
 """

@@ -20,12 +20,14 @@ The occupancy seen by one disc is read from the **disc-dilated grid** ``D_r``, c
 
 so that for *every* disc centre inside cell ``c`` (the nearest cell of the centre), ``D_r[k, c]`` is at least the
 occupancy of every cell the disc touches: conservative, and never more than one cell wider than the disc (the
-snapping to the nearest cell that the paper's point lookup makes too). ``r = 0`` is the point: ``D_0 = P_occ``. Cells beyond the map's border are
+snapping to the nearest cell that the paper's point lookup makes too). ``r = 0`` is the point: ``D_0 = P_occ``. Cells
+beyond the map's border are
 not part of the map and read 0 in the dilation; a disc centre outside the map counts as occupied (``P = 1``, as a
 point outside the map). The occupancy of the body is the maximum over its discs.
 
 The dilated grid holds the occupancy rounded *up* to a multiple of 1/255 (conservative by less than 0.004; 0 and
-1 stay exact), so that the max-filter runs on bytes. The dilation is separable into row runs: a sparse table of windowed maxima along x (``log2`` levels) and one
+1 stay exact), so that the max-filter runs on bytes. The dilation is separable into row runs: a sparse table of
+windowed maxima along x (``log2`` levels) and one
 maximum per row of the disc, i.e. ``O(T NX NY (log r + r / h))`` operations with no Python loop over cells.
 """
 

@@ -33,7 +33,6 @@ self-normalised estimator): ``SE^2 = sum_i w_i^2 (P_i - P_coll)^2`` with normali
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Literal
 
