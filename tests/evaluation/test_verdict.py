@@ -143,3 +143,26 @@ def test_bad_shapes_are_refused():
         judge(road_scene(), np.zeros((10, 3)), None, system=CAR, dt=DT)
     with pytest.raises(ValueError, match="dt"):
         judge(road_scene(), np.zeros((10, 5)), None, system=CAR, dt=0.0)
+
+
+def test_within_model_judges_applied_inputs_against_the_actuators():
+    # road domain: the controller saturates smoothly up to the actuator box, wider than the reference box
+    from density_planner.control.registry import model_set
+    from density_planner.evaluation.verdict import judge
+    from density_planner.systems.car import KinematicCar
+
+    car = KinematicCar(model_set("road").car)
+    (alo, ahi), (rlo, rhi) = car.applied_input_bounds, car.input_bounds
+    assert ahi[1] > rhi[1] and alo[1] < rlo[1]
+    x = np.zeros((3, 5))
+    x[:, 0] = [0.0, 0.5, 1.0]
+    x[:, 3] = 5.0
+    from density_planner.environment.random_scene import random_scene
+
+    scene = random_scene(0)
+    x[:, :2] += np.asarray(scene.start[:2])
+    inside = np.array([[0.0, 0.5 * (rhi[1] + ahi[1])]] * 2)  # beyond the reference box, inside the actuators
+    outside = np.array([[0.0, ahi[1] + 1.0]] * 2)
+    v_in = judge(scene, x, inside, system=car, dt=0.1)
+    v_out = judge(scene, x, outside, system=car, dt=0.1)
+    assert v_in.within_model and not v_out.within_model

@@ -349,7 +349,10 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
         k = _first(bad_x[:, j])
         problems.append(f"{names[j]} = {x[k, j]:.6g} at t = {k * dt:.1f} s outside [{lo[j]:.4g}, {hi[j]:.4g}]")
     if u is not None and u.size:
-        ulo, uhi = (np.asarray(b, dtype=np.float64) for b in system.input_bounds)
+        # inputs the vehicle can receive: the actuator box (wider than the reference box where the controller
+        # saturates smoothly, road domain)
+        bounds = getattr(system, "applied_input_bounds", system.input_bounds)
+        ulo, uhi = (np.asarray(b, dtype=np.float64) for b in bounds)
         utol = config.model_tolerance * np.maximum(1.0, np.maximum(np.abs(ulo), np.abs(uhi)))
         bad_u = (u < ulo - utol) | (u > uhi + utol)
         unames = list(system.input_names)

@@ -93,6 +93,12 @@ class System(ABC):
     def input_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
         """(lower, upper) bounds of the input, each of length ``nu``."""
 
+    @property
+    def applied_input_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        """(lower, upper) bounds of the inputs the plant can actually receive (the actuators); the reference inputs
+        stay inside :attr:`input_bounds`. Default: the same box."""
+        return self.input_bounds
+
     def state_bounds_tensor(self, like: Tensor) -> tuple[Tensor, Tensor]:
         lo, hi = self.state_bounds
         return (torch.as_tensor(lo, dtype=like.dtype, device=like.device),

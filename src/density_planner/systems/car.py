@@ -201,6 +201,13 @@ class KinematicCar(ControlAffineSystem):
         return self.config.input_min, self.config.input_max
 
     @property
+    def applied_input_bounds(self):
+        """The actuator box where the controller saturates smoothly (road domain), else the input box."""
+        if self.config.actuator_min is None:
+            return self.input_bounds
+        return self.config.actuator_min, self.config.actuator_max
+
+    @property
     def speed_max(self) -> float:
         """Largest speed of the car's domain [m/s] (``config.speed_max``)."""
         return self.config.speed_max
