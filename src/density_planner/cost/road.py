@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import check_positive
 from ..environment.road_sdf import RoadSDF, road_sdf_for_scene
 from .goal_region import GoalRegionCost
 from .terms import CostInputs, CostTerm
@@ -70,13 +71,9 @@ class RoadCostConfig:
     def __post_init__(self) -> None:
         for name in ("goal_weight", "goal_margin", "goal_velocity_weight", "goal_orientation_weight", "weight",
                      "margin"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"cost.road.{name} must be a finite number >= 0, got {v!r}")
+            check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
         for name in ("footprint_spacing", "sdf_cell_size"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"cost.road.{name} must be a finite number > 0, got {v!r}")
+            check_positive(f"cost.road.{name}", getattr(self, name))
         if isinstance(self.sdf_max_cells, bool) or not isinstance(self.sdf_max_cells, int) or self.sdf_max_cells < 4:
             raise ValueError(f"cost.road.sdf_max_cells must be an integer >= 4, got {self.sdf_max_cells!r}")
 

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import check_positive
 from ..control.reference import PiecewiseConstantInputs, plan_grid_reference
 from ..environment.lanes import LaneGraph, lane_graph_from_file
 from ..systems.base import System
@@ -90,13 +91,9 @@ class RouteSeedConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"routes.{name} must be a positive integer, got {v!r}")
         for name in ("lane_change_length", "lane_change_time", "acceleration", "fit_lr", "goal_point_radius"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"routes.{name} must be a finite number > 0, got {v!r}")
+            check_positive(f"routes.{name}", getattr(self, name))
         for name in ("lane_change_cost", "fit_speed_weight"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"routes.{name} must be a finite number >= 0, got {v!r}")
+            check_positive(f"routes.{name}", getattr(self, name), allow_zero=True)
 
 
 @dataclass(frozen=True)
