@@ -27,6 +27,7 @@ from .environment.commonroad import CommonRoadSceneConfig
 from .environment.ind import IndSceneConfig
 from .environment.random_scene import RandomSceneConfig
 from .evaluation.config import EvaluationConfig
+from .evaluation.online import OnlineConfig
 from .evaluation.verdict import VerdictConfig
 from .io.commonroad_solution import SolutionConfig
 from .planners.density_planner import DensityPlannerConfig
@@ -76,3 +77,5 @@ class RunConfig:
     solution: SolutionConfig = field(default_factory=SolutionConfig)
     #: [risk]: collision with the vehicle's body and the estimator of its probability
     risk: RiskConfig = field(default_factory=RiskConfig)
+    #: [online]: the receding-horizon runner (`density-planner drive`) and its occupancy prediction
+    online: OnlineConfig = field(default_factory=OnlineConfig)

@@ -20,7 +20,7 @@ from ..errors import DensityPlannerError
 __all__ = ["main", "build_parser"]
 
 #: command modules, in the order they appear in ``--help``
-COMMAND_MODULES = ("env", "density", "controller", "density_nn", "plan", "risk", "bench")
+COMMAND_MODULES = ("env", "density", "controller", "density_nn", "plan", "drive", "risk", "bench")
 
 #: command groups with sub-commands: name -> help
 GROUPS = {

@@ -975,11 +975,12 @@ def _trajectory_users(obstacles: list[Any], times: np.ndarray, dt_src: float, t_
             poses_all = np.vstack([poses, extra])
             flags = np.concatenate([np.zeros(t.size, bool), np.ones(later.size, bool)])
             std = np.concatenate([np.zeros(t.size), cfg.footprint.prediction_std_rate_along * tau])
+            speeds = np.concatenate([v, np.full(tau.size, v[-1])])
             n_pred += 1
         else:
-            t_all, poses_all, flags, std = t, poses, None, None
+            t_all, poses_all, flags, std, speeds = t, poses, None, None, v
         exact.append(ObstacleTrack(int(ids[i]), kinds[i], dims[i, 0], dims[i, 1], t_all, poses_all,
-                                   predicted=flags, position_std=std, shape=shapes[i][0]))
+                                   predicted=flags, position_std=std, shape=shapes[i][0], speeds=speeds))
     return users, exact, n_pred
 
 

@@ -211,6 +211,8 @@ class ObstacleTrack:
         static: the obstacle never moves and is present at every time (``times`` / ``poses`` hold one pose).
         occupancies: ``(K,)`` array of shapely geometries in the world frame for set-based predictions
             (CommonRoad ``occupancySet``), used instead of ``shape`` moved along ``poses``; else ``None``.
+        speeds: ``(K,)`` recorded speed [m/s] along the heading at :attr:`times` (what a sensor observes; the
+            online prediction propagates it), or ``None`` when unknown.
     """
 
     obstacle_id: int
@@ -224,6 +226,7 @@ class ObstacleTrack:
     shape: Any = None
     static: bool = False
     occupancies: np.ndarray | None = None
+    speeds: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         times = np.asarray(self.times, dtype=np.float64).reshape(-1)
@@ -252,6 +255,12 @@ class ObstacleTrack:
             if occ.shape[0] != k:
                 raise ValueError(f"ObstacleTrack {self.obstacle_id}: occupancies must have {k} entries")
             object.__setattr__(self, "occupancies", occ)
+        if self.speeds is not None:
+            speeds = np.asarray(self.speeds, dtype=np.float64).reshape(-1)
+            if speeds.shape[0] != k or not np.isfinite(speeds).all():
+                raise ValueError(f"ObstacleTrack {self.obstacle_id}: speeds must be {k} finite values")
+            speeds.setflags(write=False)
+            object.__setattr__(self, "speeds", speeds)
         for name, value in (("times", times), ("poses", poses), ("predicted", pred), ("position_std", std)):
             value.setflags(write=False)
             object.__setattr__(self, name, value)
@@ -330,6 +339,7 @@ class ObstacleTrack:
             "shape": None if self.shape is None else self.shape.wkt,
             "static": self.static,
             "occupancies": None if self.occupancies is None else [g.wkt for g in self.occupancies],
+            "speeds": None if self.speeds is None else self.speeds.tolist(),
         }
 
     @classmethod
@@ -348,6 +358,7 @@ class ObstacleTrack:
             shape=None if data.get("shape") is None else shapely.from_wkt(data["shape"]),
             static=bool(data.get("static", False)),
             occupancies=None if occ is None else np.asarray(shapely.from_wkt(occ), dtype=object),
+            speeds=None if data.get("speeds") is None else np.asarray(data["speeds"], dtype=np.float64),
         )
 
 

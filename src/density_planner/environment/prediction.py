@@ -1,0 +1,305 @@
+"""Prediction layer between scenes and planners: the occupancy a planner reads when it plans at time ``t``.
+
+An offline plan reads the scene's own occupancy grid, which on recorded traffic (CommonRoad) is the *recorded
+future* of every road user, blurred by its footprint model: it is known in advance. A planner that replans online
+at time ``t`` may only use what was observed up to ``t``. A :class:`Prediction` returns, for a time ``t`` and a
+horizon ``H``, an :class:`~density_planner.environment.grid.OccupancyGrid` *window* covering ``[t, t + H]``
+(slice 0 at ``t``, same origin, cell size and slice step as the scene's grid), rendered into the representation
+the planners already read:
+
+* ``oracle`` (:class:`OraclePrediction`, the paper's setting): the window of the scene's own grid (the blurred
+  recorded future, known in advance). Scenes without road data (random artificial scenes, inD windows, scene
+  files) always use it: they keep their own obstacle model.
+* ``observed`` (:class:`ObservedPrediction`, default on road scenes): built only from the road users' recorded
+  states at times ``<= t``. Each road user seen within the last ``max_observation_age`` seconds is propagated
+  from its last observed state ``(x, y, theta, v)`` at ``t_obs`` (the observed speed where the recording gives
+  one, else the finite difference of its last two positions) and, with ``motion_model = "ctrv"``, its turn rate
+  ``omega`` from its last two headings (0 when it has been seen only once):
+
+      constant velocity (``"cv"``):       x(tau) = x + v cos(theta) tau,  y(tau) = y + v sin(theta) tau,
+      constant turn rate (``"ctrv"``):    theta(tau) = theta + omega tau,
+                                          x(tau) = x + v / omega (sin theta(tau) - sin theta),
+                                          y(tau) = y - v / omega (cos theta(tau) - cos theta),
+
+  with ``tau = t_k - t_obs``. The position error grows linearly with ``tau``: standard deviations
+  ``e_along = std_rate_along * tau`` along and ``e_across = std_rate_across * tau`` across the heading
+  (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users that end before the
+  grid). The footprints are those of :mod:`.footprints` (split Gaussian convolved with the position error,
+  :func:`~.footprints.rasterise_road_users` with ``predicted_for = tau``) on the scene's static map (outside the
+  drivable area and static obstacles: occupied). Road users not yet seen at ``t`` are absent. Red-light strips keep
+  their recorded phases (signal programmes are known infrastructure) and set-based obstacles their sets (they are
+  the file's own prediction, not a recording).
+
+The observed prediction at ``t`` is a function of the observations at times ``<= t`` only
+(``tests/online/test_prediction.py`` changes the recording after ``t`` and checks the window is unchanged).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from ..checks import check_choice
+from .footprints import FootprintConfig, RoadUserTracks, rasterise_road_users
+from .grid import OccupancyGrid
+from .scene import Scene
+
+__all__ = [
+    "PredictionConfig",
+    "Prediction",
+    "OraclePrediction",
+    "ObservedPrediction",
+    "make_prediction",
+    "PREDICTION_KINDS",
+]
+
+log = logging.getLogger(__name__)
+
+#: prediction kinds, as named in ``[online.prediction] kind`` and ``--prediction``
+PREDICTION_KINDS = ("observed", "oracle")
+
+
+@dataclass(frozen=True)
+class PredictionConfig:
+    """``[online.prediction]``: which occupancy an online planner reads (module docstring)."""
+
+    #: "observed": built only from observations up to the replanning time (road scenes; scenes without road data
+    #: keep their own obstacle model); "oracle": the scene's blurred recorded future, known in advance (the paper)
+    kind: Literal["observed", "oracle"] = "observed"
+    #: motion model of the observed prediction: "cv" constant velocity and heading, "ctrv" constant turn rate
+    motion_model: Literal["cv", "ctrv"] = "cv"
+    #: growth of the along-heading position standard deviation [m per s of prediction time]
+    std_rate_along: float = 1.0
+    #: growth of the across-heading position standard deviation [m per s of prediction time]
+    std_rate_across: float = 0.3
+    #: road users not observed for longer than this at the replanning time are dropped (left the sensor range) [s]
+    max_observation_age: float = 0.5
+    #: turn rates below this are treated as zero in "ctrv" (straight-line limit) [rad/s]
+    min_turn_rate: float = 1e-3
+
+    def __post_init__(self) -> None:
+        check_choice("online.prediction.kind", self.kind, PREDICTION_KINDS)
+        check_choice("online.prediction.motion_model", self.motion_model, ("cv", "ctrv"))
+        for name in ("std_rate_along", "std_rate_across", "max_observation_age", "min_turn_rate"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"online.prediction.{name} must be a finite number >= 0, got {v!r}")
+
+
+class Prediction(ABC):
+    """Occupancy over a horizon as seen at a time ``t`` (module docstring)."""
+
+    #: name recorded in results
+    name: str = "prediction"
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+
+    def n_slices(self, horizon: float) -> int:
+        n = horizon / self.scene.grid.dt
+        if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 1:
+            raise ValueError(f"horizon {horizon:g} s must be a whole number of grid slices of {self.scene.grid.dt:g} s")
+        return int(round(n)) + 1
+
+    @abstractmethod
+    def window(self, t: float, horizon: float) -> OccupancyGrid:
+        """Occupancy ``(n, NX, NY)`` over ``[t, t + horizon]`` [s, absolute], slice 0 at ``t``."""
+
+    def scene_at(self, t: float, horizon: float, start: tuple[float, ...] | None = None) -> Scene:
+        """The scene a planner starting at ``t`` reads: the window grid, ``t_start = t`` and ``start`` (default:
+        the scene's)."""
+        grid = self.window(t, horizon)
+        return replace(self.scene, grid=grid, t_start=grid.t0, start=self.scene.start if start is None else start)
+
+
+class OraclePrediction(Prediction):
+    """The scene's own grid over ``[t, t + H]`` (the blurred recorded future, known in advance; the paper).
+
+    Past the end of the scene's grid the last slice is held (logged once): build the scene long enough for the
+    whole run (``density-planner drive`` does)."""
+
+    name = "oracle"
+
+    def __init__(self, scene: Scene):
+        super().__init__(scene)
+        self._warned = False
+
+    def window(self, t: float, horizon: float) -> OccupancyGrid:
+        grid = self.scene.grid
+        n = self.n_slices(horizon)
+        k0 = int(grid.slice_index(t))
+        idx = torch.arange(k0, k0 + n)
+        if int(idx[-1]) >= grid.n_slices:
+            if not self._warned:
+                log.warning("%s: the oracle window [%g, %g] s leaves the scene's grid (ends %g s); its last slice is "
+                            "held", self.scene.name, t, t + horizon, grid.t_end)
+                self._warned = True
+            idx = idx.clamp(max=grid.n_slices - 1)
+            probs = grid.probs.index_select(0, idx.to(grid.probs.device))
+        else:
+            probs = grid.probs[k0 : k0 + n]
+        return OccupancyGrid(probs, grid.origin, grid.cell_size, grid.dt, grid.t0 + k0 * grid.dt)
+
+
+@dataclass(frozen=True)
+class _Observation:
+    """Last observed states of the road users seen at a time (arrays over users)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    turn_rate: np.ndarray
+    t_obs: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    cls: np.ndarray
+    ids: np.ndarray
+
+
+class ObservedPrediction(Prediction):
+    """Occupancy predicted from the road users' observations up to ``t`` only (module docstring).
+
+    Needs a road scene (``scene.road``, CommonRoad). The static map (outside the drivable area, static obstacles)
+    is rasterised once on the scene's lattice.
+    """
+
+    name = "observed"
+
+    def __init__(self, scene: Scene, config: PredictionConfig | None = None,
+                 footprint: FootprintConfig | None = None):
+        super().__init__(scene)
+        if scene.road is None:
+            raise ValueError(f"scene {scene.name!r} has no road data (recorded road users); the observed prediction "
+                             "needs them (use the oracle prediction: the scene's own obstacle model)")
+        self.config = config or PredictionConfig()
+        fp = footprint or _scene_footprint(scene)
+        self.footprint = replace(fp, prediction_std_rate_along=self.config.std_rate_along,
+                                 prediction_std_rate_across=self.config.std_rate_across)
+        from .commonroad import obstacle_class_id
+
+        road = scene.road
+        self._users = []  # recorded road users (trajectory tracks)
+        self._fixed = []  # static obstacles, red lights, set-based obstacles: drawn as given
+        for tr in road.obstacles:
+            if tr.static:
+                continue  # in the static map
+            if tr.occupancies is not None or tr.kind == "red_light":
+                self._fixed.append(tr)
+                continue
+            rec = ~tr.predicted
+            speeds = None if tr.speeds is None else tr.speeds[rec]
+            self._users.append((tr, tr.times[rec], tr.poses[rec], speeds, obstacle_class_id(tr.kind)))
+        self._static: torch.Tensor | None = None
+
+    # -- observations -------------------------------------------------------------------------------------
+    def observe(self, t: float) -> _Observation:
+        """The last observed state of every road user seen in ``[t - max_observation_age, t]`` (recorded states at
+        times ``<= t`` only)."""
+        tol = 1e-6
+        rows = []
+        for tr, times, poses, speeds, cls in self._users:
+            k = int(np.searchsorted(times, t + tol, side="right")) - 1  # last recorded sample at or before t
+            if k < 0 or times[k] < t - self.config.max_observation_age - tol:
+                continue
+            x, y, th = poses[k]
+            v = w = 0.0
+            if k >= 1:
+                dt = times[k] - times[k - 1]
+                dx, dy = poses[k, 0] - poses[k - 1, 0], poses[k, 1] - poses[k - 1, 1]
+                v = (dx * math.cos(th) + dy * math.sin(th)) / dt  # signed speed along the heading
+                w = (math.remainder(th - poses[k - 1, 2], 2 * math.pi)) / dt
+            if speeds is not None:
+                v = float(speeds[k])  # the observed speed itself where the recording gives it
+            rows.append((x, y, th, v, w, times[k], tr.length, tr.width, cls, tr.obstacle_id))
+        if not rows:
+            z = np.zeros(0)
+            return _Observation(z, z, z, z, z, z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        a = np.asarray(rows, dtype=np.float64)
+        return _Observation(*(a[:, i] for i in range(8)), a[:, 8].astype(np.int64), a[:, 9].astype(np.int64))
+
+    def tracks(self, t: float, times: np.ndarray) -> RoadUserTracks:
+        """Road users predicted at ``times (T,)`` from the observations at ``t`` (``predicted_for = tau``)."""
+        obs = self.observe(t)
+        tau = np.maximum(np.asarray(times, dtype=np.float64)[None, :] - obs.t_obs[:, None], 0.0)  # (N, T)
+        th0, v = obs.heading[:, None], obs.speed[:, None]
+        w = obs.turn_rate[:, None]
+        if self.config.motion_model == "ctrv":
+            turning = np.abs(w) >= self.config.min_turn_rate
+            w_safe = np.where(turning, w, 1.0)
+            th = th0 + np.where(turning, w, 0.0) * tau
+            dx = np.where(turning, v / w_safe * (np.sin(th) - np.sin(th0)), v * np.cos(th0) * tau)
+            dy = np.where(turning, -v / w_safe * (np.cos(th) - np.cos(th0)), v * np.sin(th0) * tau)
+        else:
+            th = np.broadcast_to(th0, tau.shape).copy()
+            dx, dy = v * np.cos(th0) * tau, v * np.sin(th0) * tau
+        x, y = obs.x[:, None] + dx, obs.y[:, None] + dy
+        speed = np.broadcast_to(v, tau.shape).copy()
+        return RoadUserTracks(x, y, th, speed, obs.length, obs.width, obs.cls, obs.ids, tau)
+
+    # -- rendering ----------------------------------------------------------------------------------------
+    def static(self) -> torch.Tensor:
+        """``(NX, NY)`` static occupancy (outside the drivable area, static obstacles), computed once."""
+        if self._static is None:
+            from .commonroad import static_map
+
+            grid, road = self.scene.grid, self.scene.road
+            statics = [tr.polygons_at(np.array([road.t_start]))[0] for tr in road.obstacles if tr.static]
+            _, nx, ny = grid.shape
+            static, _ = static_map(None, grid.origin, grid.cell_size, (nx, ny), drivable=road.drivable,
+                                   static_polygons=[p for p in statics if p is not None])
+            self._static = torch.from_numpy(static)
+        return self._static
+
+    def window(self, t: float, horizon: float) -> OccupancyGrid:
+        grid = self.scene.grid
+        n = self.n_slices(horizon)
+        times = float(t) + grid.dt * np.arange(n)
+        _, nx, ny = grid.shape
+        probs = rasterise_road_users(self.tracks(t, times), origin=grid.origin, cell_size=grid.cell_size,
+                                     shape=(n, nx, ny), config=self.footprint, static=self.static())
+        if self._fixed:
+            import shapely
+
+            from .commonroad import _rasterise_polygons
+
+            polys: list[list[Any]] = [[] for _ in range(n)]
+            for tr in self._fixed:
+                for k, poly in enumerate(tr.polygons_at(times)):
+                    if poly is not None:
+                        polys[k].append(poly)
+            if any(polys):
+                _rasterise_polygons(probs, polys, grid.origin, grid.cell_size, shapely)
+        return OccupancyGrid(probs.to(grid.probs.device), grid.origin, grid.cell_size, grid.dt, float(t))
+
+
+def _scene_footprint(scene: Scene) -> FootprintConfig:
+    """The footprint model the scene was built with (``meta["config"]["footprint"]``), else the default."""
+    data = (scene.meta.get("config") or {}).get("footprint")
+    if not isinstance(data, dict):
+        return FootprintConfig()
+    from ..config import from_dict
+
+    try:
+        return from_dict(FootprintConfig, data)
+    except Exception:  # noqa: BLE001 - an older scene file: the default model
+        return FootprintConfig()
+
+
+def make_prediction(scene: Scene, config: PredictionConfig | None = None) -> Prediction:
+    """The prediction of ``config.kind`` for ``scene``; scenes without road data keep their own obstacle model (the
+    oracle, logged when ``observed`` was asked for)."""
+    config = config or PredictionConfig()
+    if config.kind == "oracle":
+        return OraclePrediction(scene)
+    if scene.road is None:
+        log.info("scene %s has no recorded road users: online planning reads its own obstacle model (oracle)",
+                 scene.name)
+        return OraclePrediction(scene)
+    return ObservedPrediction(scene, config)

@@ -1,0 +1,567 @@
+"""Online (receding-horizon) driving: replan every period from the current measurement with the current prediction.
+
+:func:`drive` runs the true vehicle in closed loop over a scene (``density-planner drive``):
+
+1. The true initial state is drawn from the scene's initial distribution (seeded). The first plan is the full
+   two-stage plan from that distribution at the scene start (the offline plan: not timed against the budget).
+2. Every ``period`` seconds (default 0.5 s) at time ``t``: the vehicle's measurement ``x_hat`` (the car's biased
+   heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the measurement
+   error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders the
+   occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
+   (10 s with the learned predictors) *warm-started* from the previous plan shifted by ``t - t_plan``
+   (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on ``replan_samples`` samples. Stage 1
+   (candidates) runs only when the warm start is invalid: no previous plan, or the measurement lies farther than
+   ``restart_distance`` from the previous reference at ``t``.
+3. A replan that fails (exception, no finite cost) or overruns its wall-time budget (``time_budget``, enforced
+   unless ``enforce_budget = false``) is discarded: the controller keeps tracking the previous reference, unless
+   that reference is unsafe under the current prediction (its nominal path's collision probability exceeds
+   ``unsafe_p_coll``) or has ended; then it tracks the least-risk braking manoeuvre (full braking with each
+   steering rate of ``brake_steer``, the one with the smallest nominal collision probability). Every fallback is
+   recorded with its reason.
+4. The controller tracks the newest reference (explicit Euler at ``evaluation.dt``, one state, as on the car).
+   The run ends when the goal's time interval has ended, or earlier when the vehicle is inside the goal region
+   during it (road scenes); scenes without a goal region run for ``duration`` (default: the planning horizon).
+5. The executed trajectory is judged against the ground truth (:func:`~density_planner.evaluation.verdict.judge`:
+   true shapes of the recorded road users, the road, the goal region in its time interval, the model box).
+
+Because every replan has the full horizon ``H`` and the goal cost of the region *in time*, online driving can meet
+goals whose time interval starts after the offline plan's horizon (the offline plan is clamped to 10 s).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..checks import check_seed
+from ..control.base import TrackingController
+from ..control.reference import Reference, make_reference
+from ..environment.prediction import Prediction, PredictionConfig, make_prediction
+from ..environment.scene import Scene
+from ..planners.base import Planner, PlanResult, PlanStatus
+from ..planners.problem import PlanningConfig, PlanningProblem
+from ..risk.collision import RiskConfig
+from ..systems.base import System
+from .config import EvaluationConfig
+from .verdict import Verdict, VerdictConfig, judge
+
+__all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "shift_parameters", "braking_parameters",
+           "warm_replan", "recentred"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """``[online]``: the receding-horizon runner (module docstring)."""
+
+    #: time between replans [s] (a multiple of the planning grid step)
+    period: float = 0.5
+    #: stage-2 iterations of a warm-started replan
+    replan_epochs: int = 10
+    #: initial samples of a replan (0: density_planner.n_samples)
+    replan_samples: int = 0
+    #: wall-time budget of one replan [s] (prediction rendering excluded: the perception stack's work)
+    time_budget: float = 0.5
+    #: discard replans that overrun ``time_budget`` (false: record the overrun, use the plan anyway: the compute
+    #: is then treated as instantaneous, e.g. to measure what the method would do on a faster machine)
+    enforce_budget: bool = True
+    #: run length [s] on scenes without a goal time interval; 0 = the planning horizon
+    duration: float = 0.0
+    #: cap on the run length [s] (road scenes run until the goal's time interval ends)
+    max_duration: float = 30.0
+    #: stop as soon as the vehicle is in the goal region during its time interval (road scenes)
+    stop_at_goal: bool = True
+    #: the previous reference is unsafe (fallback to braking) when its nominal path's collision probability under
+    #: the current prediction exceeds this
+    unsafe_p_coll: float = 0.2
+    #: the warm start is invalid (stage 1 reruns) when the measurement is farther than this from the previous
+    #: reference's position at the replanning time [m]
+    restart_distance: float = 3.0
+    #: steering rates of the braking candidates, as fractions of the largest steering rate
+    brake_steer: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    #: seed of the true initial state
+    seed: int = 0
+    #: the occupancy an online planner reads
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("period", "time_budget", "max_duration"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"online.{name} must be a finite number > 0, got {v!r}")
+        for name in ("duration", "unsafe_p_coll", "restart_distance"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"online.{name} must be a finite number >= 0, got {v!r}")
+        for name in ("replan_epochs",):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"online.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.replan_samples, bool) or not isinstance(self.replan_samples, int) or self.replan_samples < 0:
+            raise ValueError(f"online.replan_samples must be an integer >= 0, got {self.replan_samples!r}")
+        if not self.brake_steer or not all(math.isfinite(s) and -1 <= s <= 1 for s in self.brake_steer):
+            raise ValueError(f"online.brake_steer must be fractions in [-1, 1], got {self.brake_steer!r}")
+        check_seed("online.seed", self.seed)
+
+
+@dataclass
+class Replan:
+    """One replanning event (a row of ``run.json``)."""
+
+    #: absolute time [s]
+    t: float
+    #: "success", "failed", "overrun" or "initial" (the first, offline plan)
+    status: str
+    #: wall time of the replan [s] (excludes the prediction)
+    wall_time: float
+    #: wall time of rendering the prediction [s]
+    prediction_time: float = 0.0
+    #: collision probability (max over time) of the new plan's predicted sample cloud, NaN without one
+    p_coll: float = math.nan
+    #: the warm start was used (False: stage 1 ran)
+    warm_start: bool = True
+    #: None, "previous" (kept the previous reference) or "brake" (least-risk braking)
+    fallback: str | None = None
+    #: why the plan was discarded / why the fallback was needed
+    reason: str = ""
+    #: nominal collision probability of the kept previous reference under the current prediction (fallbacks)
+    previous_p_coll: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        def num(v: float) -> float | None:
+            return None if not math.isfinite(v) else float(v)
+
+        return {"t": self.t, "status": self.status, "wall_time": self.wall_time, "prediction_time":
+                self.prediction_time, "p_coll": num(self.p_coll), "warm_start": self.warm_start,
+                "fallback": self.fallback, "reason": self.reason, "previous_p_coll": num(self.previous_p_coll)}
+
+
+@dataclass
+class _Active:
+    """The reference being tracked: the plan it came from, its start time and its per-step values."""
+
+    reference: Reference
+    t0: float
+    params: Tensor | None
+    x_ref: Tensor  # (K, nx) at the integration steps
+    u_ref: Tensor  # (K, nu)
+    kind: str  # "plan" or "brake"
+
+
+@dataclass
+class DriveResult:
+    """An online run.
+
+    Attributes:
+        times: ``(T,)`` absolute times [s] of the executed states (planning grid).
+        states: ``(T, nx)`` executed true states.
+        inputs: ``(T - 1, nu)`` applied inputs at those times.
+        replans: every replanning event.
+        verdict: the executed trajectory judged against the ground truth.
+        true_initial_state: ``(nx,)``.
+        snapshots: per replan, what the figures draw: ``{"t", "plan" (n, 2) positions of the tracked reference,
+            "position" (2,), "occupancy" (X, Y) predicted occupancy at t, "swept" (X, Y) its maximum over the next
+            ``snapshot_lookahead`` seconds, "extent" (xmin, xmax, ymin, ymax)}`` (cropped around the vehicle).
+        prediction: the prediction's name.
+        controller_step_time: median wall time of one controller evaluation (one state) [s].
+    """
+
+    times: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    replans: list[Replan]
+    verdict: Verdict | None
+    true_initial_state: np.ndarray
+    snapshots: list[dict[str, Any]]
+    prediction: str
+    controller_step_time: float
+    initial_plan: PlanResult | None = None
+
+    def summary(self) -> dict[str, Any]:
+        walls = np.array([r.wall_time for r in self.replans if r.status != "initial"])
+        fallbacks = [r for r in self.replans if r.fallback]
+        pc = np.array([r.p_coll for r in self.replans if math.isfinite(r.p_coll)])
+        return {
+            "prediction": self.prediction,
+            "status": None if self.verdict is None else self.verdict.status,
+            "verdict": None if self.verdict is None else self.verdict.to_dict(),
+            "duration": float(self.times[-1] - self.times[0]) if len(self.times) else 0.0,
+            "n_replans": int(walls.size),
+            "replan_wall_time_median": float(np.median(walls)) if walls.size else None,
+            "replan_wall_time_p95": float(np.percentile(walls, 95)) if walls.size else None,
+            "n_fallbacks": len(fallbacks),
+            "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
+            "p_coll_mean": float(pc.mean()) if pc.size else None,
+            "controller_step_time": self.controller_step_time,
+            "true_initial_state": self.true_initial_state.tolist(),
+            "replans": [r.to_dict() for r in self.replans],
+            "times": self.times.tolist(),
+            "states": self.states.tolist(),
+            "inputs": self.inputs.tolist(),
+        }
+
+
+# ------------------------------------------------------------------------------------------------ warm start
+def shift_parameters(params: Tensor, shift: float, segment_duration: float, tail: Tensor | None = None) -> Tensor:
+    """The piecewise-constant inputs ``params (nu, S)`` of a plan, as seen ``shift`` seconds later: new segment
+    ``j`` gets the time average of the old inputs over ``[shift + j d, shift + (j + 1) d]`` (``d`` the segment
+    duration); the part past the old horizon gets ``tail (nu,)`` (default: the last old input). For a shift of
+    whole segments this is the exact shift ``params[:, m:]`` followed by ``m`` columns of the tail."""
+    nu, n = params.shape
+    d = float(segment_duration)
+    # overlap of new segment j = [s + j d, s + (j + 1) d] with old segment i = [i d, (i + 1) d]
+    starts = shift + d * torch.arange(n, dtype=torch.float64)
+    edges = d * torch.arange(n + 1, dtype=torch.float64)
+    lo = torch.maximum(starts[:, None], edges[None, :-1])
+    hi = torch.minimum(starts[:, None] + d, edges[None, 1:])
+    w = ((hi - lo).clamp_min(0.0) / d).to(params)  # (n_new, n_old)
+    past = ((starts + d - torch.maximum(starts, edges[-1:])).clamp_min(0.0) / d).to(params)  # (n_new,)
+    tail = params[:, -1] if tail is None else tail.to(params)
+    return params @ w.T + tail[:, None] * past[None, :]
+
+
+def recentred(dist: Any, mean: Tensor) -> Any:
+    """The initial law ``dist`` moved so that its mean is ``mean`` (a :class:`GaussianMixture`: every component and
+    the truncation box shifted by the same offset; the shape of the law, i.e. the measurement error law, is
+    unchanged)."""
+    from ..density.distributions import GaussianMixture
+
+    if not isinstance(dist, GaussianMixture):
+        raise ValueError(f"re-centring needs a GaussianMixture initial law, got {type(dist).__name__}")
+    delta = mean.to(torch.float64).reshape(-1) - dist.mean.to(torch.float64)
+    covs = dist.std**2 if dist.diagonal else dist._chol @ dist._chol.transpose(-1, -2)
+    low = None if dist.low is None else dist.low + delta
+    high = None if dist.high is None else dist.high + delta
+    return GaussianMixture(dist.weights, dist.means + delta, covs, low=low, high=high)
+
+
+def braking_parameters(system: System, v0: float, segment_duration: float, n_segments: int,
+                       steer: tuple[float, ...]) -> Tensor:
+    """``(len(steer), nu, S)`` braking manoeuvres of the car from speed ``v0``: the largest deceleration until
+    standstill (the last braking segment only removes the remaining speed), with a constant steering rate
+    ``steer * omega_max`` while moving, 0 once stopped."""
+    lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in system.input_bounds)
+    a_min = float(lo[1])
+    v = max(float(v0), 0.0)
+    acc, moving = [], []
+    for _ in range(n_segments):
+        a = max(a_min, -v / segment_duration) if v > 1e-9 else 0.0
+        acc.append(a)
+        moving.append(v > 1e-9)
+        v = max(v + a * segment_duration, 0.0)
+    acc_t = torch.tensor(acc, dtype=torch.float64)
+    mov = torch.tensor(moving, dtype=torch.float64)
+    out = torch.zeros(len(steer), system.nu, n_segments, dtype=torch.float64)
+    for i, s in enumerate(steer):
+        out[i, 0] = (s * float(hi[0]) if s >= 0 else -s * float(lo[0])) * mov
+        out[i, 1] = acc_t
+    return out
+
+
+def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
+                seed: int = 0) -> tuple[PlanResult, bool]:
+    """A replan of the density planner: stage 2 (``epochs`` iterations, ``samples`` initial samples) from the
+    warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``. Returns the result and whether
+    the warm start was used. The reported collision probability is that of the best iterate's sample cloud (no
+    fresh draw: a replan is judged by the next one)."""
+    cfg = planner.config
+    fast = copy.copy(planner)
+    fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
+                          fresh_evaluation_samples=False)
+    fast.progress = False
+    t0 = time.perf_counter()
+    gen = torch.Generator().manual_seed(int(seed))
+    timings: dict[str, float] = {}
+    used_warm = warm is not None
+    if warm is None:
+        warm, _, _ = fast.initialise(problem, gen)
+        timings["stage1"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    (best, params, ref, traj), hist, (_x0, _lr0, log_q0), slices = fast.refine(
+        problem, warm.to(dtype=fast.dtype, device=fast.device), gen)
+    timings["stage2"] = time.perf_counter() - t1
+    if params is None:
+        timings["total"] = time.perf_counter() - t0
+        return PlanResult(planner.name, PlanStatus.FAILED, params=warm, timings=timings,
+                          message="stage 2 produced no finite cost"), used_warm
+    cost, coll = fast.evaluate(problem, ref, traj, log_q0, slices)
+    timings["total"] = time.perf_counter() - t0
+    return PlanResult(planner.name, PlanStatus.SUCCESS, params=params, reference=ref.select(0),
+                      states=ref.x_plan[0], cost=cost, collision=coll, timings=timings,
+                      cost_history={"stage2": hist}, iterations={"stage2": int(epochs)}), used_warm
+
+
+# --------------------------------------------------------------------------------------------------- runner
+def _run_length(scene: Scene, config: OnlineConfig, horizon: float) -> float:
+    road = scene.road
+    if road is not None:
+        return min(road.goal.time_interval[1] - scene.t_start, config.max_duration)
+    return min(config.duration or horizon, config.max_duration)
+
+
+def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_dt: float, states: Tensor) -> float:
+    """Collision probability (max over time) of one nominal trajectory ``states (T, nx)`` on the planning grid from
+    absolute time ``t`` in the occupancy ``grid`` (the part inside the grid's span)."""
+    from ..risk.collision import CollisionModel
+
+    n = min(states.shape[0], int(math.floor((grid.t_end - t) / plan_dt + 1e-6)) + 1)
+    if n < 1:
+        return math.nan
+    slices = grid.slices_for(t, plan_dt, n).to(states.device)
+    rep = CollisionModel(grid.to(states.device), system, risk).probability(states[None, :n], slices)
+    return float(rep.max)
+
+
+def drive(
+    scene: Scene,
+    planner: Planner,
+    controller: TrackingController,
+    *,
+    system: System,
+    config: OnlineConfig | None = None,
+    planning: PlanningConfig | None = None,
+    risk: RiskConfig | None = None,
+    evaluation: EvaluationConfig | None = None,
+    verdict_config: VerdictConfig | None = None,
+    distribution_seed: int = 0,
+    prediction: Prediction | None = None,
+    true_state: Tensor | None = None,
+    initial_plan: PlanResult | None = None,
+    keep_snapshots: bool = True,
+    snapshot_half_width: float = 45.0,
+    snapshot_cells: int = 220,
+    snapshot_lookahead: float = 3.0,
+    progress: Any = None,
+) -> DriveResult:
+    """Drive ``scene`` online (module docstring). ``planner`` needs ``initialise`` / ``refine`` / ``evaluate`` (the
+    density planner) for warm-started replans; other planners replan with a full ``plan``.
+
+    Args:
+        prediction: the occupancy prediction (default: ``make_prediction(scene, config.prediction)``).
+        true_state: ``(nx,)`` true initial state (default: drawn from the initial distribution with
+            ``config.seed``).
+        initial_plan: the offline plan from the scene start, when already computed (e.g. to compare with it).
+        progress: callable ``progress(t, replan)`` after each replan (terminal progress lines).
+        keep_snapshots: keep the figure data of every replan (``DriveResult.snapshots``), a window of
+            ``snapshot_half_width`` [m] around the vehicle at most ``snapshot_cells`` cells wide.
+    """
+    config = config or OnlineConfig()
+    planning = planning or PlanningConfig()
+    risk = risk or RiskConfig()
+    evaluation = evaluation or EvaluationConfig()
+    prediction = prediction or make_prediction(scene, config.prediction)
+    problem0 = PlanningProblem.from_scene(scene, seed=distribution_seed, planning=planning, risk=risk, system=system)
+    par = problem0.parameterization
+    horizon = par.horizon
+    plan_dt, dt = par.plan_dt, float(evaluation.dt)
+    ratio = plan_dt / dt
+    per_plan = int(round(ratio))
+    if abs(ratio - per_plan) > 1e-6 or per_plan < 1:
+        raise ValueError(f"evaluation.dt ({dt}) must divide planning.plan_dt ({plan_dt})")
+    steps_per_period = config.period / plan_dt
+    if abs(steps_per_period - round(steps_per_period)) > 1e-6 or round(steps_per_period) < 1:
+        raise ValueError(f"online.period ({config.period} s) must be a whole number of planning steps of "
+                         f"{plan_dt} s")
+    period_steps = int(round(steps_per_period))
+    length = _run_length(scene, config, horizon)
+    n_total = max(1, int(math.floor(length / plan_dt + 1e-9)))  # planning steps driven
+    dtype = getattr(planner, "dtype", torch.float32)
+    device = getattr(planner, "device", torch.device("cpu"))
+    law0 = problem0.initial_distribution
+    is_car = list(getattr(system, "state_names", ()))[-1:] == ["theta_bias"]
+    a_min = float(system.input_bounds[0][1]) if is_car else 0.0
+    warm_capable = all(hasattr(planner, m) for m in ("initialise", "refine", "evaluate"))
+
+    if true_state is None:
+        gen = torch.Generator().manual_seed(config.seed)
+        true_state = problem0.initial_distribution.sample(1, gen, dtype=torch.float64)[0]
+    x = true_state.to(dtype=dtype, device=device).reshape(-1).clone()
+    x_init = x.detach().cpu().numpy().astype(np.float64)
+
+    def activate(ref: Reference, t0: float, params: Tensor | None, kind: str) -> _Active:
+        n_steps = int(round(ref.n_steps * ref.dt / dt))
+        xr, ur = ref.stage_values(dt, n_steps, (0.0,))
+        return _Active(ref, t0, params, xr[:, 0].to(dtype), ur[:, 0].to(dtype), kind)
+
+    def brake(grid: Any, x_now: Tensor, t: float) -> tuple[_Active, float]:
+        """The least-risk braking manoeuvre from the measurement ``x_now`` at ``t`` in ``grid``."""
+        cand = braking_parameters(system, float(x_now[3]), par.segment_duration, par.n_segments,
+                                  config.brake_steer).to(dtype=dtype, device=device)
+        start = x_now.detach().to(dtype=dtype, device=device).clone()
+        if is_car:
+            start[-1] = 0.0  # the car's heading bias is not part of a reference
+        refs = make_reference(system, start, cand, par)
+        risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i]) for i in range(cand.shape[0])]
+        risks = [r if math.isfinite(r) else math.inf for r in risks]
+        best = int(np.argmin(risks))
+        return activate(refs.select(best), t, cand[best], "brake"), float(risks[best])
+
+    replans: list[Replan] = []
+    snapshots: list[dict[str, Any]] = []
+
+    def snapshot(t: float, grid: Any, pos: np.ndarray) -> None:
+        if not keep_snapshots:
+            return
+        from ..viz.plan import _crop
+
+        half = snapshot_half_width
+        (i0, i1, j0, j1), extent, st = _crop(grid, (pos[0] - half, pos[0] + half, pos[1] - half, pos[1] + half),
+                                             snapshot_cells)
+        n_ahead = max(1, min(grid.n_slices, int(round(snapshot_lookahead / grid.dt)) + 1))
+        k0 = int(grid.slice_index(t, clamp=True))
+        sub = grid.probs[k0 : k0 + n_ahead, i0:i1:st, j0:j1:st].detach().cpu().float()
+        snapshots.append({"t": float(t), "plan": active.reference.x_plan[:, :2].detach().cpu().numpy().astype(float),
+                          "position": np.asarray(pos[:2], dtype=float), "occupancy": sub[0].numpy(),
+                          "swept": sub.amax(dim=0).numpy(), "extent": tuple(float(e) for e in extent)})
+    t_start = scene.t_start
+    # -- the first (offline) plan from the initial distribution
+    if initial_plan is None:
+        t0 = time.perf_counter()
+        initial_plan = planner.plan(problem0)
+        wall0 = time.perf_counter() - t0
+    else:
+        wall0 = float(initial_plan.timings.get("total", math.nan))
+    p0 = float(initial_plan.collision.max) if initial_plan.collision is not None else math.nan
+    if initial_plan.ok and initial_plan.reference is not None:
+        active = activate(initial_plan.reference, t_start, initial_plan.params, "plan")
+        replans.append(Replan(t_start, "initial", wall0, p_coll=p0, warm_start=False))
+    else:
+        active, p_b = brake(problem0.scene.grid, problem0.reference_start(dtype, device), t_start)
+        replans.append(Replan(t_start, "initial", wall0, warm_start=False, fallback="brake",
+                              reason=f"the initial plan failed: {initial_plan.message or initial_plan.status.value}",
+                              previous_p_coll=p_b))
+    snapshot(t_start, prediction.window(t_start, horizon), x_init)
+
+    states = [x.detach().cpu().numpy().astype(np.float64)]
+    inputs: list[np.ndarray] = []
+    ctrl_times: list[float] = []
+    road = scene.road
+    k = 0
+    i_replan = 0
+    while k < n_total:
+        t = t_start + k * plan_dt
+        if k > 0 and k % period_steps == 0:
+            i_replan += 1
+            x_hat = system.measure(x[None])[0]
+            centre = tuple(float(v) for v in x_hat.detach().cpu())
+            tp = time.perf_counter()
+            rec = Replan(t, "failed", 0.0)
+            prob = None
+            grid_t = prediction.window(t, horizon)
+            rec.prediction_time = time.perf_counter() - tp
+            try:
+                scene_t = replace(prediction.scene, grid=grid_t, t_start=grid_t.t0, start=centre)
+                mean = x_hat.detach().to(torch.float64).clone()
+                if is_car:
+                    mean[-1] = law0.mean[-1]  # the heading bias keeps its law (unknown to the vehicle)
+                prob = PlanningProblem(scene_t, recentred(law0, mean), system, par, risk)
+            except ValueError as exc:
+                rec.reason = f"no planning problem at the measurement: {exc}"
+            result = None
+            if prob is not None:
+                warm = None
+                offset = int(round((t - active.t0) / dt))
+                if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
+                    gap = float(torch.linalg.vector_norm(active.x_ref[offset, :2] - x_hat[:2].to(dtype)))
+                    if gap <= config.restart_distance:
+                        tail = None
+                        if is_car:  # past the old horizon: straight, braking towards standstill
+                            v_end = float(active.reference.x[-1, 3])
+                            tail = torch.tensor([0.0, max(a_min, -v_end / par.segment_duration)],
+                                                dtype=torch.float64)
+                        warm = shift_parameters(active.params.detach().to(torch.float64), t - active.t0,
+                                                par.segment_duration, tail)
+                t1 = time.perf_counter()
+                try:
+                    if warm_capable:
+                        result, rec.warm_start = warm_replan(planner, prob, warm, epochs=config.replan_epochs,
+                                                             samples=config.replan_samples, seed=i_replan)
+                    else:
+                        result, rec.warm_start = planner.plan(prob), False
+                except Exception as exc:  # noqa: BLE001 - a failed replan is a recorded fallback, never a crash
+                    result = None
+                    rec.reason = f"replan raised {type(exc).__name__}: {exc}"
+                rec.wall_time = time.perf_counter() - t1
+                if result is not None and not result.ok:
+                    rec.reason = f"replan {result.status.value}: {result.message}"
+                    result = None
+                elif result is not None:
+                    rec.p_coll = float(result.collision.max) if result.collision is not None else math.nan
+                    rec.status = "success"
+                    if rec.wall_time > config.time_budget:
+                        rec.status = "overrun"
+                        if config.enforce_budget:
+                            rec.reason = (f"replan took {rec.wall_time:.3f} s > online.time_budget = "
+                                          f"{config.time_budget:g} s")
+                            result = None
+            if result is not None and result.reference is not None:
+                active = activate(result.reference, t, result.params, "plan")
+            else:
+                offset = int(round((t - active.t0) / dt))
+                ended = offset + period_steps * per_plan > active.x_ref.shape[0]
+                p_prev = math.nan
+                if not ended:
+                    stride = int(round(plan_dt / active.reference.dt))
+                    p_prev = _nominal_p_coll(grid_t, system, risk, t, plan_dt, active.reference.x[offset::stride])
+                rec.previous_p_coll = p_prev
+                if ended or not math.isfinite(p_prev) or p_prev > config.unsafe_p_coll:
+                    why = "it has ended" if ended else (
+                        f"its nominal P_coll {p_prev:.3f} > online.unsafe_p_coll = {config.unsafe_p_coll:g}"
+                        if math.isfinite(p_prev) else "its risk cannot be evaluated")
+                    active, p_b = brake(grid_t, x_hat, t)
+                    rec.fallback = "brake"
+                    rec.reason += f"; previous reference unsafe ({why}): least-risk braking (P_coll {p_b:.3f})"
+                else:
+                    rec.fallback = "previous"
+                    rec.reason += f"; tracking the previous reference (P_coll {p_prev:.3f})"
+                rec.reason = rec.reason.lstrip("; ")
+                log.info("t = %.2f s: fallback %s: %s", t, rec.fallback, rec.reason)
+            replans.append(rec)
+            if progress is not None:
+                progress(t, rec)
+            snapshot(t, grid_t, x.detach().cpu().numpy())
+        # -- track the active reference for one planning step (per_plan integration steps, one state)
+        offset = int(round((t - active.t0) / dt))
+        if offset + per_plan > active.x_ref.shape[0]:  # the reference ended (long fallback): brake from here
+            x_hat = system.measure(x[None])[0]
+            active, p_b = brake(prediction.window(t, horizon), x_hat, t)
+            replans.append(Replan(t, "failed", 0.0, fallback="brake", reason="the tracked reference ended",
+                                  previous_p_coll=p_b))
+            offset = 0
+        u_first = None
+        with torch.no_grad():
+            for j in range(per_plan):
+                xr, ur = active.x_ref[offset + j][None], active.u_ref[offset + j][None]
+                tc = time.perf_counter()
+                u = controller(system.measure(x[None]), xr, ur)
+                ctrl_times.append(time.perf_counter() - tc)
+                if u_first is None:
+                    u_first = u[0]
+                x = x + dt * system.f(x[None], u)[0]
+        inputs.append(u_first.detach().cpu().numpy().astype(np.float64))
+        states.append(x.detach().cpu().numpy().astype(np.float64))
+        k += 1
+        if road is not None and config.stop_at_goal:
+            tk = np.array([t_start + k * plan_dt])
+            xy = states[-1][None, :2]
+            inside = road.goal.contains(xy, tk, v=np.array([states[-1][3]]), theta=np.array([states[-1][2]]))
+            if bool(inside[0]):
+                log.info("t = %.2f s: in the goal region during its time interval; stopping", float(tk[0]))
+                break
+    x_all = np.stack(states)
+    u_all = np.stack(inputs) if inputs else np.zeros((0, system.nu))
+    times = t_start + plan_dt * np.arange(x_all.shape[0])
+    pcs = [r.p_coll for r in replans if math.isfinite(r.p_coll)]
+    verdict = judge(scene, x_all, u_all, system=system, dt=plan_dt, p_coll_max=max(pcs) if pcs else math.nan,
+                    config=verdict_config, evaluation=evaluation)
+    return DriveResult(times, x_all, u_all, replans, verdict, x_init, snapshots, prediction.name,
+                       float(np.median(ctrl_times)) if ctrl_times else math.nan, initial_plan)
