@@ -1,0 +1,179 @@
+"""Offline vs online density planning (and MPC M0) on CommonRoad scenarios, judged by the verdict of the executed
+trajectory against the ground truth (issue 17).
+
+For every chosen scenario, one true initial state (drawn from the initial distribution with ``online.seed``):
+
+* ``offline``: the density planner's full plan from the initial distribution (horizon clamped to 10 s), tracked
+  by the controller from the true state;
+* ``online-observed`` / ``online-oracle``: ``drive`` (receding horizon, replans every ``online.period``) with the
+  observed-only prediction / the oracle (recorded future), both starting from that same offline plan;
+* ``mpc`` (``--mpc``): MPC M0 step by step from the true state (reads the scene's grid: the oracle occupancy).
+
+Usage::
+
+    PYTHONPATH=src python benchmarks/bench_online.py --scenarios ../shared/data/commonroad-suite --every 10 \
+        --out results/online --set online.replan_samples=100
+
+Writes ``OUT/records.jsonl`` (one line per scenario and method; an existing file is resumed) and prints a markdown
+table. Wall times are those of this machine (``--threads`` torch threads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenarios", type=Path, required=True, help="folder of CommonRoad *.xml")
+    p.add_argument("--every", type=int, default=10, help="take every N-th file of the sorted folder (default 10)")
+    p.add_argument("--files", nargs="*", default=None, help="explicit file names instead of --every")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--mpc", action="store_true", help="also run MPC M0")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    logging.getLogger("commonroad").setLevel(logging.ERROR)
+
+    from density_planner.config import load_config, update
+    from density_planner.control.registry import model_set_for_scene
+    from density_planner.environment.prediction import make_prediction
+    from density_planner.evaluation.online import drive
+    from density_planner.evaluation.simulate import execute
+    from density_planner.evaluation.verdict import judge
+    from density_planner.planners.problem import PlanningProblem
+    from density_planner.planners.registry import make_planner
+    from density_planner.settings import RunConfig
+    from density_planner.systems.car import KinematicCar
+
+    from density_planner.cli.drive import _scene_for_drive
+    from density_planner.cli.plan import build_context
+
+    run_config = load_config(RunConfig, None, args.overrides)
+    files = sorted(args.scenarios.glob("*.xml"))
+    if args.files:
+        files = [f for f in files if f.name in set(args.files)]
+    else:
+        files = files[:: args.every]
+    args.out.mkdir(parents=True, exist_ok=True)
+    rec_path = args.out / "records.jsonl"
+    done = set()
+    if rec_path.exists():
+        for line in rec_path.read_text().splitlines():
+            r = json.loads(line)
+            done.add((r["scenario"], r["method"]))
+
+    def write(rec: dict) -> None:
+        with rec_path.open("a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+
+    for f in files:
+        methods = ["offline", "online-observed", "online-oracle"] + (["mpc"] if args.mpc else [])
+        if all((f.name, m) in done for m in methods):
+            continue
+        ns = argparse.Namespace(kind="commonroad", file=f, seed=None, data_dir=None, recording=None, start_time=None,
+                                models=None, controller=None, density=None, device="cpu", dtype="float32",
+                                verbose=0)
+        # the oracle run needs the grid to cover its windows: build the scene for it (also used by the others)
+        cfg = update(run_config, {"online": {"prediction": {"kind": "oracle"}}})
+        t0 = time.perf_counter()
+        try:
+            scene, cfg = _scene_for_drive(ns, cfg)
+        except Exception as exc:  # noqa: BLE001 - a refused scenario is a record
+            for m in methods:
+                write({"scenario": f.name, "method": m, "status": "refused", "message": str(exc).splitlines()[0]})
+            print(f"{f.name}: refused: {str(exc).splitlines()[0]}", flush=True)
+            continue
+        t_scene = time.perf_counter() - t0
+        system = KinematicCar(model_set_for_scene("commonroad", None).car)
+        problem = PlanningProblem.from_scene(scene, seed=0, planning=cfg.planning, risk=cfg.risk, system=system)
+        ctx = build_context(ns, cfg, progress=False, parameterization=problem.parameterization)
+        planner = make_planner("density", ctx)
+        x0 = problem.initial_distribution.sample(1, torch.Generator().manual_seed(cfg.online.seed),
+                                                 dtype=torch.float64)[0]
+        t1 = time.perf_counter()
+        plan = planner.plan(problem)
+        t_plan = time.perf_counter() - t1
+        base = {"scenario": f.name, "scene_time": t_scene, "goal_interval": list(scene.road.goal.time_interval),
+                "t_start": scene.t_start}
+        if (f.name, "offline") not in done:
+            ex = execute(planner, problem, x0.to(torch.float32), plan=plan, controller=ctx.controller,
+                         config=cfg.evaluation, time_online=False)
+            v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
+                      dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
+                if ex.states.shape[0] else None
+            pc = float(plan.collision.max) if plan.collision is not None else math.nan
+            write({**base, "method": "offline", "status": None if v is None else v.status,
+                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_plan})
+            print(f"{f.name} offline: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_plan:.1f} s)",
+                  flush=True)
+        for kind in ("observed", "oracle"):
+            m = f"online-{kind}"
+            if (f.name, m) in done:
+                continue
+            ocfg = update(cfg.online, {"prediction": {"kind": kind}})
+            t2 = time.perf_counter()
+            try:
+                res = drive(scene, planner, ctx.controller, system=system, config=ocfg, planning=cfg.planning,
+                            risk=cfg.risk, evaluation=cfg.evaluation, verdict_config=cfg.verdict,
+                            prediction=make_prediction(scene, ocfg.prediction), true_state=x0, initial_plan=plan,
+                            keep_snapshots=False)
+            except Exception as exc:  # noqa: BLE001 - recorded
+                write({**base, "method": m, "status": "error", "message": f"{type(exc).__name__}: {exc}"})
+                print(f"{f.name} {m}: error {exc}", flush=True)
+                continue
+            s = res.summary()
+            for key in ("times", "states", "inputs"):
+                s.pop(key)
+            write({**base, "method": m, "status": s["status"], "p_coll": s["p_coll_mean"], "run": s,
+                   "wall": time.perf_counter() - t2})
+            print(f"{f.name} {m}: {res.verdict.summary()} mean P_coll {s['p_coll_mean']}, {s['n_replans']} replans "
+                  f"(median {s['replan_wall_time_median']}), fallbacks {s['fallbacks']}", flush=True)
+        if args.mpc and (f.name, "mpc") not in done:
+            mpc = make_planner("mpc", ctx)
+            t3 = time.perf_counter()
+            try:
+                ex = execute(mpc, problem, x0.to(torch.float32), config=cfg.evaluation)
+                v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
+                          dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation)
+                write({**base, "method": "mpc", "status": v.status, "verdict": v.to_dict(), "p_coll": math.nan,
+                       "wall": time.perf_counter() - t3})
+                print(f"{f.name} mpc: {v.summary()}", flush=True)
+            except Exception as exc:  # noqa: BLE001 - recorded
+                write({**base, "method": "mpc", "status": "error", "message": f"{type(exc).__name__}: {exc}"})
+                print(f"{f.name} mpc: error {exc}", flush=True)
+    table(rec_path)
+    return 0
+
+
+def table(rec_path: Path) -> None:
+    """Markdown table: per method, success rate by the verdict and mean P_coll."""
+    recs = [json.loads(line) for line in rec_path.read_text().splitlines()]
+    methods = sorted({r["method"] for r in recs})
+    n_sc = len({r["scenario"] for r in recs})
+    print(f"\n{n_sc} scenarios\n\n| method | verdict success | goal reached | collision-free | mean P_coll |")
+    print("|---|---|---|---|---|")
+    for m in methods:
+        rs = [r for r in recs if r["method"] == m]
+        ok = sum(r.get("status") == "success" for r in rs)
+        goal = sum(bool((r.get("verdict") or (r.get("run") or {}).get("verdict") or {}).get("goal_reached"))
+                   for r in rs)
+        free = sum(bool((r.get("verdict") or (r.get("run") or {}).get("verdict") or {}).get("collision_free"))
+                   for r in rs)
+        pcs = [r["p_coll"] for r in rs if isinstance(r.get("p_coll"), (int, float)) and math.isfinite(r["p_coll"])]
+        print(f"| {m} | {ok}/{len(rs)} | {goal}/{len(rs)} | {free}/{len(rs)} | "
+              f"{np.mean(pcs) if pcs else float('nan'):.3f} |")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""The receding-horizon runner: warm start (shift of the previous plan), re-centred initial law, braking
+manoeuvre, recorded fallbacks, and an end-to-end drive."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from density_planner.evaluation.online import (
+    OnlineConfig,
+    braking_parameters,
+    drive,
+    recentred,
+    shift_parameters,
+    warm_replan,
+)
+from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
+from density_planner.planners.problem import PlanningProblem
+from density_planner.systems.car import KinematicCar
+
+
+# ------------------------------------------------------------------------------------------- pure functions
+def test_shift_by_whole_segments_is_the_exact_shift():
+    p = torch.arange(20, dtype=torch.float64).reshape(2, 10)
+    tail = torch.tensor([-1.0, -2.0], dtype=torch.float64)
+    out = shift_parameters(p, 2.0, 1.0, tail)
+    torch.testing.assert_close(out[:, :8], p[:, 2:])
+    torch.testing.assert_close(out[:, 8:], tail[:, None].expand(2, 2))
+    torch.testing.assert_close(shift_parameters(p, 0.0, 1.0), p)
+
+
+def test_shift_by_half_a_segment_averages_over_time():
+    p = torch.tensor([[0.0, 2.0, 4.0]], dtype=torch.float64)
+    out = shift_parameters(p, 0.5, 1.0, torch.tensor([10.0], dtype=torch.float64))
+    # new segment j covers [0.5 + j, 1.5 + j]: half of old j and half of old j + 1 (the tail past 3 s)
+    torch.testing.assert_close(out, torch.tensor([[1.0, 3.0, 7.0]], dtype=torch.float64))
+
+
+def test_recentred_law_is_a_translation():
+    from density_planner.density.distributions import paper_gaussian_mixture
+
+    car = KinematicCar()
+    law = paper_gaussian_mixture([0.0, 0.0, 1.0, 5.0, 0.0], car.config.initial_error_max,
+                                 torch.Generator().manual_seed(3))
+    target = torch.tensor([10.0, -4.0, 0.5, 7.0, float(law.mean[-1])], dtype=torch.float64)
+    new = recentred(law, target)
+    torch.testing.assert_close(new.mean, target, atol=1e-9, rtol=0)
+    x = law.sample(64, torch.Generator().manual_seed(0), dtype=torch.float64)
+    d = target - law.mean
+    torch.testing.assert_close(new.log_prob(x + d), law.log_prob(x), atol=1e-9, rtol=0)
+
+
+def test_braking_reaches_standstill_and_stays():
+    car = KinematicCar()
+    p = braking_parameters(car, 7.0, 1.0, 10, (-1.0, 0.0, 1.0))
+    a = p[:, 1]
+    v = 7.0 + torch.cumsum(a, dim=-1)  # 1-s segments
+    assert torch.all(v >= -1e-9) and torch.allclose(v[:, -1], torch.zeros(3, dtype=torch.float64))
+    lo, hi = car.input_bounds
+    assert torch.all(a >= lo[1] - 1e-9)
+    v_start = torch.cat([torch.full((3, 1), 7.0, dtype=torch.float64), v[:, :-1]], dim=-1)
+    assert torch.all(p[:, 0][v_start <= 1e-9] == 0)  # no steering once stopped
+    assert p[0, 0, 0] == lo[0] and p[2, 0, 0] == hi[0] and p[1, 0, 0] == 0
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="period"):
+        OnlineConfig(period=0.0)
+    with pytest.raises(ValueError, match="replan_epochs"):
+        OnlineConfig(replan_epochs=0)
+    with pytest.raises(ValueError, match="brake_steer"):
+        OnlineConfig(brake_steer=(2.0,))
+
+
+# ------------------------------------------------------------------------------------------ with a planner
+@pytest.fixture(scope="module")
+def setup():
+    from density_planner.control.registry import load_controller, model_set_for_scene
+    from density_planner.density.registry import load_predictor
+    from density_planner.environment.random_scene import RandomSceneConfig, random_scene
+
+    torch.set_num_threads(1)
+    models = model_set_for_scene("random", None)
+    car = KinematicCar(models.car)
+    ctrl = load_controller("c3m", models=models)
+    pred = load_predictor(None, car, ctrl)
+    scene = random_scene(2, RandomSceneConfig(n_slices=141))
+    problem = PlanningProblem.from_scene(scene, seed=0, system=car)
+    planner = DensityPlanner(pred, DensityPlannerConfig(n_candidates=10, epochs_init=10, epochs_density=5,
+                                                        n_samples=50))
+    plan = planner.plan(problem)
+    assert plan.ok
+    return car, ctrl, scene, problem, planner, plan
+
+
+def _replan_problem(problem, scene, state, t):
+    from density_planner.environment.prediction import OraclePrediction
+
+    mean = state.to(torch.float64).clone()
+    mean[-1] = problem.initial_distribution.mean[-1]
+    sc = OraclePrediction(scene).scene_at(t, problem.parameterization.horizon, start=tuple(state.tolist()))
+    return PlanningProblem(sc, recentred(problem.initial_distribution, mean), problem.system,
+                           problem.parameterization, problem.risk)
+
+
+def test_warm_start_from_the_planned_state_returns_the_shifted_plan(setup):
+    car, _, scene, problem, planner, plan = setup
+    t = 1.0  # one whole segment: the shifted plan continues the previous reference exactly
+    state = plan.reference.x_plan[10]
+    prob = _replan_problem(problem, scene, state, t)
+    warm = shift_parameters(plan.params.double(), t, 1.0)
+    res, used = warm_replan(planner, prob, warm, epochs=1, samples=50)  # one evaluation, no update
+    assert used and res.ok
+    torch.testing.assert_close(res.params.double(), warm, atol=1e-6, rtol=0)
+    # the new reference is the previous one from t on (float32 Euler rollouts from the same state)
+    torch.testing.assert_close(res.reference.x_plan[:91], plan.reference.x_plan[10:], atol=1e-4, rtol=0)
+    # a few Adam steps move each parameter by at most update_clip per step and never raise the cost (keep_best)
+    res3, _ = warm_replan(planner, prob, warm, epochs=4, samples=50)
+    assert float((res3.params.double() - warm).abs().max()) <= 3 * planner.config.update_clip + 1e-6
+    assert res3.cost_history["stage2"]["total"][0] == pytest.approx(res.cost_history["stage2"]["total"][0])
+
+
+class _FailingPlanner(DensityPlanner):
+    """Plans normally offline, but every replan's stage 2 raises."""
+
+    def refine(self, *args, **kwargs):
+        raise RuntimeError("injected failure")
+
+
+def test_failed_replans_fall_back_and_are_recorded(setup):
+    car, ctrl, scene, problem, planner, plan = setup
+    failing = _FailingPlanner(planner.predictor, planner.config)
+    cfg = OnlineConfig(duration=2.0, period=0.5, replan_epochs=1, replan_samples=20, unsafe_p_coll=1.0)
+    res = drive(scene, failing, ctrl, system=car, config=cfg, initial_plan=plan, distribution_seed=0)
+    replans = [r for r in res.replans if r.status != "initial"]
+    assert len(replans) == 3  # at 0.5, 1.0, 1.5 s
+    for r in replans:
+        assert r.status == "failed" and r.fallback == "previous"
+        assert "injected failure" in r.reason
+    # with the previous reference kept throughout, the executed run equals tracking the offline plan
+    assert res.states.shape == (21, car.nx)
+    # unsafe threshold 0: the kept reference is judged unsafe and the least-risk braking manoeuvre takes over
+    cfg0 = dataclasses.replace(cfg, unsafe_p_coll=0.0)
+    res0 = drive(scene, failing, ctrl, system=car, config=cfg0, initial_plan=plan, distribution_seed=0)
+    assert all(r.fallback == "brake" and "least-risk braking" in r.reason
+               for r in res0.replans if r.status != "initial")
+    assert res0.states[-1, 3] < res.states[-1, 3]  # braking slows the vehicle
+
+
+def test_overrunning_replans_are_discarded(setup):
+    car, ctrl, scene, problem, planner, plan = setup
+    cfg = OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20, time_budget=1e-9,
+                       unsafe_p_coll=1.0)
+    res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
+    r = res.replans[1]
+    assert r.status == "overrun" and r.fallback == "previous" and "time_budget" in r.reason
+    # not enforced: the overrun is recorded and the plan used
+    res2 = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, enforce_budget=False),
+                 initial_plan=plan)
+    assert res2.replans[1].status == "overrun" and res2.replans[1].fallback is None
+
+
+def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
+    car, ctrl, scene, problem, planner, plan = setup
+    cfg = OnlineConfig(duration=3.0, period=0.5, replan_epochs=2, replan_samples=30, enforce_budget=False)
+    res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
+    assert res.states.shape == (31, car.nx) and res.inputs.shape == (30, car.nu)
+    np.testing.assert_allclose(res.times, 0.1 * np.arange(31), atol=1e-9)
+    assert [round(r.t, 6) for r in res.replans] == [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
+    assert all(r.warm_start for r in res.replans[1:])
+    assert res.verdict is not None and res.verdict.basis == "occupancy"
+    assert np.isfinite(res.states).all()
+    # the true initial state is a draw from the initial law, and deterministic given online.seed
+    assert np.isfinite(float(problem.initial_distribution.log_prob(torch.as_tensor(res.true_initial_state)[None])))
+    res_b = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
+    np.testing.assert_array_equal(res.states, res_b.states)
+    text = json.dumps(res.summary(), allow_nan=False)
+    assert '"replans"' in text
+    from density_planner.viz.online import animate_run, plot_run
+
+    assert plot_run(scene, res, tmp_path / "run.png").stat().st_size > 10_000
+    assert animate_run(scene, res, tmp_path / "run.gif").stat().st_size > 1_000
+    assert math.isfinite(res.controller_step_time)

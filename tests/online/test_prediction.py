@@ -1,0 +1,146 @@
+"""The prediction layer: observed-only occupancy uses no observation after the replanning time, propagates the
+last observed state with the documented motion models, and matches the importer's footprints at zero prediction
+time."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from density_planner.environment.grid import OccupancyGrid
+from density_planner.environment.prediction import (
+    ObservedPrediction,
+    OraclePrediction,
+    PredictionConfig,
+    make_prediction,
+)
+from density_planner.environment.road import GoalRegion, ObstacleTrack, RoadScene
+from density_planner.environment.scene import Scene
+
+shapely = pytest.importorskip("shapely")
+
+DATA = Path(__file__).resolve().parents[2] / "src" / "density_planner" / "data" / "commonroad"
+
+
+def _synthetic(tracks, *, t_end: float = 6.0) -> Scene:
+    """A 100 m x 40 m road (drivable everywhere on the map) with the given road users, 0.5-m cells."""
+    n = int(round(t_end / 0.1)) + 1
+    grid = OccupancyGrid(torch.zeros(n, 201, 81), (0.0, -20.0), 0.5, 0.1, 0.0)
+    road = RoadScene(shapely.box(-1.0, -21.0, 101.0, 21.0), tuple(tracks),
+                     GoalRegion(shapely.box(90, -5, 99, 5), (0.0, t_end)), 0.1, 0.0, "synthetic")
+    return Scene(grid, (5.0, 0.0, 0.0, 5.0, 0.0), (95.0, 0.0), (0.0, 100.0, -20.0, 20.0), name="synthetic",
+                 road=road)
+
+
+def _user(v: float = 10.0, omega: float = 0.0, x0: float = 20.0, t_end: float = 6.0, oid: int = 1) -> ObstacleTrack:
+    t = np.arange(0.0, t_end + 1e-9, 0.1)
+    th = omega * t
+    if omega == 0:
+        x, y = x0 + v * t, np.zeros_like(t)
+    else:
+        x, y = x0 + v / omega * np.sin(th), -v / omega * (np.cos(th) - 1.0)
+    return ObstacleTrack(oid, "car", 4.0, 1.8, t, np.column_stack([x, y, th]), speeds=np.full(t.size, v))
+
+
+def test_constant_velocity_propagates_the_last_observed_state():
+    scene = _synthetic([_user(v=10.0)])
+    pred = ObservedPrediction(scene, PredictionConfig(motion_model="cv"))
+    times = 2.0 + 0.1 * np.arange(31)
+    tr = pred.tracks(2.0, times)
+    # observed at t = 2 s at x = 40 m with 10 m/s: x(t) = 40 + 10 (t - 2), y = 0; tau = t - 2
+    np.testing.assert_allclose(tr.x[0], 40.0 + 10.0 * (times - 2.0), atol=1e-9)
+    np.testing.assert_allclose(tr.y[0], 0.0, atol=1e-9)
+    np.testing.assert_allclose(tr.predicted_for[0], times - 2.0, atol=1e-12)
+
+
+def test_constant_turn_rate_stays_on_the_circle():
+    v, omega = 8.0, 0.2
+    scene = _synthetic([_user(v=v, omega=omega)])
+    pred = ObservedPrediction(scene, PredictionConfig(motion_model="ctrv"))
+    times = 1.0 + 0.1 * np.arange(21)
+    tr = pred.tracks(1.0, times)
+    # the recorded motion is itself a circle of radius v / omega around (20, v / omega): CTRV reproduces it
+    # (turn rate from the last two headings: exact for a constant turn rate, up to float round-off)
+    r = np.hypot(tr.x[0] - 20.0, tr.y[0] - v / omega)
+    np.testing.assert_allclose(r, v / omega, rtol=1e-6)
+    th_true = omega * times
+    np.testing.assert_allclose(tr.heading[0], th_true, atol=1e-6)
+
+
+def test_prediction_at_t_uses_no_observation_after_t():
+    user = _user(v=10.0)
+    scene = _synthetic([user, _user(v=5.0, x0=60.0, oid=2)])
+    t = 2.0
+    before = ObservedPrediction(scene).window(t, 3.0).probs.clone()
+    # rewrite the recording after t: the first user turns hard and the second stops
+    def changed(tr: ObstacleTrack, shift: float) -> ObstacleTrack:
+        poses = tr.poses.copy()
+        later = tr.times > t + 1e-9
+        poses[later, 1] += shift * (tr.times[later] - t)
+        speeds = tr.speeds.copy()
+        speeds[later] = 0.0
+        return dataclasses.replace(tr, poses=poses, speeds=speeds)
+
+    road2 = dataclasses.replace(scene.road, obstacles=(changed(scene.road.obstacles[0], 5.0),
+                                                       changed(scene.road.obstacles[1], -3.0)))
+    after = ObservedPrediction(dataclasses.replace(scene, road=road2)).window(t, 3.0).probs
+    assert torch.equal(before, after)
+    # ... while a change at or before t does change it (the test can fail)
+    road3 = dataclasses.replace(scene.road, obstacles=(dataclasses.replace(user, poses=user.poses + [0.0, 2.0, 0.0]),
+                                                       scene.road.obstacles[1]))
+    moved = ObservedPrediction(dataclasses.replace(scene, road=road3)).window(t, 3.0).probs
+    assert not torch.equal(before, moved)
+
+
+def test_unobserved_and_stale_users_are_absent():
+    late = ObstacleTrack(3, "car", 4.0, 1.8, np.arange(3.0, 6.0, 0.1), np.tile([50.0, 10.0, 0.0], (30, 1)))
+    gone = ObstacleTrack(4, "car", 4.0, 1.8, np.arange(0.0, 1.0, 0.1), np.tile([30.0, -10.0, 0.0], (10, 1)))
+    scene = _synthetic([late, gone])
+    obs = ObservedPrediction(scene, PredictionConfig(max_observation_age=0.5)).observe(2.0)
+    assert obs.ids.size == 0  # 3 not seen yet, 4 last seen 1.1 s ago
+    assert ObservedPrediction(scene).observe(3.0).ids.tolist() == [3]
+
+
+def test_uncertainty_grows_with_prediction_time():
+    scene = _synthetic([_user(v=10.0)])
+    w = ObservedPrediction(scene, PredictionConfig(std_rate_along=2.0, std_rate_across=1.0)).window(1.0, 3.0)
+    peak = w.probs.amax(dim=(1, 2))
+    # the footprint's peak drops by prod s / sqrt(s^2 + e^2) as e = rate * tau grows (module docstring)
+    assert bool((peak[1:] <= peak[:-1] + 1e-6).all())
+    assert float(peak[-1]) < 0.6 * float(peak[0])
+
+
+def test_observed_equals_importer_at_zero_prediction_time():
+    pytest.importorskip("commonroad")
+    from density_planner.environment.commonroad import load_commonroad_scene
+
+    scene = load_commonroad_scene(DATA / "USA_US101-3_3_T-1.xml")
+    obs = ObservedPrediction(scene).window(scene.t_start, 1.0)
+    orc = OraclePrediction(scene).window(scene.t_start, 1.0)
+    assert obs.shape == orc.shape and obs.t0 == orc.t0 == scene.t_start
+    # slice 0: the same footprints of the same observed states (float32 rasterisation)
+    assert float((obs.probs[0] - orc.probs[0]).abs().max()) < 1e-5
+
+
+def test_scenes_without_road_data_keep_their_model():
+    from density_planner.environment.random_scene import random_scene
+
+    scene = random_scene(0)
+    pred = make_prediction(scene, PredictionConfig(kind="observed"))
+    assert pred.name == "oracle"
+    w = pred.window(1.0, 2.0)
+    assert torch.equal(w.probs, scene.grid.probs[10:31]) and math.isclose(w.t0, 1.0)
+    with pytest.raises(ValueError, match="no road data"):
+        ObservedPrediction(scene)
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="kind"):
+        PredictionConfig(kind="magic")
+    with pytest.raises(ValueError, match="std_rate_along"):
+        PredictionConfig(std_rate_along=-1.0)
