@@ -463,7 +463,7 @@ def drive(
                 mean = x_hat.detach().to(torch.float64).clone()
                 if is_car:
                     mean[-1] = law0.mean[-1]  # the heading bias keeps its law (unknown to the vehicle)
-                prob = PlanningProblem(scene_t, recentred(law0, mean), system, par, risk)
+                prob = PlanningProblem(scene_t, recentred(law0, mean), system, par, risk, start_threshold=math.inf)
             except ValueError as exc:
                 rec.reason = f"no planning problem at the measurement: {exc}"
             result = None

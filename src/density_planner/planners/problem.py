@@ -19,7 +19,7 @@ from torch import Tensor
 from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
-from ..environment.scene import Scene, validate_scene
+from ..environment.scene import START_OCCUPIED_THRESHOLD, Scene, validate_scene
 from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from ..systems.car import BIAS, KinematicCar
@@ -126,6 +126,9 @@ class PlanningProblem:
         parameterization: reference-input parameterisation (10 segments of 1 s, 0.01-s fine grid, 0.1-s planning
             grid); its horizon must not exceed the scene's time span.
         risk: how collision is read (body) and its probability estimated (section ``[risk]``).
+        start_threshold: a start whose P_occ exceeds this is refused (:func:`~density_planner.environment.scene.
+            validate_scene`); an online replan (:mod:`density_planner.evaluation.online`) passes ``inf``: a vehicle
+            that is already in an occupied cell must still be able to plan its way out.
     """
 
     scene: Scene
@@ -133,6 +136,7 @@ class PlanningProblem:
     system: System = field(default_factory=KinematicCar)
     parameterization: PiecewiseConstantInputs = field(default_factory=PiecewiseConstantInputs)
     risk: RiskConfig = field(default_factory=RiskConfig)
+    start_threshold: float = START_OCCUPIED_THRESHOLD
 
     def collision(self, device: torch.device | str | None = None) -> CollisionModel:
         """The collision model of this problem (scene grid, system, risk settings) on ``device``."""
@@ -140,7 +144,7 @@ class PlanningProblem:
         return CollisionModel(grid, self.system, self.risk)
 
     def __post_init__(self) -> None:
-        validate_scene(self.scene)
+        validate_scene(self.scene, start_threshold=self.start_threshold)
         if not isinstance(self.initial_distribution, InitialDistribution):
             raise ValueError(
                 f"initial_distribution must be an InitialDistribution, got {type(self.initial_distribution).__name__}"

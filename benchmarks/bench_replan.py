@@ -1,0 +1,97 @@
+"""Wall time and success of a warm-started replan vs a full plan (issue 17's speed target: median <= 0.1 s, p95 <=
+0.2 s on one thread with 500 samples and the learned predictor, at the success rate of a full plan).
+
+On random scenes ``0 .. N-1``: a full two-stage plan from the initial distribution (timed, judged by
+:func:`~density_planner.evaluation.verdict.judge_plan`), then replans warm-started from the shifted plan at
+``t = period, 2 period, ...`` from the planned state (oracle occupancy: the scene's own model), each timed and judged
+the same way on its own window. Prints the median and p95 wall times and both success rates.
+
+Usage::
+
+    PYTHONPATH=src python benchmarks/bench_replan.py --scenes 5 --replans 4 --set online.replan_epochs=10
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+import torch
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", type=int, default=5)
+    p.add_argument("--replans", type=int, default=4, help="replans per scene")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    from density_planner.config import load_config, update
+    from density_planner.control.registry import load_controller, model_set_for_scene
+    from density_planner.density.registry import load_predictor
+    from density_planner.environment.prediction import OraclePrediction
+    from density_planner.environment.random_scene import random_scene
+    from density_planner.evaluation.online import recentred, shift_parameters, warm_replan
+    from density_planner.evaluation.verdict import judge_plan
+    from density_planner.planners.density_planner import DensityPlanner
+    from density_planner.planners.problem import PlanningProblem
+    from density_planner.settings import RunConfig
+    from density_planner.systems.car import KinematicCar
+
+    cfg = load_config(RunConfig, None, args.overrides)
+    online = cfg.online
+    n_slices = int(round((10.0 + args.replans * online.period + 10.0) / 0.1)) + 1
+    cfg = update(cfg, {"random_scene": {"n_slices": max(cfg.random_scene.n_slices, n_slices)}})
+    models = model_set_for_scene("random", None)
+    car = KinematicCar(models.car)
+    ctrl = load_controller("c3m", models=models)
+    pred = load_predictor(None, car, ctrl)
+    planner = DensityPlanner(pred, cfg.density_planner)
+    samples = online.replan_samples or cfg.density_planner.n_samples
+    full_t, full_ok, re_t, re_ok, re_warm = [], [], [], [], []
+    for seed in range(args.scenes):
+        scene = random_scene(seed, cfg.random_scene)
+        problem = PlanningProblem.from_scene(scene, seed=seed, system=car, planning=cfg.planning, risk=cfg.risk)
+        t0 = time.perf_counter()
+        plan = planner.plan(problem)
+        full_t.append(time.perf_counter() - t0)
+        v = judge_plan(scene, plan, system=car, dt=problem.parameterization.plan_dt)
+        full_ok.append(bool(v is not None and v.ok))
+        oracle = OraclePrediction(scene)
+        prev, t_prev = plan, 0.0
+        for i in range(1, args.replans + 1):
+            t = i * online.period
+            k = int(round((t - t_prev) / problem.parameterization.plan_dt))
+            state = prev.reference.x_plan[k]
+            mean = state.to(torch.float64).clone()
+            mean[-1] = problem.initial_distribution.mean[-1]
+            sc = oracle.scene_at(t, problem.parameterization.horizon, start=tuple(state.tolist()))
+            prob = PlanningProblem(sc, recentred(problem.initial_distribution, mean), car, problem.parameterization,
+                                   problem.risk)
+            v_end = float(prev.reference.x[-1, 3])
+            tail = torch.tensor([0.0, max(float(car.input_bounds[0][1]), -v_end)], dtype=torch.float64)
+            warm = shift_parameters(prev.params.double(), t - t_prev, problem.parameterization.segment_duration, tail)
+            t1 = time.perf_counter()
+            res, used = warm_replan(planner, prob, warm, epochs=online.replan_epochs, samples=samples, seed=i)
+            re_t.append(time.perf_counter() - t1)
+            re_warm.append(used)
+            v = judge_plan(sc, res, system=car, dt=problem.parameterization.plan_dt)
+            re_ok.append(bool(res.ok and v is not None and v.ok))
+            if res.ok:
+                prev, t_prev = res, t
+        print(f"scene {seed}: full plan {full_t[-1]:.2f} s ({'pass' if full_ok[-1] else 'fail'}), replans "
+              f"{', '.join(f'{x:.3f}' for x in re_t[-args.replans:])} s", flush=True)
+    re = np.asarray(re_t)
+    print(f"\nfull plan: median {np.median(full_t):.2f} s, success {np.mean(full_ok):.0%} ({sum(full_ok)}/{len(full_ok)})")
+    print(f"warm-started replan ({online.replan_epochs} epochs, {samples} samples, {args.threads} thread(s)): median "
+          f"{np.median(re):.3f} s, p95 {np.percentile(re, 95):.3f} s, success {np.mean(re_ok):.0%} "
+          f"({sum(re_ok)}/{len(re_ok)}); target median <= 0.1 s, p95 <= 0.2 s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
