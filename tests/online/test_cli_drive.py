@@ -1,0 +1,59 @@
+"""``density-planner drive`` from the command line: files written, exit codes, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from density_planner.cli import main
+
+DATA = Path(__file__).resolve().parents[2] / "src" / "density_planner" / "data" / "commonroad"
+
+TINY = ["--set", "density_planner.n_candidates=5", "--set", "density_planner.epochs_init=3", "--set",
+        "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20", "--set",
+        "online.replan_epochs=1", "--set", "online.replan_samples=20", "--set", "online.enforce_budget=false"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--env", "random", "--period", "-1"], "period"),
+    (["--env", "commonroad"], "--file"),
+    (["--env", "random", "--planner", "mpc"], "step by step"),
+    (["--env", "random", "--set", "online.prediction.kind=psychic"], "psychic"),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, needle):
+    out = tmp_path / "run"
+    assert main(["drive", *argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
+    assert not out.exists()
+
+
+def test_drive_random_scene(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["drive", "--env", "random", "--seed", "3", *TINY, "--set", "online.duration=1.0", "--no-gif",
+                 "--out", str(out)])
+    assert code in (0, 3)
+    run = json.loads((out / "run.json").read_text())
+    assert [r["t"] for r in run["replans"]] == [0.0, 0.5]
+    assert run["replans"][0]["status"] == "initial" and run["prediction"] == "oracle"
+    assert run["status"] == ("success" if code == 0 else "failed")
+    assert len(run["states"]) == 11
+    assert (out / "run.png").stat().st_size > 10_000 and (out / "config.toml").exists()
+    assert "replan_epochs = 1" in (out / "config.toml").read_text()
+    assert "online (oracle prediction)" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_drive_commonroad_observed(tmp_path):
+    pytest.importorskip("commonroad")
+    out = tmp_path / "run"
+    code = main(["drive", "--env", "commonroad", "--file", str(DATA / "ZAM_Tutorial-1_2_T-1.xml"), *TINY,
+                 "--set", "online.max_duration=1.5", "--out", str(out)])
+    assert code in (0, 3)
+    run = json.loads((out / "run.json").read_text())
+    assert run["prediction"] == "observed"
+    assert run["verdict"]["basis"] == "road"
+    assert len(run["replans"]) == 3  # initial, 0.5 s, 1.0 s
+    assert (out / "run.gif").stat().st_size > 1_000
