@@ -186,3 +186,15 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert plot_run(scene, res, tmp_path / "run.png").stat().st_size > 10_000
     assert animate_run(scene, res, tmp_path / "run.gif").stat().st_size > 1_000
     assert math.isfinite(res.controller_step_time)
+
+
+def test_torch_free_controller_loop_matches_the_torch_loop(setup):
+    car, ctrl, scene, problem, planner, plan = setup
+    failing = _FailingPlanner(planner.predictor, planner.config)  # no replans: both track the offline plan
+    cfg = OnlineConfig(duration=3.0, replan_epochs=1, replan_samples=20, unsafe_p_coll=1.0)
+    fast = drive(scene, failing, ctrl, system=car, config=cfg, initial_plan=plan, keep_snapshots=False)
+    slow = drive(scene, failing, ctrl, system=car, config=dataclasses.replace(cfg, fast_controller=False),
+                 initial_plan=plan, keep_snapshots=False)
+    # float64 numpy vs float32 torch Euler over 300 steps: round-off only
+    np.testing.assert_allclose(fast.states, slow.states, atol=2e-3, rtol=0)
+    np.testing.assert_allclose(fast.inputs, slow.inputs, atol=2e-3, rtol=0)

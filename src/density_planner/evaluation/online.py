@@ -88,6 +88,9 @@ class OnlineConfig:
     restart_distance: float = 3.0
     #: steering rates of the braking candidates, as fractions of the largest steering rate
     brake_steer: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
+    #: evaluate the C3M controller of the car torch-free in the online loop (:class:`~density_planner.control.fast.
+    #: NumpyC3M`, equal to the torch controller to 1e-6; false: the torch controller)
+    fast_controller: bool = True
     #: seed of the true initial state
     seed: int = 0
     #: the occupancy an online planner reads
@@ -155,6 +158,8 @@ class _Active:
     x_ref: Tensor  # (K, nx) at the integration steps
     u_ref: Tensor  # (K, nu)
     kind: str  # "plan" or "brake"
+    x_ref_np: np.ndarray | None = None  # float64 copies for the torch-free controller
+    u_ref_np: np.ndarray | None = None
 
 
 @dataclass
@@ -379,6 +384,13 @@ def drive(
     law0 = problem0.initial_distribution
     is_car = list(getattr(system, "state_names", ()))[-1:] == ["theta_bias"]
     a_min = float(system.input_bounds[0][1]) if is_car else 0.0
+    fast = None
+    if config.fast_controller and is_car:
+        from ..control.c3m import C3MController
+        from ..control.fast import NumpyC3M
+
+        if isinstance(controller, C3MController):
+            fast = NumpyC3M(controller)
     warm_capable = all(hasattr(planner, m) for m in ("initialise", "refine", "evaluate"))
 
     if true_state is None:
@@ -390,7 +402,11 @@ def drive(
     def activate(ref: Reference, t0: float, params: Tensor | None, kind: str) -> _Active:
         n_steps = int(round(ref.n_steps * ref.dt / dt))
         xr, ur = ref.stage_values(dt, n_steps, (0.0,))
-        return _Active(ref, t0, params, xr[:, 0].to(dtype), ur[:, 0].to(dtype), kind)
+        act = _Active(ref, t0, params, xr[:, 0].to(dtype), ur[:, 0].to(dtype), kind)
+        if fast is not None:
+            act.x_ref_np = xr[:, 0].detach().cpu().double().numpy()
+            act.u_ref_np = ur[:, 0].detach().cpu().double().numpy()
+        return act
 
     def brake(grid: Any, x_now: Tensor, t: float) -> tuple[_Active, float]:
         """The least-risk braking manoeuvre from the measurement ``x_now`` at ``t`` in ``grid``."""
@@ -538,15 +554,27 @@ def drive(
                                   previous_p_coll=p_b))
             offset = 0
         u_first = None
-        with torch.no_grad():
+        if fast is not None:  # torch-free loop of the car (state p_x, p_y, theta, v, theta_bias)
+            xn = x.detach().cpu().double().numpy().copy()
             for j in range(per_plan):
-                xr, ur = active.x_ref[offset + j][None], active.u_ref[offset + j][None]
+                xh = np.array([xn[0], xn[1], xn[2] + xn[4], xn[3], 0.0])  # KinematicCar.measure
                 tc = time.perf_counter()
-                u = controller(system.measure(x[None]), xr, ur)
+                u = fast(xh, active.x_ref_np[offset + j], active.u_ref_np[offset + j])
                 ctrl_times.append(time.perf_counter() - tc)
                 if u_first is None:
-                    u_first = u[0]
-                x = x + dt * system.f(x[None], u)[0]
+                    u_first = torch.from_numpy(u)
+                xn = xn + dt * np.array([xn[3] * math.cos(xn[2]), xn[3] * math.sin(xn[2]), u[0], u[1], 0.0])
+            x = torch.from_numpy(xn).to(dtype=dtype, device=device)
+        else:
+            with torch.no_grad():
+                for j in range(per_plan):
+                    xr, ur = active.x_ref[offset + j][None], active.u_ref[offset + j][None]
+                    tc = time.perf_counter()
+                    u = controller(system.measure(x[None]), xr, ur)
+                    ctrl_times.append(time.perf_counter() - tc)
+                    if u_first is None:
+                        u_first = u[0]
+                    x = x + dt * system.f(x[None], u)[0]
         inputs.append(u_first.detach().cpu().numpy().astype(np.float64))
         states.append(x.detach().cpu().numpy().astype(np.float64))
         k += 1
