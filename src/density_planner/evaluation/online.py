@@ -468,6 +468,10 @@ def drive(
         if k > 0 and k % period_steps == 0:
             i_replan += 1
             x_hat = system.measure(x[None])[0]
+            if is_car:  # a tracking overshoot below standstill: plan from the state box (v >= v_min)
+                lo_s, hi_s = system.state_bounds
+                x_hat = x_hat.clone()
+                x_hat[3] = x_hat[3].clamp(float(lo_s[3]), float(hi_s[3]))
             centre = tuple(float(v) for v in x_hat.detach().cpu())
             tp = time.perf_counter()
             rec = Replan(t, "failed", 0.0)
