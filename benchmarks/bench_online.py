@@ -45,6 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     logging.getLogger("commonroad").setLevel(logging.ERROR)
 
+    from density_planner.cli.drive import _scene_for_drive
+    from density_planner.cli.plan import build_context
     from density_planner.config import load_config, update
     from density_planner.control.registry import model_set_for_scene
     from density_planner.environment.prediction import make_prediction
@@ -55,9 +57,6 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.planners.registry import make_planner
     from density_planner.settings import RunConfig
     from density_planner.systems.car import KinematicCar
-
-    from density_planner.cli.drive import _scene_for_drive
-    from density_planner.cli.plan import build_context
 
     run_config = load_config(RunConfig, None, args.overrides)
     files = sorted(args.scenarios.glob("*.xml"))

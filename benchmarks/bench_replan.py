@@ -86,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"scene {seed}: full plan {full_t[-1]:.2f} s ({'pass' if full_ok[-1] else 'fail'}), replans "
               f"{', '.join(f'{x:.3f}' for x in re_t[-args.replans:])} s", flush=True)
     re = np.asarray(re_t)
-    print(f"\nfull plan: median {np.median(full_t):.2f} s, success {np.mean(full_ok):.0%} ({sum(full_ok)}/{len(full_ok)})")
+    print(f"\nfull plan: median {np.median(full_t):.2f} s, success {np.mean(full_ok):.0%} "
+          f"({sum(full_ok)}/{len(full_ok)})")
     print(f"warm-started replan ({online.replan_epochs} epochs, {samples} samples, {args.threads} thread(s)): median "
           f"{np.median(re):.3f} s, p95 {np.percentile(re, 95):.3f} s, success {np.mean(re_ok):.0%} "
           f"({sum(re_ok)}/{len(re_ok)}); target median <= 0.1 s, p95 <= 0.2 s")

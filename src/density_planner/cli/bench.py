@@ -31,6 +31,11 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="environment numbers A..B-1 instead of --envs (random scene numbers; real: scenario and "
                    "start/goal index)")
     p.add_argument("--planners", default=None, metavar="LIST", help="comma-separated planners (default: the setting's)")
+    p.add_argument("--mode", default="offline", choices=("offline", "online"),
+                   help="online: the default planners gain the density planner run online (replanning every "
+                   "online.period from the measurement; density_online with the observed-only prediction and, on "
+                   "CommonRoad scenes, density_online_oracle with the recorded future) next to the offline density "
+                   "planner and MPC M0, on the same scenarios and true initial states")
     p.add_argument("--variants", default=None, metavar="LIST",
                    help="comma-separated measurement variants: unbiased, biased (default: both; ablation: nominal)")
     p.add_argument("--data-dir", type=Path, default=None, metavar="D",
@@ -117,7 +122,7 @@ def spec_from_args(args: argparse.Namespace, run_config):
             raise ValueError(f"--data-dir is only used by the real setting, not {args.setting}")
         if not args.data_dir.is_dir():
             raise ValueError(f"--data-dir {args.data_dir} does not exist or is not a directory")
-    planners = _list(args.planners, "planners") or setting.planners
+    planners = _list(args.planners, "planners") or _mode_planners(args, setting.planners)
     known = planner_names()
     for name in planners:
         if name not in known:
@@ -145,6 +150,15 @@ def spec_from_args(args: argparse.Namespace, run_config):
             raise OptionalDependencyError("distributed", "dask", "--scheduler (a Dask cluster)") from None
     return BenchmarkSpec(args.setting, envs, planners, variants, run_config, controller=args.controller,
                          density=args.density)
+
+
+def _mode_planners(args: argparse.Namespace, default: tuple[str, ...]) -> tuple[str, ...]:
+    """The default planners of ``--mode``: offline, the setting's; online, density offline and online (observed and,
+    on CommonRoad scenes, oracle prediction) and MPC M0."""
+    if getattr(args, "mode", "offline") != "online":
+        return default
+    online = ("density_online", "density_online_oracle") if args.setting == "commonroad" else ("density_online",)
+    return ("density", *online, "mpc")
 
 
 def _check_planners(args, default: tuple[str, ...]) -> tuple[str, ...]:
@@ -184,7 +198,7 @@ def _commonroad_spec(args: argparse.Namespace, run_config):
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     _check_scheduler(args)
-    planners = _check_planners(args, SETTINGS["commonroad"].planners)
+    planners = _check_planners(args, _mode_planners(args, SETTINGS["commonroad"].planners))
     return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config, controller=args.controller,
                          density=args.density)
 

@@ -190,6 +190,9 @@ class DriveResult:
     prediction: str
     controller_step_time: float
     initial_plan: PlanResult | None = None
+    #: ``(T - 1,)`` online computation per planning step [s]: the controller evaluations, plus the replan (and its
+    #: prediction) at replanning steps
+    step_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def summary(self) -> dict[str, Any]:
         walls = np.array([r.wall_time for r in self.replans if r.status != "initial"])
@@ -207,6 +210,7 @@ class DriveResult:
             "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
             "p_coll_mean": float(pc.mean()) if pc.size else None,
             "controller_step_time": self.controller_step_time,
+            "step_times": self.step_times.tolist(),
             "true_initial_state": self.true_initial_state.tolist(),
             "replans": [r.to_dict() for r in self.replans],
             "times": self.times.tolist(),
@@ -460,11 +464,13 @@ def drive(
     states = [x.detach().cpu().numpy().astype(np.float64)]
     inputs: list[np.ndarray] = []
     ctrl_times: list[float] = []
+    step_times: list[float] = []
     road = scene.road
     k = 0
     i_replan = 0
     while k < n_total:
         t = t_start + k * plan_dt
+        step_extra = 0.0
         if k > 0 and k % period_steps == 0:
             i_replan += 1
             x_hat = system.measure(x[None])[0]
@@ -546,6 +552,7 @@ def drive(
                 rec.reason = rec.reason.lstrip("; ")
                 log.info("t = %.2f s: fallback %s: %s", t, rec.fallback, rec.reason)
             replans.append(rec)
+            step_extra = rec.wall_time + rec.prediction_time
             if progress is not None:
                 progress(t, rec)
             snapshot(t, grid_t, x.detach().cpu().numpy())
@@ -580,6 +587,7 @@ def drive(
                         u_first = u[0]
                     x = x + dt * system.f(x[None], u)[0]
         inputs.append(u_first.detach().cpu().numpy().astype(np.float64))
+        step_times.append(float(sum(ctrl_times[-per_plan:])) + step_extra)
         states.append(x.detach().cpu().numpy().astype(np.float64))
         k += 1
         if road is not None and config.stop_at_goal:
@@ -596,4 +604,5 @@ def drive(
     verdict = judge(scene, x_all, u_all, system=system, dt=plan_dt, p_coll_max=max(pcs) if pcs else math.nan,
                     config=verdict_config, evaluation=evaluation)
     return DriveResult(times, x_all, u_all, replans, verdict, x_init, snapshots, prediction.name,
-                       float(np.median(ctrl_times)) if ctrl_times else math.nan, initial_plan)
+                       float(np.median(ctrl_times)) if ctrl_times else math.nan, initial_plan,
+                       np.asarray(step_times, dtype=float))

@@ -65,7 +65,7 @@ class PlannerContext:
 _REGISTRY: dict[str, tuple[Callable[[PlannerContext], Planner], str]] = {}
 
 #: modules whose import registers planners (optional extras are imported lazily by their factories)
-_PLANNER_MODULES = ("density_planner", "mpc", "oracle", "search", "sampling")
+_PLANNER_MODULES = ("density_planner", "mpc", "oracle", "search", "sampling", "online")
 
 
 def register_planner(name: str, help: str) -> Callable[[Callable[[PlannerContext], Planner]], Callable]:
