@@ -8,8 +8,9 @@
    heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the measurement
    error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders the
    occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
-   (10 s with the learned predictors) *warm-started* from the previous plan shifted by ``t - t_plan``
-   (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on ``replan_samples`` samples. Stage 1
+   (10 s with the learned predictors; a measured speed below the learned predictor's training range is raised to
+   its lower end, and the predictor never falls back to exact Liouville online) *warm-started* from the previous
+   plan shifted by ``t - t_plan`` (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on ``replan_samples`` samples. Stage 1
    (candidates) runs only when the warm start is invalid: no previous plan, or the measurement lies farther than
    ``restart_distance`` from the previous reference at ``t``.
 3. A replan that fails (exception, no finite cost) or overruns its wall-time budget (``time_budget``, enforced
@@ -287,6 +288,9 @@ def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None,
     fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
                           fresh_evaluation_samples=False)
     fast.progress = False
+    if getattr(fast.predictor, "fallback", None) is not None:  # online: refuse rather than minutes of exact Liouville
+        fast.predictor = copy.copy(fast.predictor)
+        fast.predictor.fallback = None
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(int(seed))
     timings: dict[str, float] = {}
@@ -388,6 +392,8 @@ def drive(
     law0 = problem0.initial_distribution
     is_car = list(getattr(system, "state_names", ()))[-1:] == ["theta_bias"]
     a_min = float(system.input_bounds[0][1]) if is_car else 0.0
+    speed_range = getattr(getattr(planner, "predictor", None), "speed_range", None)
+    v_floor = float(speed_range[0]) if speed_range is not None else -math.inf
     fast = None
     if config.fast_controller and is_car:
         from ..control.c3m import C3MController
@@ -474,10 +480,11 @@ def drive(
         if k > 0 and k % period_steps == 0:
             i_replan += 1
             x_hat = system.measure(x[None])[0]
-            if is_car:  # a tracking overshoot below standstill: plan from the state box (v >= v_min)
+            if is_car:  # plan from the state box (a tracking overshoot below standstill) and from the speeds the
+                # learned predictor serves (online, its exact-Liouville fallback would take minutes)
                 lo_s, hi_s = system.state_bounds
                 x_hat = x_hat.clone()
-                x_hat[3] = x_hat[3].clamp(float(lo_s[3]), float(hi_s[3]))
+                x_hat[3] = x_hat[3].clamp(max(float(lo_s[3]), v_floor), float(hi_s[3]))
             centre = tuple(float(v) for v in x_hat.detach().cpu())
             tp = time.perf_counter()
             rec = Replan(t, "failed", 0.0)
