@@ -10,9 +10,9 @@
    occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
    (10 s with the learned predictors; a measured speed below the learned predictor's training range is raised to
    its lower end, and the predictor never falls back to exact Liouville online) *warm-started* from the previous
-   plan shifted by ``t - t_plan`` (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on ``replan_samples`` samples. Stage 1
-   (candidates) runs only when the warm start is invalid: no previous plan, or the measurement lies farther than
-   ``restart_distance`` from the previous reference at ``t``.
+   plan shifted by ``t - t_plan`` (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on
+   ``replan_samples`` samples. Stage 1 (candidates) runs only when the warm start is invalid: no previous plan,
+   or the measurement lies farther than ``restart_distance`` from the previous reference at ``t``.
 3. A replan that fails (exception, no finite cost) or overruns its wall-time budget (``time_budget``, enforced
    unless ``enforce_budget = false``) is discarded: the controller keeps tracking the previous reference, unless
    that reference is unsafe under the current prediction (its nominal path's collision probability exceeds
