@@ -70,6 +70,11 @@ class OnlineConfig:
     replan_epochs: int = 10
     #: initial samples of a replan (0: density_planner.n_samples)
     replan_samples: int = 0
+    #: Adam learning rate of a replan (0: density_planner.lr)
+    replan_lr: float = 0.0
+    #: largest change of a parameter per replan step (0: density_planner.update_clip; with few steps a larger
+    #: clip lets a replan move the plan further from the warm start)
+    replan_update_clip: float = 0.0
     #: wall-time budget of one replan [s] (prediction rendering excluded: the perception stack's work)
     time_budget: float = 0.5
     #: discard replans that overrun ``time_budget`` (false: record the overrun, use the plan anyway: the compute
@@ -102,7 +107,7 @@ class OnlineConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"online.{name} must be a finite number > 0, got {v!r}")
-        for name in ("duration", "unsafe_p_coll", "restart_distance"):
+        for name in ("duration", "unsafe_p_coll", "restart_distance", "replan_lr", "replan_update_clip"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"online.{name} must be a finite number >= 0, got {v!r}")
@@ -278,7 +283,7 @@ def braking_parameters(system: System, v0: float, segment_duration: float, n_seg
 
 
 def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
-                seed: int = 0) -> tuple[PlanResult, bool]:
+                seed: int = 0, lr: float = 0.0, update_clip: float = 0.0) -> tuple[PlanResult, bool]:
     """A replan of the density planner: stage 2 (``epochs`` iterations, ``samples`` initial samples) from the
     warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``. Returns the result and whether
     the warm start was used. The reported collision probability is that of the best iterate's sample cloud (no
@@ -286,7 +291,8 @@ def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None,
     cfg = planner.config
     fast = copy.copy(planner)
     fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
-                          fresh_evaluation_samples=False)
+                          fresh_evaluation_samples=False, lr=float(lr or cfg.lr),
+                          update_clip=float(update_clip or cfg.update_clip))
     fast.progress = False
     if getattr(fast.predictor, "fallback", None) is not None:  # online: refuse rather than minutes of exact Liouville
         fast.predictor = copy.copy(fast.predictor)
@@ -517,7 +523,9 @@ def drive(
                 try:
                     if warm_capable:
                         result, rec.warm_start = warm_replan(planner, prob, warm, epochs=config.replan_epochs,
-                                                             samples=config.replan_samples, seed=i_replan)
+                                                             samples=config.replan_samples, seed=i_replan,
+                                                             lr=config.replan_lr,
+                                                             update_clip=config.replan_update_clip)
                     else:
                         result, rec.warm_start = planner.plan(prob), False
                 except Exception as exc:  # noqa: BLE001 - a failed replan is a recorded fallback, never a crash
