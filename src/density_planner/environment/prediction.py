@@ -247,12 +247,14 @@ class ObservedPrediction(Prediction):
     def static(self) -> torch.Tensor:
         """``(NX, NY)`` static occupancy (outside the drivable area, static obstacles), computed once."""
         if self._static is None:
-            from .commonroad import static_map
+            from .commonroad import CommonRoadSceneConfig, static_map
 
             grid, road = self.scene.grid, self.scene.road
             statics = [tr.polygons_at(np.array([road.t_start]))[0] for tr in road.obstacles if tr.static]
             _, nx, ny = grid.shape
-            static, _ = static_map(None, grid.origin, grid.cell_size, (nx, ny), drivable=road.drivable,
+            offroad = bool((self.scene.meta.get("config") or {}).get("offroad_occupied", True))  # as imported
+            static, _ = static_map(None, grid.origin, grid.cell_size, (nx, ny),
+                                   CommonRoadSceneConfig(offroad_occupied=offroad), drivable=road.drivable,
                                    static_polygons=[p for p in statics if p is not None])
             self._static = torch.from_numpy(static)
         return self._static
