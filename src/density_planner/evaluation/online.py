@@ -70,11 +70,11 @@ class OnlineConfig:
     replan_epochs: int = 10
     #: initial samples of a replan (0: density_planner.n_samples)
     replan_samples: int = 0
-    #: Adam learning rate of a replan (0: density_planner.lr)
-    replan_lr: float = 0.0
-    #: largest change of a parameter per replan step (0: density_planner.update_clip; with few steps a larger
-    #: clip lets a replan move the plan further from the warm start)
-    replan_update_clip: float = 0.0
+    #: Adam learning rate of a replan (0: density_planner.lr); default five times the planner's 0.01: a replan has a
+    #: tenth of stage 2's iterations, and with the planner's step it could move no parameter by more than 0.2
+    replan_lr: float = 0.05
+    #: largest change of a parameter per replan step (0: density_planner.update_clip); default five times 0.02
+    replan_update_clip: float = 0.1
     #: wall-time budget of one replan [s] (prediction rendering excluded: the perception stack's work)
     time_budget: float = 0.5
     #: discard replans that overrun ``time_budget`` (false: record the overrun, use the plan anyway: the compute
