@@ -57,3 +57,16 @@ def test_drive_commonroad_observed(tmp_path):
     assert run["verdict"]["basis"] == "road"
     assert len(run["replans"]) == 3  # initial, 0.5 s, 1.0 s
     assert (out / "run.gif").stat().st_size > 1_000
+
+
+def test_bench_mode_online_adds_the_online_planners():
+    import argparse
+
+    from density_planner.cli.bench import _mode_planners
+
+    cr = argparse.Namespace(mode="online", setting="commonroad")
+    assert _mode_planners(cr, ("density",)) == ("density", "density_online", "density_online_oracle", "mpc")
+    art = argparse.Namespace(mode="online", setting="artificial")
+    assert _mode_planners(art, ("density", "mpc")) == ("density", "density_online", "mpc")
+    off = argparse.Namespace(mode="offline", setting="artificial")
+    assert _mode_planners(off, ("density", "mpc")) == ("density", "mpc")

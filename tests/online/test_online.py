@@ -198,3 +198,22 @@ def test_torch_free_controller_loop_matches_the_torch_loop(setup):
     # float64 numpy vs float32 torch Euler over 300 steps: round-off only
     np.testing.assert_allclose(fast.states, slow.states, atol=2e-3, rtol=0)
     np.testing.assert_allclose(fast.inputs, slow.inputs, atol=2e-3, rtol=0)
+
+
+def test_online_planner_executes_in_receding_mode(setup):
+    from density_planner.evaluation.simulate import ExecutionMode, execute, execution_mode
+    from density_planner.planners.registry import PlannerContext, make_planner
+    from density_planner.settings import RunConfig
+
+    car, ctrl, scene, problem, planner, plan = setup
+    cfg = RunConfig(density_planner=planner.config,
+                    online=OnlineConfig(duration=1.0, replan_epochs=1, replan_samples=20, enforce_budget=False))
+    ctx = PlannerContext(system=car, controller=ctrl, config=cfg, predictor_factory=lambda: planner.predictor)
+    online = make_planner("density_online", ctx)
+    assert execution_mode(online) == ExecutionMode.RECEDING
+    x0 = problem.initial_distribution.sample(1, torch.Generator().manual_seed(0))[0]
+    run = execute(online, problem, x0)
+    assert run.ok and run.states.shape == (11, car.nx) and run.applied_inputs.shape == (10, car.nu)
+    assert run.step_times.shape == (10,) and float(run.step_times[5]) > float(run.step_times[4])  # replan at 0.5 s
+    torch.testing.assert_close(run.states[0], x0.to(run.states.dtype))
+    assert run.plan.extras["prediction"] == "oracle" and len(run.plan.extras["replans"]) == 2
