@@ -105,20 +105,24 @@ class RoadBarrierCost(CostTerm):
 
     def outline_points(self, x: Tensor) -> Tensor:
         """``(..., P, 2)`` outline points [m] of the poses ``x (..., nx)`` (``x, y, theta`` first)."""
-        c, s = torch.cos(x[..., 2:3]), torch.sin(x[..., 2:3])
+        return self._outline_first(x).movedim(0, -2)
+
+    def _outline_first(self, x: Tensor) -> Tensor:
+        """The outline points with the outline axis first, ``(P, ..., 2)``: one ``(P, 2) @ (2, 2 n)`` product
+        for all ``n`` poses (several times faster than per-pose rotations or elementwise products)."""
+        c, s = torch.cos(x[..., 2]), torch.sin(x[..., 2])
+        rot_t = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)])  # R^T per pose, (2, ..., 2)
         o = self.outline.to(x)
-        px = x[..., 0:1] + c * o[:, 0] - s * o[:, 1]
-        py = x[..., 1:2] + s * o[:, 0] + c * o[:, 1]
-        return torch.stack([px, py], dim=-1)
+        return torch.matmul(o, rot_t.reshape(2, -1)).reshape(o.shape[0], *x.shape[:-1], 2) + x[..., 0:2]
 
     def penetration(self, x: Tensor) -> Tensor:
         """Largest signed distance [m] of the outline points of ``x (..., nx)`` (> 0: off the road)."""
-        return self.sdf(self.outline_points(x)).max(-1).values
+        return self.sdf(self._outline_first(x)).amax(0)
 
     def per_state(self, x: Tensor) -> Tensor:
         """``sum_q phi(sdf(q) + margin)`` per state ``x (..., nx)``."""
-        s = torch.relu(self.sdf(self.outline_points(x)) + self.margin)
-        return (s + s * s).sum(-1)
+        s = torch.relu(self.sdf(self._outline_first(x), offset=self.margin))
+        return (s * (1.0 + s)).sum(0)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         return (inputs.weights * self.per_state(inputs.x)).sum(dim=(-1, -2))
