@@ -298,9 +298,14 @@ class CollisionCost(CostTerm):
         return desired_positions(self.grid, pos, k, beta=self.beta, plateau_scales=self.plateau_scales)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
-        centres = self.collision.centres(inputs.x)  # (*batch, N, T, m, 2)
+        """``J_C (*batch,)``. The occupancy is read without autograd; only the states with a disc centre in an
+        occupied cell are evaluated again on the autograd graph (the others contribute zero value and zero
+        gradient, ``P_j = 0``), so value and gradients are those of the full sum at a fraction of the cost."""
+        x, w = inputs.x, inputs.weights
+        with torch.no_grad():
+            centres = self.collision.centres(x.detach())  # (*batch, N, T, m, 2)
         k = inputs.slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
-        read = centres.detach()
+        read = centres
         if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
             read = self.collision.clamp_to_map(read)
         with torch.no_grad():
@@ -313,5 +318,10 @@ class CollisionCost(CostTerm):
             p_occ = torch.zeros(read.shape[:-1], dtype=read.dtype, device=read.device)
             if bool(occupied.any()):
                 p_des[occupied], p_occ[occupied] = self.desired(read[occupied], kk[occupied])
-        d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
-        return (inputs.weights * d2).sum(dim=(-1, -2))
+            d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
+        if torch.is_grad_enabled() and x.requires_grad:
+            active = (p_occ > 0).any(-1)
+            if bool(active.any()):
+                c = self.collision.centres(x[active])  # (K, m, 2), differentiable
+                d2 = d2.index_put((active,), ((c - p_des[active]).pow(2).sum(-1) * p_occ[active]).sum(-1))
+        return (w * d2).sum(dim=(-1, -2))
