@@ -132,12 +132,10 @@ class RoadBarrierCost(CostTerm):
         distance from the edge; the backward pass over all ``states x outline`` lookups is what it saves)."""
         x, w = inputs.x, inputs.weights
         with torch.no_grad():
-            s = torch.relu(self.sdf(self._outline_first(x.detach()), offset=self.margin))
-            phi = (s * (1.0 + s)).sum(0)
-        if not (torch.is_grad_enabled() and (x.requires_grad or w.requires_grad)):
-            return (w * phi).sum(dim=(-1, -2))
-        active = phi > 0
-        phi = phi.index_put((active,), self.per_state(x[active]))  # differentiable in the active states
+            active = self.sdf(self._outline_first(x.detach()), offset=self.margin).amax(0) > 0
+        phi = x.new_zeros(active.shape)
+        if bool(active.any()):
+            phi = phi.index_put((active,), self.per_state(x[active]))  # on the autograd graph if x is
         return (w * phi).sum(dim=(-1, -2))
 
 

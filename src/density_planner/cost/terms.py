@@ -314,14 +314,19 @@ class CollisionCost(CostTerm):
             kk = k.expand(read.shape[:-1])
             c = torch.round(self.grid.world_to_cell(read)).long()
             occupied = _gather(self.grid, kk, c[..., 0], c[..., 1], 1.0) > 0
-            p_des = read.clone()
-            p_occ = torch.zeros(read.shape[:-1], dtype=read.dtype, device=read.device)
-            if bool(occupied.any()):
-                p_des[occupied], p_occ[occupied] = self.desired(read[occupied], kk[occupied])
-            d2 = ((centres - p_des).pow(2).sum(-1) * p_occ).sum(-1)  # (*batch, N, T)
+            d2 = x.new_zeros(x.shape[:-1])  # (*batch, N, T)
+            if not bool(occupied.any()):
+                return (w * d2).sum(dim=(-1, -2))
+            p_des, p_occ = self.desired(read[occupied], kk[occupied])
+            # the states with an occupied disc centre, and their discs' desired positions / occupancies
+            active = occupied.any(-1)
+            sub = occupied[active]  # (K, m)
+            p_des_a = centres[active].clone()
+            p_occ_a = x.new_zeros(sub.shape)
+            p_des_a[sub], p_occ_a[sub] = p_des, p_occ
         if torch.is_grad_enabled() and x.requires_grad:
-            active = (p_occ > 0).any(-1)
-            if bool(active.any()):
-                c = self.collision.centres(x[active])  # (K, m, 2), differentiable
-                d2 = d2.index_put((active,), ((c - p_des[active]).pow(2).sum(-1) * p_occ[active]).sum(-1))
+            c = self.collision.centres(x[active])  # (K, m, 2), on the autograd graph
+        else:
+            c = centres[active]
+        d2 = d2.index_put((active,), ((c - p_des_a).pow(2).sum(-1) * p_occ_a).sum(-1))
         return (w * d2).sum(dim=(-1, -2))
