@@ -4,9 +4,10 @@ gets faster).
 
 Runs the command once per scenario (fresh process, ``--threads 1``, no GIF) and prints per scenario the verdict
 parts (goal_reached, collision_free, on_road, within_model), the collision probability max, the final distance to
-the goal region, the stage-1 / stage-2 / planning times and the command's wall time, then the count of each
-verdict part and the median times, with the load average (wall times on a shared machine measure the other
-processes too). ``--json FILE`` also writes the rows.
+the goal region, the stage-1 / stage-2 / planning times, the command's wall time and its CPU time (user + sys:
+about what it would take on an idle core), then the count of each verdict part and the median times, with the
+load average (wall times on a shared machine measure the other processes too). ``--json FILE`` also writes the
+rows, ``--keep DIR`` keeps the output folders (plan.json with the cost histories).
 
     python benchmarks/bench_plan_quality.py [--scenarios DIR] [--pick A,B,...] [--json FILE] [-- EXTRA...]
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -39,12 +41,16 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per scenario")
     p.add_argument("--json", type=Path, default=None, help="also write the rows to this JSON file")
+    p.add_argument("--keep", type=Path, default=None, help="keep each run's output folder under this folder")
     p.add_argument("--exe", default=None, help="density-planner executable (default: beside this Python)")
     p.add_argument("extra", nargs="*", help="more arguments for `plan` (after --)")
     args = p.parse_args()
     exe = args.exe or str(Path(sys.executable).with_name("density-planner"))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        if args.keep is not None:
+            args.keep.mkdir(parents=True, exist_ok=True)
+            tmp = str(args.keep)
         for name in args.pick.split(","):
             f = args.scenarios / f"{name}.xml"
             if not f.exists():
@@ -55,13 +61,16 @@ def main() -> None:
                    "--no-progress", "--no-gif", "--out", str(out), *args.extra]
             load = os.getloadavg()[0]
             t0 = time.perf_counter()
+            c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             try:
                 proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
                 rc = proc.returncode
             except subprocess.TimeoutExpired:
                 rc = "timeout"
             wall = time.perf_counter() - t0
-            row = {"scenario": name, "exit": rc, "wall": wall, "load": load}
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
+            row = {"scenario": name, "exit": rc, "wall": wall, "cpu": cpu, "load": load, "extra": args.extra}
             if (out / "plan.json").exists():
                 s = json.loads((out / "plan.json").read_text())
                 v = s.get("verdict") or {}
@@ -71,13 +80,15 @@ def main() -> None:
                 t = s.get("timings", {})
                 row.update({"stage1": t.get("stage1"), "stage2": t.get("stage2"), "planning": t.get("total")})
                 row["predictor"] = s.get("density_predictor")
+                row["iterations"] = s.get("iterations")
+                row["command_timings"] = s.get("command_timings")
             else:
                 row["error"] = (proc.stderr.strip().splitlines() or [""])[-1] if rc != "timeout" else "timeout"
             rows.append(row)
             print(_fmt(row), flush=True)
     ok = [r for r in rows if "stage1" in r]
     print("counts: " + ", ".join(f"{k} {sum(r[k] for r in ok)}/{len(rows)}" for k in PARTS))
-    for k in ("stage1", "stage2", "planning", "wall"):
+    for k in ("stage1", "stage2", "planning", "wall", "cpu"):
         vals = [r[k] for r in ok if r.get(k) is not None]
         if vals:
             print(f"median {k}: {statistics.median(vals):.2f} s")
@@ -94,7 +105,7 @@ def _fmt(r: dict) -> str:
     pc = r["p_coll_max"]
     return (f"{r['scenario']:22s} {parts} p_coll_max {pc if pc is None else round(pc, 4)!s:>7s} dist "
             f"{d if d is None else round(d, 2)!s:>6s} m  stage1 {r['stage1']:6.2f} stage2 {r['stage2']:6.2f} "
-            f"plan {r['planning']:6.2f} wall {r['wall']:6.1f} s (load {r['load']:.1f})")
+            f"plan {r['planning']:6.2f} wall {r['wall']:6.1f} cpu {r['cpu']:6.1f} s (load {r['load']:.1f})")
 
 
 if __name__ == "__main__":
