@@ -102,26 +102,44 @@ class RoadBarrierCost(CostTerm):
         self.sdf = sdf
         self.margin = float(margin)
         self.outline = torch.as_tensor(vehicle_outline(length, width, spacing))
+        #: largest distance of an outline point from the reference point [m]
+        self.radius = float(self.outline.norm(dim=1).max()) * (1 + 1e-6)
 
     def outline_points(self, x: Tensor) -> Tensor:
         """``(..., P, 2)`` outline points [m] of the poses ``x (..., nx)`` (``x, y, theta`` first)."""
         return self._outline_first(x).movedim(0, -2)
 
-    def _outline_first(self, x: Tensor) -> Tensor:
-        """The outline points with the outline axis first, ``(P, ..., 2)``: one ``(P, 2) @ (2, 2 n)`` product
-        for all ``n`` poses (several times faster than per-pose rotations or elementwise products)."""
+    def _outline_first(self, x: Tensor, scale: Tensor | None = None, shift: Tensor | None = None) -> Tensor:
+        """The outline points with the outline axis first, ``(P, ..., 2)``, mapped by ``p * scale + shift`` if
+        given: one ``(P, 3) @ (3, 2 n)`` product for all ``n`` poses (homogeneous outline coordinates; several
+        times faster than per-pose rotations or elementwise products)."""
         c, s = torch.cos(x[..., 2]), torch.sin(x[..., 2])
-        rot_t = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)])  # R^T per pose, (2, ..., 2)
+        centre = x[..., 0:2]
+        rows = [torch.stack([c, s], -1), torch.stack([-s, c], -1), centre]  # R^T per pose and the centre
+        if scale is not None:
+            rows[0], rows[1], rows[2] = rows[0] * scale, rows[1] * scale, torch.addcmul(shift, centre, scale)
         o = self.outline.to(x)
-        return torch.matmul(o, rot_t.reshape(2, -1)).reshape(o.shape[0], *x.shape[:-1], 2) + x[..., 0:2]
+        o = torch.cat([o, o.new_ones(o.shape[0], 1)], dim=1)  # (P, 3)
+        return torch.matmul(o, torch.stack(rows).reshape(3, -1)).reshape(o.shape[0], *x.shape[:-1], 2)
+
+    def _sdf_outline(self, x: Tensor, offset: float = 0.0) -> Tensor:
+        """``sdf + offset`` at the outline points of ``x (..., nx)``: ``(P, ...)``."""
+        scale, shift = self.sdf.normaliser(x)
+        grid = self._outline_first(x, scale, shift)
+        # every point is on the lattice when every centre is, by the outline's radius (saves a pass)
+        with torch.no_grad():
+            reach = self.radius * scale
+            cn = torch.addcmul(shift, x[..., 0:2].detach(), scale).abs()
+            inside = bool((cn <= 1.0 - reach).all()) if cn.numel() else True
+        return self.sdf.at_normalised(grid, offset, inside=inside)
 
     def penetration(self, x: Tensor) -> Tensor:
         """Largest signed distance [m] of the outline points of ``x (..., nx)`` (> 0: off the road)."""
-        return self.sdf(self._outline_first(x)).amax(0)
+        return self._sdf_outline(x).amax(0)
 
     def per_state(self, x: Tensor) -> Tensor:
         """``sum_q phi(sdf(q) + margin)`` per state ``x (..., nx)``."""
-        s = torch.relu(self.sdf(self._outline_first(x), offset=self.margin))
+        s = torch.relu(self._sdf_outline(x, self.margin))
         return (s * (1.0 + s)).sum(0)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
@@ -132,7 +150,7 @@ class RoadBarrierCost(CostTerm):
         distance from the edge; the backward pass over all ``states x outline`` lookups is what it saves)."""
         x, w = inputs.x, inputs.weights
         with torch.no_grad():
-            active = self.sdf(self._outline_first(x.detach()), offset=self.margin).amax(0) > 0
+            active = self._sdf_outline(x.detach(), self.margin).amax(0) > 0
         phi = x.new_zeros(active.shape)
         if bool(active.any()):
             phi = phi.index_put((active,), self.per_state(x[active]))  # on the autograd graph if x is

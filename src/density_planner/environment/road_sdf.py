@@ -77,15 +77,25 @@ class RoadSDF:
         lattice (exact: the bilinear weights sum to one), which saves a pass over large batches. The distance
         to the lattice is only computed when a point lies outside it.
         """
-        img = self._lattice(xy, offset)
+        scale, shift = self.normaliser(xy)
+        return self.at_normalised(torch.addcmul(shift, xy, scale), offset)
+
+    def normaliser(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """``(scale (2,), shift (2,))`` with ``g = xy * scale + shift`` the normalised lattice coordinates
+        (``-1`` at the first lattice point, ``+1`` at the last; ``(x, y)`` order), on ``like``'s device / dtype."""
         x0, x1, y0, y1 = self.extent
-        # normalised coordinates: -1 at the first lattice point, +1 at the last, (x, y) = (width, height) axes
-        scale = xy.new_tensor([2.0 / (x1 - x0), 2.0 / (y1 - y0)])
-        shift = xy.new_tensor([-(x1 + x0) / (x1 - x0), -(y1 + y0) / (y1 - y0)])
-        grid = torch.addcmul(shift, xy, scale)
+        scale = like.new_tensor([2.0 / (x1 - x0), 2.0 / (y1 - y0)])
+        shift = like.new_tensor([-(x1 + x0) / (x1 - x0), -(y1 + y0) / (y1 - y0)])
+        return scale, shift
+
+    def at_normalised(self, grid: Tensor, offset: float = 0.0, *, inside: bool = False) -> Tensor:
+        """Signed distance [m] plus ``offset`` at normalised coordinates ``grid (..., 2)`` (:meth:`normaliser`);
+        ``inside=True`` promises that every point lies on the lattice (skips the test for the distance to it)."""
+        img = self._lattice(grid, offset)
         inner = torch.nn.functional.grid_sample(img, grid.reshape(1, 1, -1, 2), mode="bilinear",
-                                                padding_mode="border", align_corners=True).reshape(xy.shape[:-1])
-        if bool(grid.detach().abs().amax() > 1.0) if grid.numel() else False:
+                                                padding_mode="border", align_corners=True).reshape(grid.shape[:-1])
+        if not inside and grid.numel() and bool(grid.detach().abs().amax() > 1.0):
+            scale, _ = self.normaliser(grid)
             d = (grid - grid.clamp(-1.0, 1.0)) / scale  # [m] to the lattice, zero inside
             outside = d.pow(2).sum(-1).clamp_min(1e-24).sqrt()
             inner = inner + torch.where((d == 0).all(-1), torch.zeros_like(outside), outside)
