@@ -19,6 +19,18 @@ obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 
 either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
 into it by more than ``margin`` between two points.
+
+Why the default spacing of 0.5 m (26 points on a 4.5 x 1.8 m car) and not fewer: between two outline points
+``s`` apart, a curved road edge of radius ``R`` can reach ``s^2 / (8 R)`` into the rectangle (0.03 m at ``s = 1``
+m and ``R = 5`` m, a tight urban kerb: harmless), but a right-angled re-entrant corner of the drivable area
+(lanelet notches, junction corners) reaches up to ``s / 2 - sqrt(2) margin`` while both neighbours keep their
+``margin``; the verdict forgives 0.05 m (``verdict.road_tolerance``), hence ``s <= 2 (0.05 + sqrt(2) 0.15) =
+0.52`` m. Coarser outlines were not adopted for speed; instead the evaluation is cheap (below).
+
+Evaluation cost (the planner calls it on ``samples x steps`` poses every iteration): the outline points of all
+poses come from one ``(P, 3) @ (3, 2 n)`` product straight in the SDF lattice's normalised coordinates, looked up
+by one ``grid_sample``; a pass without autograd finds the poses with ``phi > 0`` and only those are evaluated again
+on the autograd graph (exact: the others have zero value and zero gradient).
 """
 
 from __future__ import annotations
