@@ -3,6 +3,7 @@ Liouville and both figures are reported (library and ``plan`` command)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -49,8 +50,24 @@ def test_learned_predictor_in_density_planner(arch):
     assert set(check["cost"]) >= {"goal", "collision", "total"}
     assert 0.0 <= check["collision_probability_max"] <= 1.0
     assert result.samples.x.shape == (FAST.n_samples, 101, 5)
+    # the reported risk is the exact propagation of the evaluation samples, the learned estimate kept beside it
+    assert result.extras["reported_by"] == "exact"
+    assert float(result.collision.max) == pytest.approx(check["collision_probability_max"], abs=1e-7)
+    assert result.cost["total"] == pytest.approx(check["cost"]["total"], rel=1e-6)
+    assert result.extras["predictor_estimate"]["predictor"] == arch
     # stage 2 changed the parameters: the prediction is differentiable w.r.t. them
     assert len(result.cost_history["stage2"]["total"]) == FAST.epochs_density
+
+
+def test_report_exact_false_keeps_the_learned_estimate():
+    car, ctrl = KinematicCar(), CarTrackingController()
+    problem = PlanningProblem.from_scene(random_scene(1), seed=1)
+    cfg = dataclasses.replace(FAST, report_exact=False)
+    result = DensityPlanner(LearnedDensity(untrained("trajectory")), cfg, exact_check=ExactLiouville(car, ctrl)
+                            ).plan(problem)
+    assert result.extras["reported_by"] == "trajectory"
+    assert "predictor_estimate" not in result.extras
+    assert "exact_check" in result.extras
 
 
 @pytest.mark.slow

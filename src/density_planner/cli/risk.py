@@ -34,6 +34,10 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--mc-seed", type=int, default=12345, metavar="S", help="seed of the Monte-Carlo states")
     p.add_argument("--threshold", type=float, default=3.0, metavar="SIGMA",
                    help="largest accepted |difference| in combined standard errors (default 3)")
+    p.add_argument("--calibration-samples", type=int, default=2_000, metavar="N",
+                   help="recorded road scenes (--env commonroad): closed loops of the calibration check of the "
+                   "occupancy model, predicted road-user risk against true-shape hits (risk_report.json "
+                   "'calibration', calibration.png; default 2000, 0 = off)")
     add_controller(p)
     add_config(p)
     add_device(p)
@@ -55,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.samples < 2:
         raise ValueError(f"--samples must be at least 2, got {args.samples}")
+    if args.calibration_samples != 0 and args.calibration_samples < 2:
+        raise ValueError(f"--calibration-samples must be 0 (off) or at least 2, got {args.calibration_samples}")
     out = out_dir(args.out)
     run_config = load_config(RunConfig, args.config, args.overrides)
     scene = scene_from_args(args, run_config)
@@ -75,10 +81,14 @@ def run(args: argparse.Namespace) -> int:
                           threshold=args.threshold, config=run_config.evaluation)
     t_mc = time.perf_counter() - t0
     report = check.to_dict()
-    exact = (plan.extras.get("exact_check") or {}).get("collision_probability")
+    # the second estimate of the same fresh samples: the learned predictor's own when the plan reports the exact
+    # propagation (report_exact), else the exact re-prediction; separates the estimator from the learned
+    # predictor's trajectory error
+    second_key = "predictor_estimate" if "predictor_estimate" in plan.extras else "exact_check"
+    second_label = ("the learned predictor's own estimate" if second_key == "predictor_estimate"
+                    else "same samples through exact Liouville")
+    exact = (plan.extras.get(second_key) or {}).get("collision_probability")
     if exact and exact.get("se") is not None:
-        # the same fresh samples re-predicted by exact Liouville: separates the estimator from the learned
-        # predictor's trajectory error
         import math
 
         import numpy as np
@@ -92,14 +102,20 @@ def run(args: argparse.Namespace) -> int:
         ex = compare_risk(np.asarray(exact["per_slice"][:t]), se, check.monte_carlo, check.monte_carlo_se,
                           times=check.times, threshold=args.threshold, n_monte_carlo=args.samples,
                           estimator=exact.get("estimator", ""))
-        report["exact_check"] = {k: v for k, v in ex.to_dict().items() if k in (
+        report[second_key] = {k: v for k, v in ex.to_dict().items() if k in (
             "passed", "max_abs_z", "steps_beyond_threshold", "max_abs_difference", "planner_max")}
-        report["exact_check"]["planner_p"] = exact["per_slice"][:t]
+        report[second_key]["planner_p"] = exact["per_slice"][:t]
+        report[second_key]["label"] = second_label
+    calibration = None
+    if args.calibration_samples and getattr(scene, "road", None) is not None and args.kind == "commonroad":
+        calibration = _calibrate(args, run_config, scene, problem, plan, ctx)
+        report["calibration"] = calibration.to_dict()
     report.update({
         "scene": scene.name,
         "planner": plan.planner,
         "plan_status": plan.status.value,
         "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
+        "reported_by": plan.extras.get("reported_by"),
         "n_samples_planner": int(plan.samples.n_samples) if plan.samples is not None else None,
         "distribution_seed": dist_seed,
         "monte_carlo_seed": args.mc_seed,
@@ -115,10 +131,39 @@ def run(args: argparse.Namespace) -> int:
     title = (f"{scene.name}: {plan.planner} ({report['density_predictor']}, estimator {check.estimator}) vs "
              f"{args.samples} closed loops: {'PASS' if check.passed else 'FAIL'}, max |z| {check.max_abs_z:.2f}")
     plot_risk_validation(check, out / "risk.png", title=title)
+    if calibration is not None:
+        from ..viz.risk import plot_calibration
+
+        plot_calibration(calibration, out / "calibration.png",
+                         title=f"{scene.name}: occupancy model of the road users vs their true shapes "
+                         f"({calibration.n} closed loops of the {plan.planner} plan)")
+        print(f"calibration on {scene.name}: road-user risk predicted max {calibration.predicted.max():.3f}, "
+              f"observed max {calibration.observed.max():.3f} (mean over time {calibration.total_predicted:.4f} vs "
+              f"{calibration.total_observed:.4f}); wrote {out / 'calibration.png'}")
     print(f"risk check on {scene.name}: {'PASS' if check.passed else 'FAIL'}; max |z| = {check.max_abs_z:.2f} "
           f"({report['steps_beyond_threshold']} of {report['steps']} steps beyond {args.threshold:g} sigma); "
           f"P_coll max planner {report['planner_max']:.4f}, Monte Carlo {report['monte_carlo_max']:.4f}"
-          + (f"; same samples through exact Liouville: {'PASS' if report['exact_check']['passed'] else 'FAIL'}, max "
-             f"|z| {report['exact_check']['max_abs_z']:.2f}" if "exact_check" in report else "") + "; wrote "
+          + (f"; {second_label}: {'PASS' if report[second_key]['passed'] else 'FAIL'}, max "
+             f"|z| {report[second_key]['max_abs_z']:.2f}" if second_key in report else "") + "; wrote "
           f"{out / 'risk_report.json'}, {out / 'risk.png'}")
     return 0 if check.passed else 1
+
+
+def _calibrate(args, run_config, scene, problem, plan, ctx):
+    """The calibration check of the occupancy model on a recorded road scene (evaluation/calibration.py): the
+    scene is rebuilt with the road users' occupancy only (``commonroad.offroad_occupied = false``)."""
+    import dataclasses
+
+    from ..config import update
+    from ..evaluation.calibration import calibrate_plan
+    from ..risk.collision import CollisionModel
+
+    users_config = dataclasses.replace(run_config, commonroad=update(run_config.commonroad,
+                                                                       {"offroad_occupied": False}))
+    users_scene = scene_from_args(args, users_config)
+    g, h = scene.grid, users_scene.grid
+    if g.probs.shape != h.probs.shape or tuple(g.origin) != tuple(h.origin) or g.cell_size != h.cell_size:
+        raise RuntimeError("the road users' occupancy was rebuilt on a different lattice; cannot calibrate")
+    users = CollisionModel(h, problem.system, problem.risk)
+    return calibrate_plan(problem, plan, ctx.controller, users, scene.road, n=args.calibration_samples,
+                          seed=args.mc_seed, config=run_config.evaluation)

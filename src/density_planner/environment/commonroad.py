@@ -139,6 +139,10 @@ class CommonRoadSceneConfig:
     stop_line_depth: float = 1.0
     #: add static obstacles (occupancy 1) to the static map
     include_static_obstacles: bool = True
+    #: cells outside the drivable area are occupied (1): the occupancy then also holds the road's edge (the
+    #: planners without a road term keep to the road through it); false: the road users only (the collision
+    #: probability is then the probability of hitting a road user; used by the calibration check)
+    offroad_occupied: bool = True
     #: drop the dynamic obstacle that coincides with the planning problem's initial state (the recorded ego)
     drop_ego: bool = True
     #: position tolerance of that match [m]
@@ -460,7 +464,8 @@ def static_map(
     static_polygons: list[Any] | None = None,
 ) -> tuple[np.ndarray, int]:
     """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the drivable area
-    and inside static obstacles, 0 elsewhere, evaluated at the cell centres."""
+    (unless ``config.offroad_occupied`` is false) and inside static obstacles, 0 elsewhere, evaluated at the cell
+    centres."""
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
     if drivable is None:
@@ -471,6 +476,8 @@ def static_map(
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     shapely.prepare(drivable)
     static = (~shapely.intersects_xy(drivable, gx, gy)).astype(np.float32)
+    if not cfg.offroad_occupied:
+        static[:] = 0.0
     if static_polygons is None:
         static_polygons = []
         if cfg.include_static_obstacles:

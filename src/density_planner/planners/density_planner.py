@@ -81,6 +81,12 @@ class DensityPlannerConfig:
     #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
     #: states (True), or on the samples it was optimised on (False, paper: optimistic, the plan is fitted to them)
     fresh_evaluation_samples: bool = True
+    #: when a learned predictor planned and an exact predictor is available (``exact_check``), report the plan's
+    #: cost, collision probability and sample cloud from the evaluation samples propagated by exact Liouville
+    #: (the closed-loop ODE: no learned trajectory error in the reported risk), the learned predictor's own
+    #: estimate in ``extras["predictor_estimate"]`` (True); or report the learned predictor's figures and the exact
+    #: ones in ``extras["exact_check"]`` only (False)
+    report_exact: bool = True
     #: random seed of the initial parameters and samples
     seed: int = 0
     #: cost terms and weights
@@ -345,20 +351,32 @@ class DensityPlanner(Planner):
                 ref, traj = self._predict(self.predictor, problem, params, x0, log_rho0)
         timings["total"] = time.perf_counter() - t_start
         cost, coll = self.evaluate(problem, ref, traj, log_q0, slices)
-        extras: dict = {"predictor": getattr(self.predictor, "name", type(self.predictor).__name__)}
+        predictor_name = getattr(self.predictor, "name", type(self.predictor).__name__)
+        extras: dict = {"predictor": predictor_name, "reported_by": predictor_name}
         if self.exact_check is not None and self.exact_check is not self.predictor:
             t3 = time.perf_counter()
             with torch.no_grad():
                 ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0)
             cost_e, coll_e = self.evaluate(problem, ref_e, traj_e, log_q0, slices)
+            exact_name = getattr(self.exact_check, "name", type(self.exact_check).__name__)
             extras["exact_check"] = {
-                "predictor": getattr(self.exact_check, "name", type(self.exact_check).__name__),
+                "predictor": exact_name,
                 "cost": cost_e,
                 "collision_probability_max": float(coll_e.max),
                 "collision_probability_sum": float(coll_e.sum),
                 "collision_probability": coll_e.to_dict(),
                 "time": time.perf_counter() - t3,
             }
+            if self.config.report_exact:
+                extras["predictor_estimate"] = {
+                    "predictor": predictor_name,
+                    "cost": cost,
+                    "collision_probability_max": float(coll.max),
+                    "collision_probability_sum": float(coll.sum),
+                    "collision_probability": coll.to_dict(),
+                }
+                extras["reported_by"] = exact_name
+                cost, coll, ref, traj = cost_e, coll_e, ref_e, traj_e
         return PlanResult(
             planner=self.name,
             status=PlanStatus.SUCCESS,
