@@ -51,6 +51,17 @@ def test_hits_only_while_the_road_user_is_present():
     np.testing.assert_array_equal(hits[0], present)
 
 
+def test_hits_count_recorded_shapes_only_by_default():
+    # recorded at 0 and 0.5 s, extrapolated at 1 s: the ego sits where it is at 1 s
+    other = ObstacleTrack(5, "car", 4.0, 2.0, [0.0, 0.5, 1.0], [[0, 0, 0], [2.5, 0, 0], [5.0, 0, 0]],
+                          predicted=[False, False, True], position_std=[0.0, 0.0, 0.5])
+    poses = np.zeros((1, 1, 3))
+    poses[0, 0, 0] = 5.0
+    t = np.array([1.0])
+    assert not road_user_hits(_road([other]), poses, t)[0, 0]
+    assert road_user_hits(_road([other]), poses, t, include_predicted=True)[0, 0]
+
+
 def test_hits_reject_bad_shapes():
     with pytest.raises(ValueError, match=r"\(M, T, 3\)"):
         road_user_hits(_road([]), np.zeros((4, 3)), np.zeros(4))

@@ -124,3 +124,30 @@ def test_bad_problems_are_rejected():
 def test_bad_planner_config(kwargs):
     with pytest.raises(ValueError):
         DensityPlannerConfig(**kwargs)
+
+
+def test_mass_weighted_iterations_read_states_only_with_the_same_plan():
+    """With "mass" weights stage 2 asks exact Liouville for the trajectories alone (no divergence): the same
+    states as the full propagation, so the same plan; the reported log-densities are the full ones."""
+    from density_planner.control.reference import make_reference
+
+    scene = block_scene()
+    problem = PlanningProblem.from_scene(scene, seed=0)
+    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=4, n_samples=30, seed=3,
+                               fresh_evaluation_samples=False)
+    planner = _planner(cfg)
+    pred = planner.predictor
+    ref = make_reference(pred.system, problem.reference_start(), 0.3 * torch.ones(1, 2, 10),
+                         problem.parameterization)
+    x0 = problem.initial_distribution.sample(20, torch.Generator().manual_seed(0)).unsqueeze(0)
+    lr0 = problem.initial_distribution.log_prob(x0)
+    full, states = pred.predict(x0, lr0, ref), pred.predict_states(x0, lr0, ref)
+    assert torch.allclose(states.x, full.x, atol=1e-5) and torch.equal(states.log_rho0, full.log_rho0)
+    assert bool(torch.isnan(states.log_rho).all())
+    fast = planner.plan(problem)
+    pred.predict_states = pred.predict  # the full propagation in every iteration
+    slow = planner.plan(problem)
+    assert torch.allclose(fast.params, slow.params, atol=1e-4)
+    assert torch.isfinite(fast.samples.log_rho).all()
+    assert torch.allclose(fast.samples.log_rho, slow.samples.log_rho, atol=1e-3)
+    assert float(fast.collision.max) == pytest.approx(float(slow.collision.max), abs=1e-4)

@@ -110,3 +110,28 @@ def test_build_cost_barrier_on_road_scene():
     out = cost(inp)
     assert float(out.terms["road"][0]) == 0.0 and float(out.terms["road"][1]) > 0
     assert cost.weights["road"] == CostConfig().road.weight
+
+
+def test_active_subset_call_equals_the_dense_sum_with_gradients():
+    """J_R evaluates only the states near the edge on the autograd graph: same value and gradients as the dense
+    sum over every state (x and the weights)."""
+    road = shapely.union(shapely.box(0, 0, 40, 4), shapely.box(36, 0, 40, 30))
+    sdf = RoadSDF.from_geometry(road, (-10, 50, -10, 40), cell_size=0.2, dtype=torch.float64)
+    barrier = RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5)
+    gen = torch.Generator().manual_seed(3)
+    x = torch.zeros(2, 40, 30, 5, dtype=torch.float64)
+    x[..., 0] = torch.rand(2, 40, 30, generator=gen, dtype=torch.float64) * 36 + 2
+    x[..., 1] = 2 + 0.5 * torch.randn(2, 40, 30, generator=gen, dtype=torch.float64)
+    x[..., 2] = 0.1 * torch.randn(2, 40, 30, generator=gen, dtype=torch.float64)
+    w = torch.rand(2, 40, 30, generator=gen, dtype=torch.float64)
+    x.requires_grad_(True)
+    w.requires_grad_(True)
+    got = barrier(CostInputs(x, w, None, None))
+    dense = (w * barrier.per_state(x)).sum(dim=(-1, -2))
+    active = (barrier.penetration(x.detach()) + 0.15 > 0).double().mean()
+    assert 0.05 < float(active) < 0.95  # both kinds of states present
+    assert torch.allclose(got, dense, rtol=1e-12)
+    g_got = torch.autograd.grad(got.sum(), (x, w))
+    g_dense = torch.autograd.grad(dense.sum(), (x, w))
+    for a, b in zip(g_got, g_dense):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)

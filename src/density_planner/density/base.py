@@ -125,3 +125,9 @@ class DensityPredictor(ABC):
         ``reference`` has batch shape ``batch`` (or broadcastable to it); ``log_rho0 (*batch, N)``.
         Differentiable w.r.t. ``reference.params`` (and ``reference.start``).
         """
+
+    def predict_states(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+        """Like :meth:`predict` for callers that need the trajectories and ``log_rho0`` but not the log-densities
+        along them (costs weighted by the samples' initial mass, ``weighting = "mass"``): a predictor may leave
+        ``log_rho`` out (NaN, so that any use shows) where that saves work. Default: :meth:`predict`."""
+        return self.predict(x0, log_rho0, reference)

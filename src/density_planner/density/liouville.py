@@ -170,10 +170,22 @@ class ExactLiouville(DensityPredictor):
         self.config = config or LiouvilleConfig()
 
     def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
-        out = propagate_density(self.system, self.controller, x0, reference, log_rho0=log_rho0, config=self.config)
+        self._check_output_dt(reference)
+        return propagate_density(self.system, self.controller, x0, reference, log_rho0=log_rho0, config=self.config)
+
+    def predict_states(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+        """The closed-loop trajectories alone (same integrator and step as :meth:`predict`, hence the same
+        states), ``log_rho`` NaN: without the divergence the controller's tangents are not pushed through, about
+        1.4x faster with the C3M controller, forward and backward."""
+        self._check_output_dt(reference)
+        t, x = simulate_closed_loop(self.system, self.controller, x0, reference, config=self.config)
+        log_rho0 = expand_log_rho0(log_rho0, x[..., 0, :])
+        return DensityTrajectory(t=t, x=x, log_rho=torch.full(x.shape[:-1], math.nan, dtype=x.dtype,
+                                 device=x.device), log_rho0=log_rho0)
+
+    def _check_output_dt(self, reference: Reference) -> None:
         plan_dt = reference.parameterization.plan_dt
         if not math.isclose(self.config.output_dt, plan_dt):
             raise ValueError(
                 f"LiouvilleConfig.output_dt ({self.config.output_dt}) must equal the planning step ({plan_dt})"
             )
-        return out

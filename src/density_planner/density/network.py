@@ -433,16 +433,35 @@ class LearnedDensity(DensityPredictor):
             )
 
     def predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+        fallback = self._fallback_for(reference)
+        if fallback is not None:
+            return fallback.predict(x0, log_rho0, reference)
+        return self._predict(x0, log_rho0, reference)
+
+    def predict_states(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+        """The network's prediction (the log-densities come at no extra cost), or the fallback's
+        :meth:`~DensityPredictor.predict_states` outside the training domain."""
+        fallback = self._fallback_for(reference)
+        if fallback is not None:
+            return fallback.predict_states(x0, log_rho0, reference)
+        return self._predict(x0, log_rho0, reference)
+
+    def _fallback_for(self, reference: Reference) -> DensityPredictor | None:
+        """``None`` when the network serves ``reference``; the fallback (warned once) outside its training domain;
+        :class:`DomainError` there without one."""
         self._check_reference(reference)
         problem = self.domain_problem(reference)
-        if problem is not None:
-            if self.fallback is None:
-                raise DomainError(f"{problem}; use --density exact or a predictor trained for this domain "
-                                  "(--models road for road traffic)")
-            if not self._warned:
-                logger.warning("%s: using exact Liouville instead", problem)
-                self._warned = True
-            return self.fallback.predict(x0, log_rho0, reference)
+        if problem is None:
+            return None
+        if self.fallback is None:
+            raise DomainError(f"{problem}; use --density exact or a predictor trained for this domain "
+                              "(--models road for road traffic)")
+        if not self._warned:
+            logger.warning("%s: using exact Liouville instead", problem)
+            self._warned = True
+        return self.fallback
+
+    def _predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
         dtype, device = reference.x.dtype, reference.x.device
         x0 = expand_samples(x0, reference, N_ERR)
         log_rho0 = expand_log_rho0(log_rho0, x0)

@@ -67,27 +67,51 @@ class RoadSDF:
         values = self.values.to(device=device, dtype=dtype)
         return self if values is self.values else RoadSDF(values, self.origin, self.cell_size)
 
-    def __call__(self, xy: Tensor) -> Tensor:
-        """Signed distance [m] at ``xy (..., 2)`` (bilinear; differentiable w.r.t. ``xy``)."""
-        nx, ny = self.shape
-        vals = self.values.to(device=xy.device, dtype=xy.dtype)
+    def __call__(self, xy: Tensor, offset: float = 0.0) -> Tensor:
+        """Signed distance [m] at ``xy (..., 2)`` plus ``offset`` (bilinear; differentiable w.r.t. ``xy``).
+
+        The lattice lookup is one :func:`torch.nn.functional.grid_sample` (bilinear, ``align_corners=True``: the
+        corner texels are the lattice points, ``padding_mode="border"``: clamped to the lattice), whose fused
+        forward and backward kernels replace four index gathers and their scatter-add backward; the values are
+        the same bilinear interpolation (``tests/environment/test_road_sdf.py``). ``offset`` is added to the
+        lattice (exact: the bilinear weights sum to one), which saves a pass over large batches. The distance
+        to the lattice is only computed when a point lies outside it.
+        """
+        scale, shift = self.normaliser(xy)
+        return self.at_normalised(torch.addcmul(shift, xy, scale), offset)
+
+    def normaliser(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """``(scale (2,), shift (2,))`` with ``g = xy * scale + shift`` the normalised lattice coordinates
+        (``-1`` at the first lattice point, ``+1`` at the last; ``(x, y)`` order), on ``like``'s device / dtype."""
         x0, x1, y0, y1 = self.extent
-        lo = xy.new_tensor([x0, y0])
-        hi = xy.new_tensor([x1, y1])
-        clamped = torch.minimum(torch.maximum(xy, lo), hi)
-        outside = (xy - clamped).pow(2).sum(-1).clamp_min(1e-24).sqrt()
-        outside = torch.where((xy == clamped).all(-1), torch.zeros_like(outside), outside)
-        g = (clamped - lo) / self.cell_size
-        i0 = torch.floor(g[..., 0].detach()).clamp(0, nx - 2)
-        j0 = torch.floor(g[..., 1].detach()).clamp(0, ny - 2)
-        fx, fy = g[..., 0] - i0, g[..., 1] - j0
-        i0, j0 = i0.long(), j0.long()
-        flat = vals.reshape(-1)
-        base = i0 * ny + j0
-        v00, v01 = flat[base], flat[base + 1]
-        v10, v11 = flat[base + ny], flat[base + ny + 1]
-        inner = (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
-        return inner + outside
+        scale = like.new_tensor([2.0 / (x1 - x0), 2.0 / (y1 - y0)])
+        shift = like.new_tensor([-(x1 + x0) / (x1 - x0), -(y1 + y0) / (y1 - y0)])
+        return scale, shift
+
+    def at_normalised(self, grid: Tensor, offset: float = 0.0, *, inside: bool = False) -> Tensor:
+        """Signed distance [m] plus ``offset`` at normalised coordinates ``grid (..., 2)`` (:meth:`normaliser`);
+        ``inside=True`` promises that every point lies on the lattice (skips the test for the distance to it)."""
+        img = self._lattice(grid, offset)
+        inner = torch.nn.functional.grid_sample(img, grid.reshape(1, 1, -1, 2), mode="bilinear",
+                                                padding_mode="border", align_corners=True).reshape(grid.shape[:-1])
+        if not inside and grid.numel() and bool(grid.detach().abs().amax() > 1.0):
+            scale, _ = self.normaliser(grid)
+            d = (grid - grid.clamp(-1.0, 1.0)) / scale  # [m] to the lattice, zero inside
+            outside = d.pow(2).sum(-1).clamp_min(1e-24).sqrt()
+            inner = inner + torch.where((d == 0).all(-1), torch.zeros_like(outside), outside)
+        return inner
+
+    def _lattice(self, like: Tensor, offset: float = 0.0) -> Tensor:
+        """``values + offset`` as a ``(1, 1, NY, NX)`` image (x along the width, as ``grid_sample`` reads it) on
+        ``like``'s device and dtype, cached per (device, dtype, offset)."""
+        key = (like.device, like.dtype, float(offset))
+        cache = self.__dict__.setdefault("_images", {})
+        img = cache.get(key)
+        if img is None:
+            v = self.values.to(device=like.device, dtype=like.dtype)
+            img = (v.T + float(offset)).reshape(1, 1, self.shape[1], self.shape[0]).contiguous()
+            cache[key] = img
+        return img
 
     # ---------------------------------------------------------------------------------------------- builder
     @classmethod

@@ -11,8 +11,11 @@ exactly, as the risk check does),
 
 * predicted ``p_m(t) = P_body(x_m(t), t)`` on the occupancy of the **road users only** (the scene rebuilt with
   ``commonroad.offroad_occupied = false``: the road's edge is not a road user);
-* observed ``I_m(t) = 1`` when the vehicle's rectangle at ``x_m(t)`` intersects the true shape of any recorded road
-  user present at ``t`` (shapely, the verdict's test).
+* observed ``I_m(t) = 1`` when the vehicle's rectangle at ``x_m(t)`` intersects the true shape of any road user
+  *recorded* at ``t`` (shapely, the verdict's test). Past the end of a road user's recording its future is not
+  known, so it cannot be a ground truth: those times count no hit, while the prediction still holds the
+  extrapolated footprint (``extras["extrapolated_share"]`` is the share of (road user, time) pairs that are
+  extrapolated; where it is large the comparison leans conservative by construction).
 
 Per time, ``P_pred(t) = mean_m p_m(t)`` is the plan's road-user collision probability and ``P_obs(t) = mean_m
 I_m(t)`` the frequency with which the vehicle actually hits a road user (standard error ``sqrt(P(1-P)/M)``). The
@@ -127,10 +130,11 @@ class CalibrationResult:
                    sum(r.bin_hits for r in results), {"plans": len(results)})
 
 
-def road_user_hits(road: Any, poses: np.ndarray, times: np.ndarray) -> np.ndarray:
+def road_user_hits(road: Any, poses: np.ndarray, times: np.ndarray, *, include_predicted: bool = False
+                   ) -> np.ndarray:
     """``(M, T)`` bool: the vehicle rectangle (``road.vehicle_length x road.vehicle_width``) at ``poses (M, T, 3)``
-    (``x, y, heading``) intersects the true shape of a road user of ``road`` present at the absolute times
-    ``times (T,)`` [s]."""
+    (``x, y, heading``) intersects the true shape of a road user of ``road`` recorded at the absolute times
+    ``times (T,)`` [s] (``include_predicted``: also its extrapolation past the end of its recording)."""
     import shapely
 
     poses = np.asarray(poses, dtype=np.float64)
@@ -142,7 +146,7 @@ def road_user_hits(road: Any, poses: np.ndarray, times: np.ndarray) -> np.ndarra
         raise ValueError(f"times must have {t} entries (one per pose column), got {times.size}")
     boxes = road.vehicle_polygons(poses.reshape(-1, 3)).reshape(m, t)
     hits = np.zeros((m, t), dtype=bool)
-    polys = road.obstacle_polygons(times)  # (n_obstacles, T)
+    polys = road.obstacle_polygons(times, include_predicted=include_predicted)  # (n_obstacles, T)
     for k in range(t):
         present = [p for p in polys[:, k] if p is not None] if polys.size else []
         if not present:
@@ -224,4 +228,10 @@ def calibrate_plan(
         count += c
         pred_sum += ps
         hit_sum += hs
-    return CalibrationResult(times_rel, pred_t / n, obs_t / n, n, edges, count, pred_sum, hit_sum)
+    recorded = road.obstacle_polygons(times_abs, include_predicted=False)
+    anyway = road.obstacle_polygons(times_abs, include_predicted=True)
+    n_any = int(np.sum(anyway != None))  # noqa: E711 (object array of geometries / None)
+    n_rec = int(np.sum(recorded != None))  # noqa: E711
+    extrapolated = (n_any - n_rec) / n_any if n_any else 0.0
+    return CalibrationResult(times_rel, pred_t / n, obs_t / n, n, edges, count, pred_sum, hit_sum,
+                             {"extrapolated_share": extrapolated})

@@ -168,7 +168,8 @@ def body_grid(grid: OccupancyGrid, radius: float) -> OccupancyGrid:
     with torch.no_grad():
         # quantised up to multiples of 1/255 (conservative by < 0.004): the max-filter runs on uint8, ~10x faster
         # than on float32 (~0.05 s for a 101 x 241 x 401 grid on one thread)
-        q = torch.ceil(grid.probs * _LEVELS - 1e-4).clamp(0, _LEVELS).to(torch.uint8)
-        out = grid.with_probs(dilate(q, rho).to(grid.probs.dtype) / _LEVELS)
+        # (in place on one temporary: the grids are large, 50M cells for a 13-s urban scene)
+        q = torch.mul(grid.probs, _LEVELS).sub_(1e-4).ceil_().clamp_(0, _LEVELS).to(torch.uint8)
+        out = grid.with_probs(dilate(q, rho).to(grid.probs.dtype).div_(_LEVELS))
     grid._cache[key] = out
     return out
