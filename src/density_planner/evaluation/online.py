@@ -17,8 +17,9 @@
    unless ``enforce_budget = false``) is discarded: the controller keeps tracking the previous reference, unless
    that reference is unsafe under the current prediction (its nominal path's collision probability exceeds
    ``unsafe_p_coll``) or has ended; then it tracks the least-risk braking manoeuvre (full braking with each
-   steering rate of ``brake_steer``, the one with the smallest nominal collision probability). Every fallback is
-   recorded with its reason.
+   steering rate of ``brake_steer``, the one with the smallest nominal collision probability) when that is safer
+   than the previous reference (an ended reference is always replaced). Every fallback is recorded with its
+   reason.
 4. The controller tracks the newest reference (explicit Euler at ``evaluation.dt``, one state, as on the car).
    The run ends when the goal's time interval has ended, or earlier when the vehicle is inside the goal region
    during it (road scenes); scenes without a goal region run for ``duration`` (default: the planning horizon).
@@ -86,8 +87,8 @@ class OnlineConfig:
     max_duration: float = 30.0
     #: stop as soon as the vehicle is in the goal region during its time interval (road scenes)
     stop_at_goal: bool = True
-    #: the previous reference is unsafe (fallback to braking) when its nominal path's collision probability under
-    #: the current prediction exceeds this
+    #: the previous reference is unsafe when its nominal path's collision probability under the current prediction
+    #: exceeds this; the least-risk braking manoeuvre then replaces it if its own is lower
     unsafe_p_coll: float = 0.2
     #: the warm start is invalid (stage 1 reruns) when the measurement is farther than this from the previous
     #: reference's position at the replanning time [m]
@@ -558,9 +559,15 @@ def drive(
                     why = "it has ended" if ended else (
                         f"its nominal P_coll {p_prev:.3f} > online.unsafe_p_coll = {config.unsafe_p_coll:g}"
                         if math.isfinite(p_prev) else "its risk cannot be evaluated")
-                    active, p_b = brake(grid_t, x_hat, t)
-                    rec.fallback = "brake"
-                    rec.reason += f"; previous reference unsafe ({why}): least-risk braking (P_coll {p_b:.3f})"
+                    braking, p_b = brake(grid_t, x_hat, t)
+                    if ended or not math.isfinite(p_prev) or p_b < p_prev:
+                        active = braking
+                        rec.fallback = "brake"
+                        rec.reason += f"; previous reference unsafe ({why}): least-risk braking (P_coll {p_b:.3f})"
+                    else:  # braking is no safer than going on: keep the previous reference
+                        rec.fallback = "previous"
+                        rec.reason += (f"; previous reference unsafe ({why}) but the least-risk braking is no safer "
+                                       f"(P_coll {p_b:.3f}): tracking the previous reference")
                 else:
                     rec.fallback = "previous"
                     rec.reason += f"; tracking the previous reference (P_coll {p_prev:.3f})"
