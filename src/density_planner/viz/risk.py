@@ -57,8 +57,9 @@ def plot_calibration(c: CalibrationResult, path: str | Path, *, title: str = "")
         size = 20 + 280 * np.sqrt(pairs / pairs.max())
         a.errorbar(pred, obs, yerr=2 * se, fmt="none", ecolor="tab:blue", alpha=0.6, lw=1)
         a.scatter(pred, obs, s=size, color="tab:blue", alpha=0.75, zorder=3, label="bins (area ~ pairs)")
-        for p_, o_, n_ in zip(pred, obs, pairs):
-            a.annotate(f"{int(n_)}", (p_, o_), textcoords="offset points", xytext=(6, -10), fontsize=7, color="0.3")
+        for j, (p_, o_, n_) in enumerate(zip(pred, obs, pairs)):  # pair counts above the markers, staggered
+            a.annotate(f"{int(n_)}", (p_, o_), textcoords="offset points", xytext=(0, 10 + 9 * (j % 2)),
+                       ha="center", fontsize=7, color="0.3")
     a.set_xlim(-0.02, 1.02)
     a.set_ylim(-0.02, 1.02)
     a.set_xlabel("predicted road-user occupancy of the body")
