@@ -228,10 +228,8 @@ def calibrate_plan(
         count += c
         pred_sum += ps
         hit_sum += hs
-    recorded = road.obstacle_polygons(times_abs, include_predicted=False)
-    anyway = road.obstacle_polygons(times_abs, include_predicted=True)
-    n_any = int(np.sum(anyway != None))  # noqa: E711 (object array of geometries / None)
-    n_rec = int(np.sum(recorded != None))  # noqa: E711
+    n_any = sum(int(o.present(times_abs).sum()) for o in road.obstacles)
+    n_rec = sum(int(o.present(times_abs, include_predicted=False).sum()) for o in road.obstacles)
     extrapolated = (n_any - n_rec) / n_any if n_any else 0.0
     return CalibrationResult(times_rel, pred_t / n, obs_t / n, n, edges, count, pred_sum, hit_sum,
                              {"extrapolated_share": extrapolated})

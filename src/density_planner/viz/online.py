@@ -12,7 +12,7 @@ from ..environment.scene import Scene
 from ..io.atomic import _atomic
 from .occupancy import show_occupancy
 from .plan import _OUTSIDE_MAP, _draw_goal, _geometry_patches, _region_of_interest, _save_laid_out, _verdict_line
-from .style import plt
+from .style import frame_map, plt
 
 __all__ = ["plot_run", "animate_run"]
 
@@ -105,12 +105,7 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
             ax.plot(xs[k, 0], xs[k, 1], mk, color="tab:red", ms=6, mfc="none", zorder=8)
     ax.plot([], [], "s", color="tab:red", mfc="none", label="fallback: previous reference")
     ax.plot([], [], "x", color="tab:red", label="fallback: braking")
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal", anchor="C")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.tick_params(labelsize=7)
+    frame_map(ax, x0, x1, y0, y1)
     ax.legend(loc="best", fontsize=7, framealpha=0.8)
     walls = [r.wall_time for r in result.replans if r.status != "initial"]
     fig.suptitle(f"{scene.name}: online ({result.prediction} prediction), {len(walls)} replans, median "

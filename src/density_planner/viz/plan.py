@@ -11,7 +11,7 @@ import numpy as np
 from ..environment.scene import Scene
 from ..io.atomic import _atomic
 from .occupancy import _decorate, _extent, show_occupancy
-from .style import DENSITY_CMAP, plt, save_figure
+from .style import DENSITY_CMAP, frame_map, plt, save_figure
 
 __all__ = ["plot_plan", "animate_plan", "plot_costs", "plot_plans"]
 
@@ -230,12 +230,7 @@ def plot_plan(
     sx, sy = scene.start[:2]
     ax.plot(sx, sy, "o", color="tab:green", ms=7, mec="white", zorder=6, label=f"start ({scene.start[3]:.1f} m/s)")
     _mark_failures(ax, states, verdict, plan_dt)
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal", anchor="C")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.tick_params(labelsize=7)
+    frame_map(ax, x0, x1, y0, y1)
     ax.set_facecolor(_OUTSIDE_MAP)
     ax.legend(loc=_emptiest_corner(states[:, :2], roi), fontsize=7, framealpha=0.8)
     fig.suptitle(title or f"{scene.name}: plan", fontsize=10)

@@ -26,6 +26,16 @@ plt.rcParams.update(
 )
 
 
+def frame_map(ax, x0: float, x1: float, y0: float, y1: float) -> None:
+    """Frame a map panel: limits ``[x0, x1] x [y0, y1]`` [m], equal aspect, centred, axis labels in metres."""
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal", anchor="C")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.tick_params(labelsize=7)
+
+
 def save_figure(fig, path: str | Path) -> Path:
     """Save ``fig`` atomically (temporary file + rename) and close it."""
     from ..io.atomic import _atomic
