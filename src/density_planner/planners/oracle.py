@@ -42,7 +42,7 @@ from ..checks import check_choice, check_seed
 from ..control.reference import make_reference
 from ..cost.composite import CostConfig
 from ..systems.car import BIAS, THETA, KinematicCar, V
-from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
+from ._nlp import BufferedNLP, SolveInfo, car_step_function, check_ipopt_limits, import_casadi, ipopt_options
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .mpc import MPCWeights, mpc_objective
@@ -64,25 +64,23 @@ class OracleConfig:
     init_std: float = 0.5
     #: seed of the random initial guesses
     seed: int = 0
-    #: IPOPT iteration limit per restart
+    #: IPOPT iteration limit per restart (deterministic)
     max_iter: int = 5000
-    #: IPOPT CPU-time limit per restart [s] (None: no limit, as the paper)
-    max_cpu_time: float | None = None
+    #: IPOPT CPU-time cap per restart [s] (inf: none, as the paper; a finite cap makes the result depend on the
+    #: machine's load)
+    max_cpu_time: float = math.inf
     #: IPOPT Hessian: "exact" or "limited-memory"
     hessian: Literal["exact", "limited-memory"] = "exact"
     #: weights of J_MPC (the paper: the planner's alphas)
     weights: MPCWeights = field(default_factory=MPCWeights)
 
     def __post_init__(self) -> None:
-        for name in ("restarts", "max_iter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if isinstance(self.restarts, bool) or not isinstance(self.restarts, int) or self.restarts < 1:
+            raise ValueError(f"restarts must be a positive integer, got {self.restarts!r}")
+        check_ipopt_limits(self.max_iter, self.max_cpu_time)
         check_seed("seed", self.seed)
         if not math.isfinite(self.init_std) or self.init_std < 0:
             raise ValueError(f"init_std must be a finite number >= 0, got {self.init_std!r}")
-        if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
-            raise ValueError(f"max_cpu_time must be > 0 or None, got {self.max_cpu_time!r}")
         check_choice("hessian", self.hessian, ("exact", "limited-memory"))
 
 
