@@ -36,8 +36,10 @@ recorded as failed. The iteration limit is deterministic; the CPU-time cap is no
 budget, which it reaches on 20-40 % of the steps near obstacles); the tube MPCs stop after the paper code's
 10 iterations and have no cap by default, so their runs are reproducible; tests set ``max_cpu_time = inf``.
 
-The closed loop (:meth:`MPCPlanner.plan_from`) applies the first input to the true state with the nominal Euler
-model, measures the state (heading biased by ``theta_bias`` when ``biased_measurement``), and stops early within
+The planner solves one step from a given state (:meth:`MPCPlanner.solve`). The closed loop around it is the
+plant, in :mod:`density_planner.evaluation.receding` (:meth:`MPCPlanner.plan_from` and :meth:`MPCPlanner.plan` run
+it): the first input is applied to the true state with the nominal Euler model, the next state is measured
+(heading biased by ``theta_bias`` when ``biased_measurement``), and the run stops early within
 ``goal_stop_distance`` of the goal. Step times count the whole step (window extraction, parameter update,
 solve, warm-start shift), not only IPOPT.
 """
@@ -49,7 +51,7 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -65,6 +67,9 @@ from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .problem import PlanningProblem
 from .registry import PlannerContext, register_planner
+
+if TYPE_CHECKING:
+    from ..evaluation.receding import ClosedLoopRun
 
 __all__ = [
     "MPCWeights",
@@ -393,7 +398,8 @@ class _Binding:
 class MPCPlanner(Planner):
     """Standard MPC (``tube_radius = 0``, M0) or tube MPC (M1-M3); see the module docstring.
 
-    Use :meth:`plan` / :meth:`plan_from` for a closed-loop run, or :meth:`reset` then :meth:`solve` step by step.
+    :meth:`reset` then :meth:`solve` step by step; :meth:`plan` / :meth:`plan_from` run the closed loop of
+    :func:`density_planner.evaluation.receding.run_receding` around them.
     """
 
     name = "mpc"
@@ -436,6 +442,8 @@ class MPCPlanner(Planner):
         self._disc_cache: tuple[OccupancyGrid, np.ndarray] | None = None
         #: wall time of the last tube disc-sum precomputation [s] (0 when cached or not needed)
         self.precompute_time = 0.0
+        #: NLP construction and precomputation times of the last reset (a construction counts once)
+        self._reset_times = (0.0, 0.0)
 
     # ------------------------------------------------------------------ set-up
     def _limits(self, system: KinematicCar) -> _Limits:
@@ -476,6 +484,7 @@ class MPCPlanner(Planner):
         if not isinstance(system, KinematicCar):
             raise ValueError(f"the MPC baselines need the KinematicCar system, got {type(system).__name__}")
         self.system = system
+        builds = self.n_builds
         collision = problem.collision()
         grid: OccupancyGrid = collision.body_grid  # occupancy seen by a body disc (the point's P_occ for a point)
         prog = self._program_for(grid.cell_size, self._limits(system), collision.cover.offsets)
@@ -517,6 +526,7 @@ class MPCPlanner(Planner):
         )
         prog.nlp.args["lam_x0"][:] = 0.0
         prog.nlp.args["lam_g0"][:] = 0.0
+        self._reset_times = (self.build_time if self.n_builds > builds else 0.0, self.precompute_time)
 
     # ------------------------------------------------------------------ one step
     def _fill_windows(self, prog: _MPCProgram, b: _Binding, pos: np.ndarray, step: int) -> None:
@@ -552,7 +562,7 @@ class MPCPlanner(Planner):
         b, prog, cfg = self._bound, self._program, self.config
         x0 = np.asarray(state.detach().cpu() if isinstance(state, Tensor) else state, dtype=float).reshape(-1)[:4]
         if x0.shape != (4,) or not np.all(np.isfinite(x0)):
-            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {state!r}")
+            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {x0!r}")
         args = prog.nlp.args
         p = args["p"]
         p[0:4] = x0
@@ -593,14 +603,12 @@ class MPCPlanner(Planner):
         )
 
     # -------------------------------------------------------------- closed loop
-    def _measure(self, x: Tensor) -> np.ndarray:
-        xs = self.system.measure(x) if self.config.biased_measurement else x
-        return xs[:4].detach().cpu().numpy().astype(float)
-
-    def _plant(self, x: Tensor, u: np.ndarray) -> Tensor:
-        cfg = self.config
-        uu = torch.as_tensor(u, dtype=x.dtype).expand(cfg.substeps, 2)
-        return self.system.rollout(x, uu, cfg.stage_dt / cfg.substeps)[-1]
+    @property
+    def n_steps(self) -> int:
+        """Closed-loop steps of the problem bound by :meth:`reset` (``n_steps``, or the horizon / ``stage_dt``)."""
+        if self._bound is None:
+            raise ValueError("call reset(problem) before reading n_steps")
+        return self._bound.n_steps
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
         """Closed-loop run from the problem's reference start (mean of the initial law, no bias)."""
@@ -608,40 +616,26 @@ class MPCPlanner(Planner):
 
     def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
         """Closed-loop run from the true initial state ``true_state (nx,)`` (its bias enters the measurement
-        when ``biased_measurement``). Never raises: failures are reported in the result's status."""
-        t_start = time.perf_counter()
-        steps: list[MPCStep] = []
-        states: list[Tensor] = []
-        inputs: list[Tensor] = []
-        try:
-            builds = self.n_builds
-            self.reset(problem)
-            t_build = self.build_time if self.n_builds > builds else 0.0
-            t_pre = self.precompute_time
-            x = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
-            if x.shape != (problem.system.nx,):
-                raise ValueError(f"true_state must have {problem.system.nx} entries, got shape {tuple(x.shape)}")
-            goal = torch.tensor(problem.goal, dtype=torch.float64)
-            states.append(x)
-            stop = self.config.goal_stop_distance
-            for h in range(self._bound.n_steps):
-                st = self.solve(self._measure(x), h)
-                steps.append(st)
-                x = self._plant(x, st.input)
-                states.append(x)
-                inputs.append(torch.as_tensor(st.input, dtype=torch.float64))
-                if not bool(torch.isfinite(x).all()):
-                    raise FloatingPointError(f"the state became non-finite at step {h}")
-                if stop > 0 and float(torch.linalg.norm(problem.system.positions(x) - goal)) < stop:
-                    break
-        except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
-            log.warning("%s failed: %s", self.name, exc)
-            return self._result(problem, PlanStatus.ERROR, states, inputs, steps, t_start, 0.0, 0.0,
-                                f"{type(exc).__name__}: {exc}")
-        return self._result(problem, PlanStatus.SUCCESS, states, inputs, steps, t_start, t_build, t_pre, "")
+        when ``biased_measurement``), simulated by :func:`density_planner.evaluation.receding.run_receding` (the
+        plant loop; this planner solves one step at a time). Never raises: failures are reported in the result's
+        status."""
+        from ..evaluation.receding import run_receding  # evaluation drives the planner (imported on use)
+
+        return run_receding(self, problem, true_state)
+
+    def closed_loop_result(self, problem: PlanningProblem, run: ClosedLoopRun) -> PlanResult:
+        """The result of a closed-loop run of :func:`~density_planner.evaluation.receding.run_receding`: executed
+        states, per-step records in ``extras``, evaluation-form cost and ``J_MPC``; ``ERROR`` if it stopped on an
+        exception (the states so far are kept)."""
+        if run.error:
+            return self._result(problem, PlanStatus.ERROR, run.states, run.inputs, run.steps, run.t_start, 0.0, 0.0,
+                                run.error)
+        t_build, t_pre = self._reset_times
+        return self._result(problem, PlanStatus.SUCCESS, run.states, run.inputs, run.steps, run.t_start, t_build,
+                            t_pre, "")
 
     def _result(self, problem: PlanningProblem, status: PlanStatus, states: list[Tensor], inputs: list[Tensor],
-                steps: list[MPCStep], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
+                steps: list[Any], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
         kw = {"dtype": self.dtype, "device": self.device}
         counts = Counter(s.status for s in steps)
         n_fail = sum(1 for s in steps if not s.success)
