@@ -29,7 +29,7 @@ __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
 #: edges of the reference start-speed bands of the accuracy reports [m/s]
 SPEED_BANDS = (0.0, 5.0, 10.0, 20.0, 30.0, 41.0)
-#: the paper's stored validation numbers of its density network (``original.md`` §6)
+#: the paper's stored validation numbers of its density network (``docs/spec.md`` §6)
 PAPER_ERROR_MSE = 0.0182
 PAPER_LOG_DENSITY_RMSE = 9.3
 

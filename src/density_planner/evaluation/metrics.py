@@ -1,4 +1,4 @@
-"""Scores of one executed run and their aggregation over environments (paper §V, ``original.md`` §13).
+"""Scores of one executed run and their aggregation over environments (paper §V, ``docs/spec.md`` §13).
 
 Per run (:func:`run_metrics`), on the executed trajectory ``x(t_k)`` (0.1-s grid, weight one):
 

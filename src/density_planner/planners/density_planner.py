@@ -18,7 +18,7 @@ trajectories only (:meth:`~density_planner.density.base.DensityPredictor.predict
 the divergence, ~1.4x faster); the plan's log-densities are predicted in full for the report.
 
 Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
-bounds after every step. Defaults are the paper's constants (``original.md`` §10).
+bounds after every step. Defaults are the paper's constants (``docs/spec.md`` §10).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DensityPlannerConfig:
-    """Settings of the two-stage density planner (defaults: ``original.md`` §10)."""
+    """Settings of the two-stage density planner (defaults: ``docs/spec.md`` §10)."""
 
     #: M, candidate parameter sets optimised in stage 1
     n_candidates: int = 100

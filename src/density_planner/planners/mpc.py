@@ -13,7 +13,7 @@ D(c_j(x_k) + d, t_{h+k})``: the bilinear interpolation of the body occupancy ``D
 vehicle; the sum over the discs is a smooth stand-in for their maximum), at the predicted position (M0,
 ``D_0 = {0}``) or summed over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for
 r = 0.3 / 0.5 / 1 m, as the paper's code). This is the paper's ``J_MPC`` (Eq. (11)) with its weights ``alpha``
-(``original.md`` §9, §12).
+(``docs/spec.md`` §9, §12).
 The stage-0 collision term depends on the measurement only and is left out of the NLP. ``w_G(h) = alpha_G`` (the
 paper) or ``alpha_G (h / N)^2`` (``goal_weight_growth``, the paper's code).
 
@@ -110,7 +110,7 @@ class MPCWeights:
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """Settings of the MPC baselines (defaults: M0 of ``original.md`` §12; tube variants set ``tube_radius``
+    """Settings of the MPC baselines (defaults: M0 of ``docs/spec.md`` §12; tube variants set ``tube_radius``
     and ``max_iter = 10``)."""
 
     #: H, prediction stages

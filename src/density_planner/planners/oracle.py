@@ -17,7 +17,7 @@ every function evaluation. With a body, the interpolated grid is the body's disc
 (:class:`~density_planner.risk.collision.CollisionModel`) and ``P_occ(p_k, t_k)`` becomes the sum of its values at
 the disc centres of ``x_k`` (a smooth stand-in for their maximum).
 
-Restarts (``original.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
+Restarts (``docs/spec.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
 ``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every returned
 iterate (converged or stopped by ``max_iter``: IPOPT returns its last iterate) is re-simulated open loop and scored
 with the same ``J_MPC`` (:func:`~density_planner.planners.mpc.mpc_objective`); the best one whose re-simulation
@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class OracleConfig:
-    """Settings of the oracle (``original.md`` §12)."""
+    """Settings of the oracle (``docs/spec.md`` §12)."""
 
     #: number of IPOPT solves: a zero initial guess, then random guesses
     restarts: int = 10
