@@ -67,11 +67,11 @@ def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "-
         _reject(args, where, ("--data-dir", "--recording", "--start-time"))
         if not getattr(args, "verbose", 0):  # commonroad-io warns about every legacy element it converts
             logging.getLogger("commonroad").setLevel(logging.ERROR)
-        from ..control.registry import model_set_for_scene
-        from ..systems.car import KinematicCar
+        from ._common import run_system
 
-        # the domain checks (start speed, reachable region) use the car of the scene's model set (road: 0-40 m/s)
-        system = KinematicCar(model_set_for_scene(kind, getattr(args, "models", None)).car)
+        # the domain checks (start speed, reachable region) use the run's system in the domain of the scene's model
+        # set (the car on recorded traffic: road, 0-40 m/s)
+        system = run_system(run_config, kind)
         return load_commonroad_scene(args.file, update(run_config.commonroad, seed), system=system)
     if kind == "file":
         from ..environment.scene import load_scene

@@ -7,14 +7,17 @@ import time
 
 from ._common import (
     add_config,
-    add_controller,
     add_device,
     add_out,
     add_progress,
+    add_system,
+    apply_system_args,
     check_out,
     out_dir,
     resolve_device,
     resolve_dtype,
+    run_model_set,
+    run_system,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -37,14 +40,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     add_scene_args(p)
     p.add_argument("--planner", default="density", metavar="NAME", help=f"planner ({helps})")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the density planner: exact (Liouville) or a learned one")
     p.add_argument("--distribution-seed", type=int, default=None, metavar="S",
                    help="seed of the random initial distribution (default: --seed)")
-    add_controller(p)
-    p.add_argument("--models", default=None, metavar="SET",
-                   help="model set (car domain, controller and density weights): paper or road (default: by scene "
-                        "kind, road for recorded road scenes, paper for the paper's random scenes)")
+    add_system(p)
     add_config(p)
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
@@ -54,21 +52,22 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 
 
 def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
-    """Planner context (system, controller, predictor factories) from the command-line arguments; a learned
-    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (car domain, controller
-    and density weights) follows the scene kind unless ``--models`` names one."""
-    from ..control.registry import load_controller, model_set_for_scene
+    """Planner context (system, controller, predictor factories) from the run's ``[system]`` section; a learned
+    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (the system's domain,
+    controller and density weights) follows the scene kind unless ``[system] models`` names one."""
+    from ..control.registry import load_controller
     from ..density.liouville import ExactLiouville
     from ..density.registry import load_predictor
     from ..planners.registry import PlannerContext
-    from ..systems.car import KinematicCar
 
     device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
-    models = model_set_for_scene(getattr(args, "kind", None), getattr(args, "models", None))
-    car = KinematicCar(models.car)
-    controller = load_controller(args.controller, models=models).to(device=device, dtype=dtype)
-    # None: the default learned predictor if it was trained for this controller, else exact Liouville
-    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville,
+    models = run_model_set(run_config, getattr(args, "kind", None))
+    car = models.make_system()
+    sys_cfg = run_config.system
+    controller = load_controller(sys_cfg.controller, models=models).to(device=device, dtype=dtype)
+    # auto: the default learned predictor if it was trained for this controller, else exact Liouville
+    predictor = load_predictor(None if sys_cfg.density == "auto" else sys_cfg.density, car, controller,
+                               liouville=run_config.liouville,
                                parameterization=parameterization)
     if hasattr(predictor, "to"):
         predictor = predictor.to(device=device, dtype=dtype)
@@ -119,15 +118,12 @@ def run(args: argparse.Namespace) -> int:
     check_out(args.out)
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     clock = _Clock()
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    from ..control.registry import model_set_for_scene
-    from ..systems.car import KinematicCar
-
-    system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
+    system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
                                          risk=run_config.risk, system=system)
     ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
@@ -151,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
         "models": getattr(getattr(ctx.controller, "car", None), "domain", None),
-        "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
+        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "config": to_dict(run_config),
         "versions": versions(),
         "command": "density-planner " + " ".join(getattr(args, "argv", []) or []),
