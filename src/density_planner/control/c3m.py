@@ -154,6 +154,7 @@ class TanhMLP(nn.Module):
         last = len(self.layers) - 1
         y, d = z, dz
         for i, lin in enumerate(self.layers):
+            assert isinstance(lin, nn.Linear)
             w = lin.weight
             y = F.linear(y, w, lin.bias)
             d = torch.matmul(d, w.t())
@@ -346,8 +347,8 @@ class ContractionMetric(nn.Module):
         shape = (2, *([1] * (z.ndim - 1)))
         d_theta = torch.tensor([1.0, 0.0], dtype=z.dtype, device=z.device).reshape(shape)
         d_v = torch.tensor([0.0, 1.0], dtype=z.dtype, device=z.device).reshape(shape)
-        dz = self._features.tangents(x[..., THETA], x[..., V], d_theta, d_v)
-        dz = torch.stack(torch.broadcast_tensors(*dz), dim=-1)
+        dzs = self._features.tangents(x[..., THETA], x[..., V], d_theta, d_v)
+        dz = torch.stack(torch.broadcast_tensors(*dzs), dim=-1)
         out, dout = self.net.forward_with_tangents(z, dz)
         dout = dout.expand(2, *out.shape)
         el = self._assemble(self.l_pp.to(z), out)

@@ -36,7 +36,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
-def _as_float64(values: Sequence[float], name: str) -> Tensor:
+def _as_float64(values: Sequence[float] | Tensor, name: str) -> Tensor:
     t = torch.as_tensor(values, dtype=torch.float64)
     if t.ndim != 1 or not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} must be a finite 1-D sequence of numbers, got {values!r}")

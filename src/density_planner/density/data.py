@@ -333,7 +333,7 @@ def generate_density_data(
                 f"{out} holds density data of another configuration (config_key {previous.get('config_key')} "
                 f"vs {key}); use a new --out directory or the same settings to resume"
             )
-    shards = [
+    shards: list[dict[str, Any]] = [
         {"index": i, "file": _shard_path(out, i).name, "split": config.shard_split(i),
          "references": config.shard_references(i)}
         for i in range(config.n_shards)
@@ -372,7 +372,7 @@ def generate_density_data(
             if on_shard is not None:
                 on_shard(outcome.value)
         else:
-            errors.append(f"shard {todo[outcome.index]}: {outcome.error.strip().splitlines()[-1]}")
+            errors.append(f"shard {todo[outcome.index]}: {(outcome.error or 'failed').strip().splitlines()[-1]}")
             logger.error("shard %d failed:\n%s", todo[outcome.index], outcome.error)
     wall = time.perf_counter() - t0
     n_train = sum(s["references"] for s in shards if s["split"] == "train")

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from ..control.reference import Reference
 from .base import DensityPredictor
+from .liouville import IntegratorName
 
 __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
@@ -185,8 +186,8 @@ def liouville_accuracy(
     n_references: int = 100,
     samples: int = 20,
     seed: int = 0,
-    schemes: Sequence[tuple[str, float]] = (("rk4", 0.1), ("rk4", 0.05), ("euler", 0.01)),
-    reference_scheme: tuple[str, float] = ("rk4", 0.005),
+    schemes: Sequence[tuple[IntegratorName, float]] = (("rk4", 0.1), ("rk4", 0.05), ("euler", 0.01)),
+    reference_scheme: tuple[IntegratorName, float] = ("rk4", 0.005),
     dtype: torch.dtype = torch.float32,
     chunk: int = 25,
 ) -> dict:

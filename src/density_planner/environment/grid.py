@@ -74,7 +74,7 @@ class OccupancyGrid:
     cell_size: float
     dt: float = 0.1
     t0: float = 0.0
-    _cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         probs = self.probs

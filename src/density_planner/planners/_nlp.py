@@ -135,9 +135,9 @@ class BufferedNLP:
         self.res = {n: np.zeros(solver.nnz_out(i)) for i, n in enumerate(solver.name_out())}
         self._buf, self._eval = solver.buffer()
         for name, arr in self.args.items():
-            self._buf.set_arg(solver.index_in(name), memoryview(arr))
+            self._buf.set_arg(solver.index_in(name), arr.data)  # the array's own buffer (a memoryview)
         for name, arr in self.res.items():
-            self._buf.set_res(solver.index_out(name), memoryview(arr))
+            self._buf.set_res(solver.index_out(name), arr.data)
 
     def solve(self) -> SolveInfo:
         """Run IPOPT on the current arguments; never raises (CasADi errors become ``status="Exception"``)."""

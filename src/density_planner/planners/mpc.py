@@ -276,8 +276,8 @@ class MPCStep:
 class _Limits:
     """Car bounds used by the NLP (from the system's configuration)."""
 
-    u_min: tuple[float, float]
-    u_max: tuple[float, float]
+    u_min: tuple[float, ...]
+    u_max: tuple[float, ...]
     theta: tuple[float, float]
     v: tuple[float, float]
 
@@ -636,7 +636,6 @@ class MPCPlanner(Planner):
 
     def _result(self, problem: PlanningProblem, status: PlanStatus, states: list[Tensor], inputs: list[Tensor],
                 steps: list[Any], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
-        kw = {"dtype": self.dtype, "device": self.device}
         counts = Counter(s.status for s in steps)
         n_fail = sum(1 for s in steps if not s.success)
         step_times = [s.step_time for s in steps]
@@ -662,8 +661,8 @@ class MPCPlanner(Planner):
         result = PlanResult(planner=self.name, status=status, message=message, extras=extras,
                             iterations={"steps": len(steps), "ipopt": sum(s.iterations for s in steps)})
         if len(states) >= 2:
-            x = torch.stack(states).to(**kw)
-            u = torch.stack(inputs).to(**kw)
+            x = torch.stack(states).to(dtype=self.dtype, device=self.device)
+            u = torch.stack(inputs).to(dtype=self.dtype, device=self.device)
             result.states = x
             try:
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
@@ -674,7 +673,7 @@ class MPCPlanner(Planner):
             except Exception as exc:  # noqa: BLE001
                 result.message += f" (evaluation failed: {exc})"
         elif states:
-            result.states = torch.stack(states).to(**kw)
+            result.states = torch.stack(states).to(dtype=self.dtype, device=self.device)
         online = float(sum(step_times))
         result.timings = {"nlp_build": t_build, "tube_precompute": t_pre, "online": online,
                           "total": time.perf_counter() - t_start}

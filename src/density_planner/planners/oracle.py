@@ -91,7 +91,8 @@ class _OracleProgram:
         par = problem.parameterization
         collision = problem.collision()
         grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
-        car: KinematicCar = problem.system  # type: ignore[assignment]
+        car = problem.system
+        assert isinstance(car, KinematicCar), "checked by OraclePlanner._plan"
         self.grid = grid
         self.n_seg = par.n_segments
         self.N = par.n_plan - 1  # stages of plan_dt
@@ -188,6 +189,7 @@ class OraclePlanner(Planner):
         self._program_key: tuple | None = None
 
     def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
+        assert isinstance(problem.system, KinematicCar), "checked by OraclePlanner._plan"
         key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config, problem.risk)
         if self._program is None or self._program_key is None or any(
             a is not b and a != b for a, b in zip(self._program_key, key)
@@ -240,7 +242,7 @@ class OraclePlanner(Planner):
         args["p"][4:6] = problem.goal
         stride = par.plan_stride
         restarts: list[dict[str, Any]] = []
-        best: tuple[float, int] | None = None
+        best: tuple[int, float] | None = None
         t_solve = 0.0
         for r, p0 in enumerate(self._guesses(problem)):
             ref0 = make_reference(system, start, p0, par)
@@ -284,8 +286,8 @@ class OraclePlanner(Planner):
         i_best = max(i for i, e in enumerate(restarts) if e.get("best"))
         params = restarts[i_best]["params"]
         feasible = best[0] == 0
-        kw = {"dtype": self.dtype, "device": self.device}
-        ref = make_reference(system, start.to(**kw), params.to(**kw), par)
+        ref = make_reference(system, start.to(dtype=self.dtype, device=self.device),
+                             params.to(dtype=self.dtype, device=self.device), par)
         cost, coll = evaluate_trajectory(problem, ref.x_plan, ref.u_plan, cost_config=self.evaluation_cost)
         extras["best_restart"] = i_best
         extras["best_converged"] = bool(restarts[i_best]["success"])
@@ -301,7 +303,7 @@ class OraclePlanner(Planner):
         return PlanResult(
             planner=self.name,
             status=PlanStatus.SUCCESS if feasible else PlanStatus.FAILED,
-            params=params.to(**kw),
+            params=params.to(dtype=self.dtype, device=self.device),
             reference=ref,
             states=ref.x_plan,
             cost=cost,
