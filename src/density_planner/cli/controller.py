@@ -183,6 +183,7 @@ def run_train(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------------- validate
 def run_validate(args: argparse.Namespace) -> int:
     from ..control.analytic import CarTrackingController
+    from ..control.base import TrackingController
     from ..control.c3m import load_c3m_model
     from ..control.c3m_training import contraction_diagnostics
     from ..control.registry import DEFAULT_CONTROLLER, model_set
@@ -216,7 +217,8 @@ def run_validate(args: argparse.Namespace) -> int:
         report["weights"] = str(path)
         report["weights_command"] = meta.get("command")
         report["contraction"] = contraction
-        controllers = {"c3m": model.controller, "analytic": CarTrackingController(car=car)}
+        controllers: dict[str, TrackingController] = {"c3m": model.controller,
+                                                      "analytic": CarTrackingController(car=car)}
     report["domain"] = car.domain
     evaluation = _tracking(controllers, args.references, args.seed, car)
     summary = evaluation.summary()
