@@ -316,7 +316,7 @@ class TreePlanner(Planner):
             else:
                 status, message = PlanStatus.FAILED, "search space exhausted: no acceptable full-length plan"
             if node is None:
-                worst = max(ctx.rejections, key=ctx.rejections.get)
+                worst = max(ctx.rejections, key=ctx.rejections.__getitem__)
                 message += (f"; no candidate was accepted ({ctx.nodes_scored} scored, most often rejected by the "
                             f"'{worst}' rule)")
             if node is not None and solution is None:

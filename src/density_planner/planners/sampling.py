@@ -66,6 +66,7 @@ class SamplingPlanner(TreePlanner):
     """RRT-like sampling over piecewise-constant reference inputs (see the module docstring)."""
 
     name = "sampling"
+    config: SamplingConfig
 
     def __init__(self, predictor, config: SamplingConfig | None = None, **kwargs: Any):
         super().__init__(predictor, config or SamplingConfig(), **kwargs)

@@ -54,6 +54,7 @@ class SearchPlanner(TreePlanner):
     """Best-first search over piecewise-constant reference inputs (see the module docstring)."""
 
     name = "search"
+    config: SearchConfig
 
     def __init__(self, predictor, config: SearchConfig | None = None, **kwargs: Any):
         super().__init__(predictor, config or SearchConfig(), **kwargs)
