@@ -342,7 +342,8 @@ class OccupancyGrid:
             raise DataError(f"{source}: not an occupancy grid file (missing array(s) {missing})")
         try:
             probs = np.asarray(arrays["probs"], dtype=np.float32)
-            origin = tuple(float(v) for v in np.asarray(arrays["origin"], dtype=np.float64).reshape(-1))
+            ox, oy = (float(v) for v in np.asarray(arrays["origin"], dtype=np.float64).reshape(-1))
+            origin = (ox, oy)
             t0 = float(arrays["t0"]) if "t0" in arrays else 0.0
             return cls(torch.from_numpy(probs), origin, float(arrays["cell_size"]), float(arrays["dt"]), t0)
         except (ValueError, TypeError) as exc:

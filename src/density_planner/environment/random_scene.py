@@ -316,7 +316,7 @@ def _window_max(probs_k: np.ndarray, cx: float, cy: float, half: int) -> float:
 
 def _draw_start_goal(
     rng: Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
-) -> tuple[tuple[float, ...], tuple[float, float], int]:
+) -> tuple[tuple[float, float, float, float], tuple[float, float], int]:
     x0, y0, cell = cfg.x_range[0], cfg.y_range[0], cfg.cell_size
     half = int(round(cfg.check_half_width / cell))
     k_look = min(int(round(cfg.lookahead_time / cfg.dt)), probs.shape[0] - 1)
@@ -364,7 +364,7 @@ def random_scene(seed: int, config: RandomSceneConfig | None = None) -> Scene:
         n_slices=cfg.n_slices,
     )
     if seed < cfg.fixed_start_seeds:
-        start, goal, attempts = tuple(cfg.fixed_start), tuple(cfg.fixed_goal), 0
+        start, goal, attempts = cfg.fixed_start, cfg.fixed_goal, 0
     else:
         start, goal, attempts = _draw_start_goal(rng, probs, cfg, seed)
     grid = OccupancyGrid(torch.from_numpy(probs), (cfg.x_range[0], cfg.y_range[0]), cfg.cell_size, cfg.dt)
