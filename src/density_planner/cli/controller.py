@@ -201,7 +201,7 @@ def run_validate(args: argparse.Namespace) -> int:
     car = mset.car
     if spec == "analytic":
         name = "analytic"
-        controllers = {"analytic": CarTrackingController(car=car)}
+        controllers: dict[str, TrackingController] = {"analytic": CarTrackingController(car=car)}
         report["contraction"] = None
         report["contraction_note"] = "the analytic controller has no contraction metric"
     else:
@@ -217,8 +217,7 @@ def run_validate(args: argparse.Namespace) -> int:
         report["weights"] = str(path)
         report["weights_command"] = meta.get("command")
         report["contraction"] = contraction
-        controllers: dict[str, TrackingController] = {"c3m": model.controller,
-                                                      "analytic": CarTrackingController(car=car)}
+        controllers = {"c3m": model.controller, "analytic": CarTrackingController(car=car)}
     report["domain"] = car.domain
     evaluation = _tracking(controllers, args.references, args.seed, car)
     summary = evaluation.summary()
