@@ -19,7 +19,8 @@ from density_planner.planners.base import PlanResult, PlanStatus
 from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.car import KinematicCar
 
-START = (0.0, -20.0, math.pi / 2, 3.0, 0.0)
+POSE = (0.0, -20.0, math.pi / 2, 3.0)  # the scene's start: pose and speed
+START = (*POSE, 0.0)  # the true state (no heading bias)
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ class _Scripted:
 
 def _problem(goal=(0.0, 5.0)) -> PlanningProblem:
     grid = OccupancyGrid(torch.zeros(101, 241, 401), origin=(-12.0, -30.0), cell_size=0.1, dt=0.1)
-    scene = Scene(grid, START, goal, (-9.9, 9.9, -29.9, 9.9))
+    scene = Scene(grid, POSE, goal, (-9.9, 9.9, -29.9, 9.9))
     car = KinematicCar()
     s = torch.tensor(START, dtype=torch.float64)
     return PlanningProblem(scene, UniformBox(s - 0.1, s + 0.1), car)
