@@ -212,8 +212,9 @@ class System(ABC):
 
         Generic version with a loop over the K steps; systems override it with a loop-free form where one exists.
         """
-        xs = [x0]
-        x = x0
+        batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-2])
+        x = x0.expand(*batch, x0.shape[-1])
+        xs = [x]
         for k in range(u.shape[-2]):
             x = x + dt * self.f(x, u[..., k, :])
             xs.append(x)
