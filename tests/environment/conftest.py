@@ -21,6 +21,6 @@ def ind_dir(tmp_path: Path) -> Path:
 @pytest.fixture
 def commonroad_dir() -> Path:
     """The BSD-licensed CommonRoad scenarios in the package (density_planner/data/commonroad): never skipped."""
-    from density_planner.evaluation.benchmark import shipped_commonroad_dir
+    from density_planner.evaluation.environments import shipped_commonroad_dir
 
     return shipped_commonroad_dir()

@@ -121,6 +121,18 @@ def resolve_dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
+def context_from_args(args: argparse.Namespace, run_config, *, progress: bool = False, parameterization=None,
+                      system=None):
+    """:func:`~density_planner.planners.context.build_context` with the scene kind, ``--models``,
+    ``--controller``, ``--density``, ``--device`` and ``--dtype`` of the command line."""
+    from ..planners.context import build_context
+
+    return build_context(run_config, kind=getattr(args, "kind", None), models=getattr(args, "models", None),
+                         controller=args.controller, density=getattr(args, "density", None),
+                         parameterization=parameterization, system=system, device=resolve_device(args.device),
+                         dtype=resolve_dtype(args.dtype), progress=progress)
+
+
 def check_out(path: Path) -> Path:
     """Validate ``--out`` without creating it (commands create it only once every input is valid)."""
     path = Path(path)

@@ -10,7 +10,7 @@ from ._common import add_config, add_controller, add_out, add_progress, add_thre
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
-    from ..evaluation.benchmark import SETTINGS
+    from ..evaluation.benchmark_settings import SETTINGS
 
     settings = "; ".join(
         f"{s.name}: {s.description} (planners {', '.join(s.planners)}; variants {', '.join(s.variants)}; "
@@ -104,7 +104,9 @@ def parse_seeds(text: str) -> range:
 
 def spec_from_args(args: argparse.Namespace, run_config):
     """The :class:`BenchmarkSpec` of the command line (validates every choice with a one-line error)."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec, artificial_envs, real_envs
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
+    from ..evaluation.environments import artificial_envs, real_envs
     from ..planners.registry import planner_names
 
     setting = SETTINGS[args.setting]
@@ -174,7 +176,8 @@ def _check_planners(args, default: tuple[str, ...]) -> tuple[str, ...]:
 
 def _commonroad_spec(args: argparse.Namespace, run_config):
     """The spec of ``bench commonroad --scenarios DIR``: one environment per scenario file."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
     from ..evaluation.commonroad_bench import commonroad_envs
 
     if args.scenarios is None:
@@ -237,7 +240,7 @@ def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     """Tables and figures of ``out`` from its records (and the verdict summary of a commonroad sweep)."""
     import sys
 
-    from ..evaluation.benchmark import scan_records
+    from ..evaluation.records import scan_records
     from ..evaluation.report import write_tables
     from ..viz.benchmark import write_figures
 

@@ -83,14 +83,14 @@ def run(args: argparse.Namespace) -> int:
 
     from ..checks import check_seed
     from ..config import dumps_toml, load_config, to_dict, update
-    from ..control.registry import model_set_for_scene
     from ..evaluation.online import drive
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import scene_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
-    from ..systems.car import KinematicCar
-    from .plan import build_context, versions
+    from ._common import context_from_args
+    from .plan import versions
 
     check_out(args.out)
     if args.distribution_seed is not None:
@@ -110,10 +110,11 @@ def run(args: argparse.Namespace) -> int:
     scene, run_config = _scene_for_drive(args, run_config)
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
+    system = scene_system(args.kind, getattr(args, "models", None))
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, risk=run_config.risk,
                                          system=system)
-    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
+    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
+                            system=system)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)
     atomic_write_text(out / "config.toml", dumps_toml(run_config))

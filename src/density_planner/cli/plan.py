@@ -12,9 +12,8 @@ from ._common import (
     add_out,
     add_progress,
     check_out,
+    context_from_args,
     out_dir,
-    resolve_device,
-    resolve_dtype,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -53,38 +52,6 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run)
 
 
-def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
-    """Planner context (system, controller, predictor factories) from the command-line arguments; a learned
-    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (car domain, controller
-    and density weights) follows the scene kind unless ``--models`` names one."""
-    from ..control.registry import load_controller, model_set_for_scene
-    from ..density.liouville import ExactLiouville
-    from ..density.registry import load_predictor
-    from ..planners.registry import PlannerContext
-    from ..systems.car import KinematicCar
-
-    device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
-    models = model_set_for_scene(getattr(args, "kind", None), getattr(args, "models", None))
-    car = KinematicCar(models.car)
-    controller = load_controller(args.controller, models=models).to(device=device, dtype=dtype)
-    # None: the default learned predictor if it was trained for this controller, else exact Liouville
-    predictor = load_predictor(args.density, car, controller, liouville=run_config.liouville,
-                               parameterization=parameterization)
-    if hasattr(predictor, "to"):
-        predictor = predictor.to(device=device, dtype=dtype)
-    return PlannerContext(
-        system=car,
-        controller=controller,
-        config=run_config,
-        predictor_factory=lambda: predictor,
-        exact_factory=None if isinstance(predictor, ExactLiouville) else (
-            lambda: ExactLiouville(car, controller, run_config.liouville)),
-        device=device,
-        dtype=dtype,
-        progress=progress,
-    )
-
-
 def versions() -> dict[str, str]:
     """Versions of the package and its main dependencies (written next to results)."""
     import platform
@@ -112,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import scene_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
@@ -124,13 +92,11 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    from ..control.registry import model_set_for_scene
-    from ..systems.car import KinematicCar
-
-    system = KinematicCar(model_set_for_scene(args.kind, getattr(args, "models", None)).car)
+    system = scene_system(args.kind, getattr(args, "models", None))
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
                                          risk=run_config.risk, system=system)
-    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
+    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
+                            system=system)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
     clock.lap("setup")

@@ -49,13 +49,13 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.risk_validation import validate_risk
-    from ..evaluation.simulate import ExecutionMode, execution_mode
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
+    from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
     from ..viz.risk import plot_risk_validation
-    from .plan import build_context, versions
+    from ._common import context_from_args
+    from .plan import versions
 
     if args.samples < 2:
         raise ValueError(f"--samples must be at least 2, got {args.samples}")
@@ -66,11 +66,12 @@ def run(args: argparse.Namespace) -> int:
     scene = scene_from_args(args, run_config)
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk)
-    ctx = build_context(args, run_config, progress=not args.quiet)
-    planner = make_planner(args.planner, ctx)
-    if execution_mode(planner) != ExecutionMode.TRACK:
+    mode = planner_info(args.planner).execution
+    if mode != ExecutionMode.TRACK:
         raise ValueError(f"validate risk needs a planner whose reference is tracked (density, search, sampling); "
-                         f"{args.planner!r} executes {execution_mode(planner).value}")
+                         f"{args.planner!r} executes {mode.value}")
+    ctx = context_from_args(args, run_config, progress=not args.quiet)
+    planner = make_planner(args.planner, ctx)
     t0 = time.perf_counter()
     plan = planner.plan(problem)
     t_plan = time.perf_counter() - t0
