@@ -149,7 +149,7 @@ def test_real_environments_from_the_shipped_commonroad_scenarios():
 def test_real_environments_from_ind_recordings(tmp_path):
     import numpy as np
 
-    from density_planner.environment.ind import write_ind_recording
+    from ind_testdata import write_ind_recording
 
     f = np.arange(1000)  # 40 s at 25 Hz
     car = {"id": 1, "class": "car", "length": 4.5, "width": 1.8, "frames": f, "x": 0.2 * f, "y": np.zeros(f.size),

@@ -192,7 +192,7 @@ def test_unreachable_scheduler_leaves_no_sweep_file(tmp_path, monkeypatch):
 
 # --------------------------------------------------------------------------------------------------- inD files
 def _ind(tmp_path) -> Path:
-    from density_planner.environment.ind import write_ind_recording
+    from ind_testdata import write_ind_recording
 
     f = np.arange(300)
     car = {"id": 1, "class": "car", "length": 4.5, "width": 1.8, "frames": f, "x": 10.0 + 0.2 * f,
