@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.atomic import atomic_write_json, atomic_write_text
     from ..planners.context import scene_system
     from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
+    from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
     from ._common import context_from_args
     from .plan import versions
@@ -103,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
         changes["period"] = args.period
     if changes:
         run_config = update(run_config, {"online": changes})
-    if args.planner in ("mpc", "m0", "m1", "m2", "m3") or args.planner.startswith("mpc"):
-        raise ValueError(f"--planner {args.planner}: the MPC baselines already run step by step (receding horizon) "
-                         "from the true state; compare them with `density-planner bench commonroad`")
+    if planner_info(args.planner).execution == ExecutionMode.RECEDING:
+        raise ValueError(f"--planner {args.planner}: this planner already runs step by step (receding horizon) from "
+                         "the true state; compare it with `density-planner bench commonroad`")
     t0 = time.perf_counter()
     scene, run_config = _scene_for_drive(args, run_config)
     t_scene = time.perf_counter() - t0

@@ -49,7 +49,7 @@ from ..config import to_dict
 from ..io.atomic import atomic_save_npz, atomic_write_json
 from ..parallel import run_tasks
 from ..planners.registry import planner_info
-from .benchmark_settings import SETTINGS, VARIANTS
+from .benchmark_settings import SETTINGS, VARIANTS, planner_variants
 from .config import EvaluationConfig
 from .environments import EnvSpec
 from .jobs import Job, JobResult, error_record, run_job
@@ -100,10 +100,8 @@ class BenchmarkSpec:
         return self.run_config.evaluation
 
     def variants_of(self, planner: str) -> tuple[str, ...]:
-        """Variants run for ``planner`` (single-variant planners: only the first)."""
-        if planner in SETTINGS[self.setting].single_variant:
-            return self.variants[:1]
-        return self.variants
+        """Variants run for ``planner`` (:func:`~.benchmark_settings.planner_variants`)."""
+        return planner_variants(planner, self.variants)
 
 
 #: run-configuration sections that every record depends on (scenes, scoring, the reported cost)

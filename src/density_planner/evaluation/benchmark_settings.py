@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Setting", "SETTINGS", "VARIANTS"]
+__all__ = ["Setting", "SETTINGS", "VARIANTS", "planner_variants"]
+
 
 @dataclass(frozen=True)
 class Setting:
@@ -22,8 +23,6 @@ class Setting:
     default_envs: int
     #: execute the plans in closed loop (False: the ablation compares the planned references)
     closed_loop: bool
-    #: planners that run only the first variant (the oracle: it knows the true state, the bias cannot matter)
-    single_variant: tuple[str, ...] = ()
     description: str = ""
 
 
@@ -34,12 +33,11 @@ SETTINGS: dict[str, Setting] = {
     ),
     "artificial": Setting(
         "artificial", ("density", "mpc", "tube_mpc_0.3", "tube_mpc_0.5", "tube_mpc_1.0", "oracle"),
-        ("unbiased", "biased"), 50, True, single_variant=("oracle",),
+        ("unbiased", "biased"), 50, True,
         description="all planners on random artificial scenes, perfect and biased heading measurement",
     ),
     "real": Setting(
         "real", ("density", "mpc", "tube_mpc_0.5", "oracle"), ("unbiased", "biased"), 30, True,
-        single_variant=("oracle",),
         description="density planner, M0, M2 and oracle on recorded traffic (inD, or the shipped CommonRoad scenes)",
     ),
     "commonroad": Setting(
@@ -51,3 +49,13 @@ SETTINGS: dict[str, Setting] = {
 
 #: every measurement variant: ``nominal`` (the ablation's planned references), ``unbiased``, ``biased`` heading
 VARIANTS = ("nominal", "unbiased", "biased")
+
+
+def planner_variants(planner: str, variants: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The variants run for ``planner``: only the first for a planner executed open loop (the oracle: it plans from
+    the true state and measures nothing, so the heading bias cannot matter), else all."""
+    from ..planners.registry import ExecutionMode, planner_info
+
+    if planner_info(planner, default=True).execution == ExecutionMode.OPEN_LOOP:
+        return tuple(variants[:1])
+    return tuple(variants)

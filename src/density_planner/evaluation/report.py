@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io.atomic import atomic_write_text
-from .benchmark_settings import SETTINGS, VARIANTS
+from .benchmark_settings import SETTINGS, VARIANTS, planner_variants
 from .metrics import summarise
 from .records import scan_records
 
@@ -104,9 +104,8 @@ def missing_runs(out: str | Path, records: Sequence[Mapping[str, Any]], bad) -> 
             n_envs = len(sweep["envs"])
         except (OSError, ValueError, KeyError, TypeError):
             continue
-        single = SETTINGS[setting].single_variant if setting in SETTINGS else ()
         for planner in planners:
-            for variant in (variants[:1] if planner in single else variants):
+            for variant in planner_variants(planner, variants):
                 k = (setting, planner, variant)
                 missing[k] = max(missing.get(k, 0), n_envs - have.get(k, 0))
     return {k: v for k, v in missing.items() if v > 0}
