@@ -122,16 +122,16 @@ def _without_execution_settings(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str, Any]:
-    """What the records of ``planner`` depend on (all planners when ``None``): the scene and evaluation sections,
-    the reported cost, the planner's own section and, for planners that track a reference with the controller
-    (density, search, sampling), the Liouville numerics, the controller, the predictor and their weights. MPC and
-    oracle records therefore stay valid when only the learned components change."""
+    """What the records of ``planner`` depend on (all planners when ``None``): the scene and evaluation sections
+    (without :data:`EXECUTION_SETTINGS`), the reported cost, the sections of the planner's registration and, unless
+    it plans from the true state (MPC, oracle), the Liouville numerics, the controller, the predictor and their
+    weights. MPC and oracle records therefore stay valid when only the learned components change."""
     cfg = _without_execution_settings(to_dict(spec.run_config))
-    info = planner_info(planner, default=True) if planner is not None else None
     payload: dict[str, Any] = {"schema": RECORD_SCHEMA, "setting": spec.setting}
     if planner is None:
         payload.update(run_config=cfg, controller=spec.controller, density=spec.density, components=spec.components)
         return payload
+    info = planner_info(planner, default=True)
     payload.update({k: cfg.get(k) for k in _COMMON_SECTIONS})
     payload["cost"] = (cfg.get("density_planner") or {}).get("cost")
     payload["planner"] = {planner: cfg.get(info.section) if info.section else None}
@@ -145,7 +145,6 @@ def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str
         payload.update(liouville=cfg.get("liouville"), controller=spec.controller, density=spec.density,
                        components=spec.components)
     return payload
-
 
 
 def component_digest(*components: Any) -> str:
@@ -201,7 +200,6 @@ def make_jobs(spec: BenchmarkSpec, done: set[tuple[str, str, str]] = frozenset()
                                 hashes[planner], want_map=want_map, components=spec.components))
                 want_map = False
     return jobs
-
 
 
 @dataclass

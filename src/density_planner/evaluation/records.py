@@ -48,7 +48,6 @@ def scene_map_arrays(scene) -> dict[str, Any]:
     }
 
 
-
 #: record keys that must be strings, and the number-or-null metrics the summary reads
 _RECORD_KEYS = ("setting", "env", "planner", "variant", "status")
 _SUMMARY_METRICS = ("final_distance", "goal_cost", "collision_cost", "input_cost", "bounds_cost",
