@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.evaluation.online import drive
     from density_planner.evaluation.simulate import execute
     from density_planner.evaluation.verdict import judge
-    from density_planner.planners.context import build_context, scene_system
+    from density_planner.planners.context import build_context, run_system
     from density_planner.planners.problem import PlanningProblem
     from density_planner.planners.registry import make_planner
     from density_planner.settings import RunConfig
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{f.name}: refused: {str(exc).splitlines()[0]}", flush=True)
             continue
         t_scene = time.perf_counter() - t0
-        system = scene_system("commonroad")
+        system = run_system(cfg, "commonroad")
         problem = PlanningProblem.from_scene(scene, seed=0, planning=cfg.planning, risk=cfg.risk, system=system)
         ctx = build_context(cfg, kind="commonroad", parameterization=problem.parameterization, system=system)
         planner = make_planner("density", ctx)

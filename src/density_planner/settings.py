@@ -37,6 +37,7 @@ from .planners.problem import PlanningConfig
 from .planners.sampling import SamplingConfig
 from .planners.search import SearchConfig
 from .risk.collision import RiskConfig
+from .systems.registry import SystemConfig
 
 __all__ = ["RunConfig"]
 
@@ -45,6 +46,9 @@ __all__ = ["RunConfig"]
 class RunConfig:
     """All configurable parts of a run (TOML sections)."""
 
+    #: [system]: the dynamics, its model set, the tracking controller and the density predictor (--system,
+    #: --models, --controller, --density write here)
+    system: SystemConfig = field(default_factory=SystemConfig)
     #: [planning]: horizon, segment length and time steps shared by every planner and the evaluation
     planning: PlanningConfig = field(default_factory=PlanningConfig)
 

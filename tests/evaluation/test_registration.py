@@ -130,6 +130,14 @@ def test_execution_settings_do_not_change_the_configuration_hash():
     for planner in (*base.planners, None):
         assert config_hash(threads, planner) == config_hash(base, planner)
         assert config_hash(samples, planner) != config_hash(base, planner)
+    # the [system] section: another controller changes what the density planner's records depend on, not MPC's
+    analytic = BenchmarkSpec("artificial", base.envs, base.planners, base.variants,
+                             update(base.run_config, {"system": {"controller": "analytic"}}))
+    assert config_hash(analytic, "density") != config_hash(base, "density")
+    assert config_hash(analytic, "mpc") == config_hash(base, "mpc")
+    road = BenchmarkSpec("artificial", base.envs, base.planners, base.variants,
+                         update(base.run_config, {"system": {"models": "road"}}))
+    assert config_hash(road, "mpc") != config_hash(base, "mpc")
 
 
 def test_more_threads_keep_existing_records(tmp_path):
@@ -172,20 +180,18 @@ def test_a_registered_scene_source_is_offered_by_the_command_line(monkeypatch):
     monkeypatch.setattr(sources, "_SOURCES", dict(sources._SOURCES))
     calls = []
 
-    @sources.register_scene_source("test_mirror", "test: a random scene, mirrored", models="road",
-                                   uses=("seed", "recording"), requires=("recording",),
-                                   requires_text="--recording N")
+    @sources.register_scene_source("test_mirror", "test: a random scene, mirrored", uses=("seed", "recording"),
+                                   requires=("recording",), requires_text="--recording N")
     def _mirror(request, run_config, system):
-        calls.append((request.seed, request.recording, system.config.speed_max))
+        calls.append((request.seed, request.recording, system.speed_max))
         return random_scene(request.seed or 0, run_config.random_scene)
 
     assert "test_mirror" in sources.scene_kinds()
-    assert sources.scene_source("test_mirror").models == "road"
     p = argparse.ArgumentParser()
     add_scene_args(p)
     args = p.parse_args(["--env", "test_mirror", "--seed", "2", "--recording", "5"])
-    scene = scene_from_args(args, RunConfig())
-    assert calls == [(2, 5, 40.0)]  # the road model set's car (0-40 m/s) checks the scene's domain
+    scene = scene_from_args(args, update(RunConfig(), {"system": {"models": "road"}}))
+    assert calls == [(2, 5, 40.0)]  # the run's system (the car in the road set's domain, 0-40 m/s) is passed
     assert scene.grid.probs.shape == random_scene(2).grid.probs.shape
     with pytest.raises(ValueError, match="--env test_mirror needs --recording N"):
         scene_from_args(p.parse_args(["--env", "test_mirror"]), RunConfig())
@@ -197,7 +203,7 @@ def test_a_registered_scene_source_is_offered_by_the_command_line(monkeypatch):
 
 def test_the_context_loads_the_predictor_when_asked(monkeypatch):
     from density_planner.density import registry as density_registry
-    from density_planner.planners.context import build_context, scene_system
+    from density_planner.planners.context import build_context, run_system
     from density_planner.settings import RunConfig
 
     loads = []
@@ -209,8 +215,9 @@ def test_the_context_loads_the_predictor_when_asked(monkeypatch):
 
     monkeypatch.setattr(density_registry, "load_predictor", counting)
     lazy = build_context(RunConfig(), kind="random", controller="analytic", density="exact", lazy=True)
-    assert loads == [] and lazy.system.config.speed_max == scene_system("random").config.speed_max
+    assert loads == [] and lazy.system.speed_max == run_system(RunConfig(), "random").speed_max == 10.0
     assert lazy.predictor() is lazy.predictor() and loads == ["exact"]
     assert lazy.exact() is None  # the predictor is exact already: no re-check
-    eager = build_context(RunConfig(), kind="commonroad", controller="analytic", density="exact")
-    assert loads == ["exact", "exact"] and eager.system.config.speed_max == 40.0
+    cfg = update(RunConfig(), {"system": {"controller": "analytic", "density": "exact"}})
+    eager = build_context(cfg, kind="commonroad")  # the [system] section names controller and predictor
+    assert loads == ["exact", "exact"] and eager.system.speed_max == 40.0

@@ -14,6 +14,8 @@ __all__ = [
     "add_seed",
     "add_device",
     "add_controller",
+    "add_system",
+    "apply_system_args",
     "add_threads",
     "apply_threads",
     "add_config",
@@ -81,14 +83,45 @@ def apply_threads(threads: int | None) -> None:
 
 
 def add_controller(p: argparse.ArgumentParser) -> None:
-    from ..control.registry import CONTROLLER_CHOICES, DEFAULT_CONTROLLER
+    from ..control.registry import CONTROLLER_CHOICES
 
     p.add_argument(
         "--controller",
         default=None,
         metavar="NAME|FILE",
-        help=f"tracking controller: {', '.join(CONTROLLER_CHOICES)} or a weights file (default {DEFAULT_CONTROLLER})",
+        help=f"tracking controller ([system] controller): the car's {', '.join(CONTROLLER_CHOICES)}, another "
+        "system's registered name, or a C3M weights file (default: the model set's default, c3m for the car)",
     )
+
+
+def add_system(p: argparse.ArgumentParser, *, density: bool = True) -> None:
+    """``--system``, ``--models``, ``--controller`` (and ``--density``): shorthands for the keys of the ``[system]``
+    section (:class:`~density_planner.systems.registry.SystemConfig`), so the written ``config.toml`` holds them."""
+    from ..systems.registry import system_names
+
+    p.add_argument("--system", default=None, metavar="NAME",
+                   help=f"dynamics ([system] name): {', '.join(system_names())} (default car)")
+    p.add_argument("--models", default=None, metavar="SET",
+                   help="model set ([system] models: the system's domain with its controller and density weights), "
+                        "e.g. paper or road for the car (default: by scene kind, road for recorded road scenes, "
+                        "paper for the paper's random scenes)")
+    add_controller(p)
+    if density:
+        p.add_argument("--density", default=None, metavar="NAME",
+                       help="density predictor ([system] density): exact (Liouville), learned, trajectory, "
+                            "pointwise or a weights file (default: the learned one trained for the controller, else "
+                            "exact)")
+
+
+def apply_system_args(args: argparse.Namespace, run_config):
+    """``run_config`` with the ``[system]`` keys given on the command line (``--system`` etc.) replaced."""
+    from ..config import update
+
+    changes = {key: value for key, value in (("name", getattr(args, "system", None)),
+                                             ("models", getattr(args, "models", None)),
+                                             ("controller", getattr(args, "controller", None)),
+                                             ("density", getattr(args, "density", None))) if value is not None}
+    return update(run_config, {"system": changes}) if changes else run_config
 
 
 def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:
@@ -123,14 +156,14 @@ def resolve_dtype(name: str) -> torch.dtype:
 
 def context_from_args(args: argparse.Namespace, run_config, *, progress: bool = False, parameterization=None,
                       system=None):
-    """:func:`~density_planner.planners.context.build_context` with the scene kind, ``--models``,
-    ``--controller``, ``--density``, ``--device`` and ``--dtype`` of the command line."""
+    """:func:`~density_planner.planners.context.build_context` for the scene kind, ``--device`` and ``--dtype`` of
+    the command line (``--system``, ``--models``, ``--controller`` and ``--density`` are in ``run_config``'s
+    ``[system]`` section: :func:`apply_system_args`)."""
     from ..planners.context import build_context
 
-    return build_context(run_config, kind=getattr(args, "kind", None), models=getattr(args, "models", None),
-                         controller=args.controller, density=getattr(args, "density", None),
-                         parameterization=parameterization, system=system, device=resolve_device(args.device),
-                         dtype=resolve_dtype(args.dtype), progress=progress)
+    return build_context(run_config, kind=getattr(args, "kind", None), parameterization=parameterization,
+                         system=system, device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
+                         progress=progress)
 
 
 def check_out(path: Path) -> Path:

@@ -41,12 +41,14 @@ def scene_request(args: argparse.Namespace):
 
 
 def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
-    """Build the scene selected by the scene arguments with the matching section of ``run_config``; sources that
-    check the start's domain (CommonRoad) use the system of the scene's model set (``--models``)."""
+    """Build the scene selected by the scene arguments with the matching section of ``run_config`` (its
+    ``[system]`` section already holds ``--system`` / ``--models``)."""
     from ..environment.sources import build_scene
-    from ..planners.context import scene_system
+    from ..planners.context import run_system
 
     request = scene_request(args)
-    system = scene_system(args.kind, getattr(args, "models", None))
+    # the domain checks of recorded scenes (start speed, reachable region) use the run's system in the domain of
+    # the scene's model set (the car on recorded traffic: road, 0-40 m/s)
+    system = run_system(run_config, args.kind)
     return build_scene(request, run_config, system=system, where=f"{kind_flag} {args.kind}",
                        quiet=not getattr(args, "verbose", 0))

@@ -8,10 +8,11 @@ import math
 
 from ._common import (
     add_config,
-    add_controller,
     add_device,
     add_out,
     add_progress,
+    add_system,
+    apply_system_args,
     check_out,
     out_dir,
     show_progress,
@@ -35,8 +36,6 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_scene_args(p, kinds=("random", "commonroad", "file"))
     p.add_argument("--planner", default="density", metavar="NAME",
                    help="planner (density: warm-started stage-2 replans; other reference planners: full replans)")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the density planner: exact (Liouville) or a learned one")
     p.add_argument("--distribution-seed", type=int, default=None, metavar="S",
                    help="seed of the initial distribution (default: --seed)")
     p.add_argument("--prediction", default=None, choices=("observed", "oracle"),
@@ -44,9 +43,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                         "oracle (the recorded future, known in advance: the paper's setting); sets "
                         "online.prediction.kind")
     p.add_argument("--period", type=float, default=None, metavar="S", help="replanning period [s] (online.period)")
-    add_controller(p)
-    p.add_argument("--models", default=None, metavar="SET",
-                   help="model set (car domain, controller and density weights): paper or road (default: by scene)")
+    add_system(p)
     add_config(p, example="online.replan_epochs=5")
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip run.gif")
@@ -85,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict, update
     from ..evaluation.online import drive
     from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import scene_system
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
@@ -95,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     check_out(args.out)
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     changes = {}
     if args.prediction is not None:
         changes["prediction"] = {"kind": args.prediction}
@@ -110,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     scene, run_config = _scene_for_drive(args, run_config)
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    system = scene_system(args.kind, getattr(args, "models", None))
+    system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, risk=run_config.risk,
                                          system=system)
     ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
@@ -135,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         "scene_build_time_s": t_scene,
         "planner": args.planner,
         "distribution_seed": dist_seed,
-        "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
+        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "initial_plan": None if initial is None else {
             "status": initial.status.value, "timings": initial.timings,
             "collision_probability_max": None if initial.collision is None else float(initial.collision.max)},

@@ -7,10 +7,11 @@ import time
 
 from ._common import (
     add_config,
-    add_controller,
     add_device,
     add_out,
     add_progress,
+    add_system,
+    apply_system_args,
     check_out,
     context_from_args,
     out_dir,
@@ -36,14 +37,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     add_scene_args(p)
     p.add_argument("--planner", default="density", metavar="NAME", help=f"planner ({helps})")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the density planner: exact (Liouville) or a learned one")
     p.add_argument("--distribution-seed", type=int, default=None, metavar="S",
                    help="seed of the random initial distribution (default: --seed)")
-    add_controller(p)
-    p.add_argument("--models", default=None, metavar="SET",
-                   help="model set (car domain, controller and density weights): paper or road (default: by scene "
-                        "kind, road for recorded road scenes, paper for the paper's random scenes)")
+    add_system(p)
     add_config(p)
     add_device(p)
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
@@ -79,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import scene_system
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
@@ -87,12 +83,12 @@ def run(args: argparse.Namespace) -> int:
     check_out(args.out)
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     clock = _Clock()
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    system = scene_system(args.kind, getattr(args, "models", None))
+    system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
                                          risk=run_config.risk, system=system)
     ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
@@ -117,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
         "models": getattr(getattr(ctx.controller, "car", None), "domain", None),
-        "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
+        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "config": to_dict(run_config),
         "versions": versions(),
         "command": "density-planner " + " ".join(getattr(args, "argv", []) or []),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_controller, add_device, add_out, out_dir
+from ._common import add_config, add_device, add_out, add_system, apply_system_args, out_dir
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -25,8 +25,6 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_scene_args(p)
     p.add_argument("--planner", default="density", metavar="NAME",
                    help="planner whose reference is tracked (density, search, sampling; default density)")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the planner: exact (Liouville) or a learned one (default)")
     p.add_argument("--distribution-seed", type=int, default=None, metavar="S",
                    help="seed of the random initial distribution (default: --seed)")
     p.add_argument("--samples", type=int, default=10_000, metavar="N",
@@ -38,7 +36,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="recorded road scenes (--env commonroad): closed loops of the calibration check of the "
                    "occupancy model, predicted road-user risk against true-shape hits (risk_report.json "
                    "'calibration', calibration.png; default 2000, 0 = off)")
-    add_controller(p)
+    add_system(p)
     add_config(p)
     add_device(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -50,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.risk_validation import validate_risk
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
@@ -62,15 +61,17 @@ def run(args: argparse.Namespace) -> int:
     if args.calibration_samples != 0 and args.calibration_samples < 2:
         raise ValueError(f"--calibration-samples must be 0 (off) or at least 2, got {args.calibration_samples}")
     out = out_dir(args.out)
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     scene = scene_from_args(args, run_config)
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk)
+    system = run_system(run_config, args.kind)
+    problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk, planning=run_config.planning,
+                                         system=system)
     mode = planner_info(args.planner).execution
     if mode != ExecutionMode.TRACK:
         raise ValueError(f"validate risk needs a planner whose reference is tracked (density, search, sampling); "
                          f"{args.planner!r} executes {mode.value}")
-    ctx = context_from_args(args, run_config, progress=not args.quiet)
+    ctx = context_from_args(args, run_config, progress=not args.quiet, system=system)
     planner = make_planner(args.planner, ctx)
     t0 = time.perf_counter()
     plan = planner.plan(problem)
@@ -115,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         "scene": scene.name,
         "planner": plan.planner,
         "plan_status": plan.status.value,
-        "density_predictor": getattr(ctx.predictor(), "name", args.density or "default"),
+        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "reported_by": plan.extras.get("reported_by"),
         "n_samples_planner": int(plan.samples.n_samples) if plan.samples is not None else None,
         "distribution_seed": dist_seed,

@@ -23,7 +23,6 @@ from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, In
 __all__ = ["CostWeights", "CostConfig", "CostBreakdown", "WeightedCost", "build_cost", "TERM_NAMES"]
 
 TERM_NAMES = ("goal", "input", "bounds", "collision")
-_PI = math.pi
 
 
 @dataclass(frozen=True)
@@ -63,11 +62,6 @@ class CostConfig:
     goal_far_factor: float = 10.0
     #: [m^2] threshold of the goal-far factor and of switching on the bounds term in stage 1 (original: 3)
     goal_close_threshold: float = 3.0
-    #: heading and speed part of the planning box (X_MIN_MP / X_MAX_MP); x/y come from the scene
-    theta_min: float = -_PI + 0.2
-    theta_max: float = 3 * _PI - 0.2
-    v_min: float = 0.1
-    v_max: float = 9.9
     #: road terms on scenes with a road (goal region in time, road barrier); unused on random scenes
     road: RoadCostConfig = field(default_factory=RoadCostConfig)
 
@@ -80,8 +74,6 @@ class CostConfig:
             raise ValueError(f"goal_far_factor must be >= 1, got {self.goal_far_factor}")
         if self.goal_close_threshold <= 0:
             raise ValueError(f"goal_close_threshold must be > 0, got {self.goal_close_threshold}")
-        if not (self.theta_min < self.theta_max and self.v_min < self.v_max):
-            raise ValueError("theta_min < theta_max and v_min < v_max are required")
 
 
 @dataclass
@@ -141,7 +133,11 @@ def build_cost(
     system: System | None = None,
     risk: RiskConfig | None = None,
 ) -> WeightedCost:
-    """The four cost terms for ``scene``: goal, input, bounds (planning box) and collision.
+    """The four cost terms for ``scene``: goal, input, bounds and collision.
+
+    The bounds term keeps the positions in the scene's planning box and the other states in the system's planning
+    bounds (``system.planning_bounds()``; the paper's X_MIN_MP / X_MAX_MP for the car); without a system only the
+    positions (the first two state entries) are bounded.
 
     With ``optimisation=False`` the goal term has no far factor (the reported, paper-defined ``J_G``).
     ``system`` (positions, heading, body) and ``risk`` define collision (:class:`CollisionModel`); without a
@@ -151,10 +147,13 @@ def build_cost(
     """
     config = config or CostConfig()
     xmin, xmax, ymin, ymax = scene.planning_box
-    inf = math.inf
-    bounds = BoundsCost(
-        (xmin, ymin, config.theta_min, config.v_min, -inf), (xmax, ymax, config.theta_max, config.v_max, inf)
-    )
+    if system is None:
+        bounds = BoundsCost((xmin, ymin), (xmax, ymax))
+    else:
+        lo, hi = (list(b) for b in system.planning_bounds())
+        (ix, iy) = system.position_indices
+        lo[ix], lo[iy], hi[ix], hi[iy] = xmin, ymin, xmax, ymax
+        bounds = BoundsCost(lo, hi)
     goal = GoalCost(
         scene.goal,
         far_factor=config.goal_far_factor if optimisation else 1.0,

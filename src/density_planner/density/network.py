@@ -499,7 +499,9 @@ def shipped_density_path(arch: str, models: str = "paper") -> Path:
     """Path (``.pt``) of the shipped weights of ``arch`` ("trajectory" or "pointwise") of a model set."""
     if arch not in ARCHITECTURES:
         raise ValueError(f"unknown density architecture {arch!r}; valid choices: {', '.join(ARCHITECTURES)}")
-    suffix = "" if models == "paper" else f"_{models}"
+    from ..control.registry import model_set
+
+    suffix = model_set(models).density_suffix
     return Path(str(resources.files("density_planner") / "weights" / f"density_{arch}{suffix}.pt"))
 
 

@@ -73,7 +73,7 @@ from .grid import OccupancyGrid, lattice_size
 from .lanes import remember_lane_graph
 from .road import GoalRegion, ObstacleTrack, RoadScene
 from .sampling import StartGoalConfig, sample_start_goal
-from .scene import Scene, wrap_heading
+from .scene import Scene
 
 __all__ = [
     "CommonRoadSceneConfig",
@@ -665,15 +665,15 @@ def _snap(area: tuple[float, float, float, float], cell: float) -> tuple[float, 
 def _model_limits(system: Any) -> tuple[float, float, float, str]:
     """``(v_min, v_max, a_max, description)`` of the system's speed state and acceleration input."""
     if system is None:
-        from density_planner.systems.car import KinematicCar
+        from density_planner.systems.registry import make_system
 
-        system = KinematicCar()
-    names = list(getattr(system, "state_names", ()))
-    inputs = list(getattr(system, "input_names", ()))
+        system = make_system()
+    iv, ia = system.speed_index, system.acceleration_input
+    if iv is None or ia is None:
+        raise ValueError(f"a CommonRoad scene needs a system with a speed state and an acceleration input; "
+                         f"{type(system).__name__} has {'no speed state' if iv is None else 'no acceleration input'}")
     lo, hi = system.state_bounds
     ulo, uhi = system.input_bounds
-    iv = names.index("v") if "v" in names else 3
-    ia = inputs.index("a") if "a" in inputs else len(inputs) - 1
     return float(lo[iv]), float(hi[iv]), float(max(abs(ulo[ia]), abs(uhi[ia]))), type(system).__name__
 
 
@@ -682,7 +682,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                           system: Any = None) -> Scene:
     """Scene of the CommonRoad scenario in ``path`` (see the module docstring for every step).
 
-    ``system`` (default: :class:`~density_planner.systems.car.KinematicCar`) supplies the speed and
+    ``system`` (default: the registry's default system, the kinematic car) supplies the speed and
     acceleration bounds (the reachable map region and the start-domain check). The returned scene carries the
     exact geometry in ``scene.road`` and the suggested planning horizon in ``scene.meta["horizon"]`` [s].
     """
@@ -745,7 +745,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             pos = pos - np.asarray(frame_offset)
             note("coordinates translated by (%.0f, %.0f) m to a local frame (float32 precision); scene coordinates "
                  "= file coordinates - meta.frame_offset", -frame_offset[0], -frame_offset[1])
-        start = (float(pos[0]), float(pos[1]), wrap_heading(th), float(v), 0.0)
+        start = (float(pos[0]), float(pos[1]), float(th), float(v))
         if not cfg.sample_start_goal:
             if not (v_min - 1e-9 <= v <= v_max + 1e-9):
                 raise DataError(

@@ -18,7 +18,7 @@ A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 
 A box covers the cells whose indices lie between ``index(x)`` and ``index(x + width)`` inclusive (same along
 y), with ``index(v) = floor((v - min) / cell + 0.5 + 0.001)`` (the code's rounding with its +0.001).
 
-Start and goal: seeds below 20 use the fixed start ``[0, -28, 1.5, 3, 0]`` and goal ``(0, 8)``. Other seeds
+Start and goal: seeds below 20 use the fixed start ``(0, -28, 1.5 rad, 3 m/s)`` and goal ``(0, 8)``. Other seeds
 draw a start uniformly in x in [-5, 5], y in [5, 10], theta in [-2.1, -0.5] rad, v in [1, 9] m/s and a goal in
 x in [-5, 5], y in [-30, -20] (driving "down" the street) and accept the pair when the distance is 10-70 m,
 max P_occ within +-0.5 m of the start at t = 0 is <= 0.1, max P_occ within +-0.5 m of the 1-s look-ahead point
@@ -95,8 +95,8 @@ class RandomSceneConfig:
     velocity_range: tuple[int, int] = (-2, 1)
     #: seeds below this use the fixed start and goal
     fixed_start_seeds: int = 20
-    #: fixed start state (p_x, p_y, theta, v, theta_bias) [m, m, rad, m/s, rad]
-    fixed_start: tuple[float, float, float, float, float] = (0.0, -28.0, 1.5, 3.0, 0.0)
+    #: fixed start pose and speed (x, y, heading, speed) [m, m, rad, m/s]
+    fixed_start: tuple[float, float, float, float] = (0.0, -28.0, 1.5, 3.0)
     #: fixed goal position [m]
     fixed_goal: tuple[float, float] = (0.0, 8.0)
     #: lower corner of the random start box (p_x, p_y, theta, v)
@@ -336,7 +336,7 @@ def _draw_start_goal(
             continue
         if _point_max(last, (gx - x0) / cell, (gy - y0) / cell, half) > cfg.goal_max_occupancy:
             continue
-        return (sx, sy, th, v, 0.0), (gx, gy), attempt
+        return (sx, sy, th, v), (gx, gy), attempt
     raise ValueError(
         f"random scene seed {seed}: no start/goal pair passed the acceptance tests in {cfg.max_attempts} "
         "attempts "

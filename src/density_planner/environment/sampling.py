@@ -28,7 +28,6 @@ from density_planner.errors import DataError
 
 from ._rng import Stream
 from .grid import OccupancyGrid
-from .scene import wrap_heading
 
 __all__ = ["StartGoalConfig", "sample_start_goal", "free_mask"]
 
@@ -112,8 +111,8 @@ def sample_start_goal(
     *,
     seed: int,
     config: StartGoalConfig | None = None,
-) -> tuple[tuple[float, float, float, float, float], tuple[float, float]]:
-    """Draw a start state ``(x, y, theta, v, 0)`` and goal ``(x, y)`` on free cells; see the module
+) -> tuple[tuple[float, float, float, float], tuple[float, float]]:
+    """Draw a start pose and speed ``(x, y, heading, speed)`` and a goal ``(x, y)`` on free cells; see the module
     docstring."""
     cfg = config or StartGoalConfig()
     rng = Stream(seed)
@@ -163,7 +162,7 @@ def sample_start_goal(
         ok = ok_dist & (look <= cfg.lookahead_max_occupancy)
         if ok.any():
             i = int(np.argmax(ok))
-            start = (float(sx[i]), float(sy[i]), wrap_heading(float(theta[i])), float(speed[i]), 0.0)
+            start = (float(sx[i]), float(sy[i]), float(theta[i]), float(speed[i]))
             return start, (float(gx[i]), float(gy[i]))
     reason = (
         f"no free start/goal cells are {cfg.distance_range[0]:g}-{cfg.distance_range[1]:g} m apart"

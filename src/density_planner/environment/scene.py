@@ -1,5 +1,6 @@
-"""A planning scene: the occupancy grid plus where the car starts, where it should go and the box it must stay
-in.
+"""A planning scene: the occupancy grid plus where the vehicle starts (a pose and a speed), where it should go and
+the box it must stay in. A scene knows no vehicle model: the system maps the start pose to its own state
+(:meth:`~density_planner.systems.base.System.state_from_pose`).
 
 Every environment source (random artificial scenes, inD recordings, CommonRoad scenarios) returns a
 :class:`Scene`; :func:`save_scene` / :func:`load_scene` store one as a single ``.npz`` (grid arrays + JSON
@@ -31,11 +32,11 @@ __all__ = [
     "scene_summary",
     "START_OCCUPIED_THRESHOLD",
     "SCENE_FORMAT_VERSION",
-    "wrap_heading",
 ]
 
-#: version of the scene ``.npz`` layout
-SCENE_FORMAT_VERSION = 1
+#: version of the scene ``.npz`` layout (2: the start is a pose and a speed, 4 numbers; version-1 files stored the
+#: kinematic car's 5-entry state with a zero bias and are still read)
+SCENE_FORMAT_VERSION = 2
 
 #: :func:`validate_scene` rejects a start whose P_occ at t = 0 exceeds this. It catches starts inside static
 #: obstacles or outside the drivable area (P_occ = 1) and on top of another road user; it is deliberately
@@ -44,23 +45,14 @@ SCENE_FORMAT_VERSION = 1
 #: 0.6-0.7 in both shipped CommonRoad scenarios).
 START_OCCUPIED_THRESHOLD = 0.9
 
-#: the car model keeps its heading unwrapped in [-pi + 0.2, 3 pi - 0.2] (``original.md`` §1)
-_THETA_MIN = -math.pi + 0.2
-
-
-def wrap_heading(theta: float) -> float:
-    """Heading [rad] shifted by a multiple of 2 pi into ``[-pi + 0.2, pi + 0.2)``, inside the car's state
-    box."""
-    return (theta - _THETA_MIN) % (2 * math.pi) + _THETA_MIN
-
-
 @dataclass(frozen=True, eq=False)
 class Scene:
     """A world to plan in.
 
     Attributes:
         grid: occupancy probabilities over (time, x, y).
-        start: start state of the car ``(p_x [m], p_y [m], theta [rad], v [m/s], theta_bias [rad])``, bias 0.
+        start: where the vehicle starts: ``(x [m], y [m], heading [rad], speed [m/s])``, the heading counter-
+            clockwise from the x axis; any system maps it to its state (``system.state_from_pose(*start)``).
         goal: goal position ``(x, y)`` [m].
         planning_box: ``(xmin, xmax, ymin, ymax)`` [m] the positions must stay in (the bounds cost J_B).
         name: short identifier, e.g. ``"random-7"``, ``"ind-rec07-t120.0"``.
@@ -73,7 +65,7 @@ class Scene:
     """
 
     grid: OccupancyGrid
-    start: tuple[float, float, float, float, float]
+    start: tuple[float, float, float, float]
     goal: tuple[float, float]
     planning_box: tuple[float, float, float, float]
     name: str = "scene"
@@ -93,7 +85,7 @@ class Scene:
                 f"{self.grid.t_end:g}] s"
             )
         object.__setattr__(self, "t_start", float(t_start))
-        object.__setattr__(self, "start", _floats("Scene.start", self.start, 5))
+        object.__setattr__(self, "start", _floats("Scene.start", self.start, 4))
         object.__setattr__(self, "goal", _floats("Scene.goal", self.goal, 2))
         box = _floats("Scene.planning_box", self.planning_box, 4)
         if not (box[0] < box[1] and box[2] < box[3]):
@@ -238,9 +230,14 @@ def load_scene(path: str | Path) -> Scene:
         raise DataError(f"{path}: cannot read the scene's road data ({exc})") from exc
     grid = OccupancyGrid.from_arrays(z, source=str(path))
     try:
+        start = header["start"]
+        if header.get("scene_format_version", 1) == 1 and isinstance(start, list) and len(start) == 5:
+            if start[4] != 0:
+                raise ValueError(f"a version-1 start must have a zero heading bias, got {start[4]!r}")
+            start = start[:4]  # version 1 stored the kinematic car's state (x, y, theta, v, bias = 0)
         return Scene(
             grid=grid,
-            start=header["start"],
+            start=start,
             goal=header["goal"],
             planning_box=header["planning_box"],
             name=str(header.get("name", path.stem)),

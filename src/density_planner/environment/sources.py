@@ -3,9 +3,10 @@ function that builds a scene from a :class:`SceneRequest`, used by the command l
 benchmarks alike.
 
 A source is registered with :func:`register_scene_source`: its builder ``builder(request, run_config, system) ->
-Scene``, a description, the model set its scenes need by default (``"paper"`` for the paper's artificial scenes,
-``"road"`` for recorded road traffic) and the request fields it reads (``seed``, ``file``, ``data_dir``,
-``recording``, ``start_time``; the others are refused with a one-line error) and requires.
+Scene``, a description and the request fields it reads (``seed``, ``file``, ``data_dir``, ``recording``,
+``start_time``; the others are refused with a one-line error) and requires. Which model set (system domain,
+controller and density weights) a kind of scene needs is registered with the model set
+(:attr:`density_planner.control.registry.ModelSet.scene_kinds`).
 """
 
 from __future__ import annotations
@@ -53,8 +54,6 @@ class SceneSource:
     kind: str
     builder: Callable[[SceneRequest, Any, Any], Scene]
     description: str
-    #: model set its scenes need (car domain, controller and density weights) unless the user names one
-    models: str
     #: request options it reads
     uses: tuple[str, ...] = ()
     #: request options it needs, and how the error names them (e.g. ``"--data-dir D and --recording N"``)
@@ -65,14 +64,14 @@ class SceneSource:
 _SOURCES: dict[str, SceneSource] = {}
 
 
-def register_scene_source(kind: str, description: str, *, models: str, uses: tuple[str, ...] = (),
-                          requires: tuple[str, ...] = (), requires_text: str = "") -> Callable:
+def register_scene_source(kind: str, description: str, *, uses: tuple[str, ...] = (), requires: tuple[str, ...] = (),
+                          requires_text: str = "") -> Callable:
     """Decorator registering ``builder(request, run_config, system) -> Scene`` as the source ``kind``."""
 
     def deco(builder: Callable[[SceneRequest, Any, Any], Scene]) -> Callable[[SceneRequest, Any, Any], Scene]:
         if kind in _SOURCES and _SOURCES[kind].builder is not builder:
             raise ValueError(f"scene source {kind!r} registered twice")
-        _SOURCES[kind] = SceneSource(kind, builder, description, models, tuple(uses), tuple(requires),
+        _SOURCES[kind] = SceneSource(kind, builder, description, tuple(uses), tuple(requires),
                                      requires_text or " and ".join("--" + r.replace("_", "-") for r in requires))
         return builder
 
@@ -120,7 +119,7 @@ def build_scene(request: SceneRequest, run_config: Any, *, system: Any = None, w
 
 
 # ------------------------------------------------------------------------------------------------ the sources
-@register_scene_source("random", "random artificial scene (the paper's generator; [random_scene])", models="paper",
+@register_scene_source("random", "random artificial scene (the paper's generator; [random_scene])",
                        uses=("seed",))
 def _random(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     from .random_scene import random_scene
@@ -128,7 +127,7 @@ def _random(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     return random_scene(request.seed or 0, run_config.random_scene)
 
 
-@register_scene_source("ind", "inD recording: a window of recorded traffic ([ind])", models="road",
+@register_scene_source("ind", "inD recording: a window of recorded traffic ([ind])",
                        uses=("seed", "data_dir", "recording", "start_time"), requires=("data_dir", "recording"),
                        requires_text="--data-dir D and --recording N")
 def _ind(request: SceneRequest, run_config: Any, system: Any) -> Scene:
@@ -141,7 +140,7 @@ def _ind(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     return load_ind_scene(request.data_dir, request.recording, update(run_config.ind, changes))
 
 
-@register_scene_source("commonroad", "CommonRoad XML scenario ([commonroad]; extra 'commonroad')", models="road",
+@register_scene_source("commonroad", "CommonRoad XML scenario ([commonroad]; extra 'commonroad')",
                        uses=("seed", "file", "sample_start_goal"), requires=("file",), requires_text="--file F.xml")
 def _commonroad(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     from ..config import update
@@ -153,7 +152,7 @@ def _commonroad(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     return load_commonroad_scene(request.file, update(run_config.commonroad, changes), system=system)
 
 
-@register_scene_source("file", "a saved scene (.npz written by `density-planner env`)", models="paper",
+@register_scene_source("file", "a saved scene (.npz written by `density-planner env`)",
                        uses=("file",), requires=("file",), requires_text="--file SCENE.npz")
 def _file(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     from .scene import load_scene

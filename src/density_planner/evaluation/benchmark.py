@@ -123,7 +123,8 @@ def _without_execution_settings(cfg: dict[str, Any]) -> dict[str, Any]:
 
 def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str, Any]:
     """What the records of ``planner`` depend on (all planners when ``None``): the scene and evaluation sections
-    (without :data:`EXECUTION_SETTINGS`), the reported cost, the sections of the planner's registration and, unless
+    (without :data:`EXECUTION_SETTINGS`), the reported cost, the ``[system]`` and ``[planning]`` sections when they
+    are not the defaults, the sections of the planner's registration and, unless
     it plans from the true state (MPC, oracle), the Liouville numerics, the controller, the predictor and their
     weights. MPC and oracle records therefore stay valid when only the learned components change."""
     cfg = _without_execution_settings(to_dict(spec.run_config))
@@ -138,9 +139,17 @@ def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str
     if info.reads:
         payload["reads"] = {s: cfg.get(s) for s in info.reads}
     from ..planners.problem import PlanningConfig
+    from ..systems.registry import SystemConfig
 
-    if cfg.get("planning") not in (None, to_dict(PlanningConfig())):  # default time axis: hashes of older records
+    # the default time axis and system add nothing: records made before these sections existed keep their hashes
+    if cfg.get("planning") not in (None, to_dict(PlanningConfig())):
         payload["planning"] = cfg["planning"]
+    system = dict(cfg.get("system") or {})
+    if info.plans_from_true_state:  # MPC, oracle: the dynamics and domain matter, not controller and predictor
+        system = {k: v for k, v in system.items() if k not in ("controller", "density")}
+    default = {k: v for k, v in to_dict(SystemConfig()).items() if k in system}
+    if system and system != default:
+        payload["system"] = system
     if not info.plans_from_true_state:
         payload.update(liouville=cfg.get("liouville"), controller=spec.controller, density=spec.density,
                        components=spec.components)

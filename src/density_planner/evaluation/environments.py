@@ -152,12 +152,12 @@ def real_envs(
 
 def build_scene(env: EnvSpec, run_config: Any, system: Any = None):
     """The :class:`~density_planner.environment.scene.Scene` of ``env`` built with ``run_config``'s sections
-    (``system``: the domain checks of CommonRoad scenes; default the scene kind's, see
-    :func:`~density_planner.planners.context.scene_system`)."""
+    (``system``: the domain checks of CommonRoad scenes; default the run's system for the scene kind, see
+    :func:`~density_planner.planners.context.run_system`)."""
     from ..environment.sources import build_scene as build_source_scene
-    from ..planners.context import scene_system
+    from ..planners.context import run_system
 
-    scene = build_source_scene(env.request(), run_config, system=system or scene_system(env.kind),
+    scene = build_source_scene(env.request(), run_config, system=system or run_system(run_config, env.kind),
                                where=f"environment {env.name}")
     if scene.name != env.name:
         scene = dataclasses.replace(scene, name=env.name)

@@ -26,7 +26,7 @@ import torch
 
 from ..config import to_dict
 from ..planners.base import PlanResult
-from ..planners.context import scene_system
+from ..planners.context import run_model_set, run_system
 from ..planners.problem import PlanningProblem
 from ..planners.registry import ExecutionMode, make_planner, planner_info
 from ..systems.car import BIAS
@@ -80,10 +80,12 @@ _SCENES: dict[Any, Any] = {}
 def _context(job: Job, parameterization=None):
     """The planner context of ``job`` (:func:`~density_planner.planners.context.build_context`; the controller and
     the predictor are loaded once per process and reused by the following jobs)."""
-    from ..planners.context import build_context, scene_models
+    from ..planners.context import build_context
 
-    models = scene_models(job.env.kind)  # recorded road scenes: the road set; the paper's scenes: paper
-    key = (job.controller, job.density, job.run_config.liouville, parameterization, models.name)
+    # the run's system and model set for the scene kind (the car: road on recorded scenes, paper on random ones)
+    models = run_model_set(job.run_config, job.env.kind)
+    key = (job.controller, job.density, job.run_config.system, job.run_config.liouville, parameterization,
+           models.name)
     if key not in _CONTEXTS:
         _CONTEXTS.clear()
         # the predictor is loaded on first use (MPC and oracle jobs never load it); no exact re-check in sweeps
@@ -302,7 +304,7 @@ def run_job(job: Job) -> JobResult:
     try:
         scene = job_scene(job)
         problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
-                                             risk=job.run_config.risk, system=scene_system(job.env.kind))
+                                             risk=job.run_config.risk, system=run_system(job.run_config, job.env.kind))
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
         ctx = _context(job, problem.parameterization)
     except Exception:  # noqa: BLE001 - recorded, the sweep goes on

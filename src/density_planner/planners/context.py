@@ -1,8 +1,9 @@
 """What planner factories receive (:class:`PlannerContext`), and the one function that builds it.
 
 :func:`build_context` is used by every entry point that plans (``plan``, ``drive``, ``validate risk``, the
-benchmarks, the benchmark scripts): the system of the scene (:func:`scene_system`), the tracking controller and the
-density predictor of the model set, on the requested device.
+benchmarks, the benchmark scripts): the run's system (:func:`run_system`: ``[system] name`` in the domain of the
+model set chosen for the scene), the tracking controller and the density predictor of the model set, on the
+requested device.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from ..control.base import TrackingController
 from ..density.base import DensityPredictor
 from ..systems.base import System
 
-__all__ = ["PlannerContext", "build_context", "scene_models", "scene_system"]
+__all__ = ["PlannerContext", "build_context", "run_model_set", "run_system"]
 
 
 @dataclass
@@ -60,31 +61,26 @@ class PlannerContext:
         return self._cache["exact"]
 
 
-def scene_models(kind: str | None, models: str | None = None):
-    """The :class:`~density_planner.control.registry.ModelSet` named ``models``, else the one the scene source
-    ``kind`` registered (:mod:`density_planner.environment.sources`), else the package default."""
-    from ..control.registry import model_set
-    from ..environment.sources import scene_source
+def run_model_set(run_config: Any, kind: str | None):
+    """The :class:`~density_planner.control.registry.ModelSet` of the run's ``[system]`` section
+    (:class:`~density_planner.systems.registry.SystemConfig`) for a scene of source ``kind`` (``"random"``,
+    ``"commonroad"``, ...): the set ``[system] models`` names, else the one its system registered for the kind."""
+    from ..control.registry import model_set_for_scene
 
-    if models is None and kind is not None:
-        models = scene_source(kind).models
-    return model_set(models)
+    cfg = run_config.system
+    return model_set_for_scene(kind, cfg.models, cfg.name)
 
 
-def scene_system(kind: str | None, models: str | None = None) -> System:
-    """The system planned for on a scene of source ``kind`` (``"random"``, ``"commonroad"``, ...): the car of the
-    scene's model set (:func:`scene_models`)."""
-    # system: replaced by systems.registry.make_system (lead's branch)
-    from ..systems.car import KinematicCar
-
-    return KinematicCar(scene_models(kind, models).car)
+def run_system(run_config: Any, kind: str | None) -> System:
+    """The run's system: ``[system] name`` in the domain of its model set for a scene of ``kind``
+    (:func:`run_model_set`)."""
+    return run_model_set(run_config, kind).make_system()
 
 
 def build_context(
     run_config: Any,
     *,
     kind: str | None = None,
-    models: str | None = None,
     controller: str | None = None,
     density: str | None = None,
     parameterization: Any = None,
@@ -98,16 +94,15 @@ def build_context(
     """The planner context of a run.
 
     Args:
-        run_config: the run configuration (:class:`density_planner.settings.RunConfig`).
-        kind, models: scene source and model set (``None``: the scene kind's set): they choose the system (unless
-            ``system`` is given), the controller weights and the learned predictors.
-        controller: controller name or weights file (``None``: the package default).
-        density: density predictor name (``None``: the default learned predictor if it was trained for this
-            controller, else exact Liouville); a learned one must fit ``parameterization`` (the plan's horizon)
-            when given.
+        run_config: the run configuration (:class:`density_planner.settings.RunConfig`); its ``[system]`` section
+            names the system, the model set, the controller and the density predictor.
+        kind: the scene source (chooses the model set when ``[system] models`` is ``auto``).
+        controller, density: override ``[system] controller`` / ``density`` (``None``: the section's).
+        parameterization: the plan's horizon, which a learned predictor must fit (checked when given).
+        system: the system, if already built (default :func:`run_system`).
         device, dtype: placement of the controller and the predictor.
         lazy: load the predictor on first use (planners that need none, e.g. MPC, never load it); otherwise now,
-            so that a bad ``density`` fails before any planning.
+            so that a bad predictor name fails before any planning.
         exact_check: give the density planner the exact Liouville predictor for its final re-check of a learned
             prediction.
     """
@@ -116,14 +111,17 @@ def build_context(
     from ..density.registry import load_predictor
 
     device = torch.device(device) if device is not None else torch.device("cpu")
-    mset = scene_models(kind, models)
-    car = system if system is not None else scene_system(kind, models)
-    ctrl = load_controller(controller, models=mset).to(device=device, dtype=dtype)
+    mset = run_model_set(run_config, kind)
+    car = system if system is not None else mset.make_system()
+    ctrl = load_controller(controller or run_config.system.controller, models=mset).to(device=device, dtype=dtype)
+    # auto: the default learned predictor if it was trained for this controller, else exact Liouville
+    name = density or run_config.system.density
+    name = None if name == "auto" else name
     loaded: list[DensityPredictor] = []
 
     def predictor() -> DensityPredictor:
         if not loaded:
-            p = load_predictor(density, car, ctrl, liouville=run_config.liouville, parameterization=parameterization)
+            p = load_predictor(name, car, ctrl, liouville=run_config.liouville, parameterization=parameterization)
             loaded.append(p.to(device=device, dtype=dtype) if hasattr(p, "to") else p)
         return loaded[0]
 

@@ -198,9 +198,7 @@ class DensityPlanner(Planner):
         """Extra stage-1 candidates ``(K, nu, n_segments)`` (see ``candidate_seeds``), or ``None``."""
         if self.candidate_seeds is not None:
             return self.candidate_seeds(problem)
-        cost = self.config.cost
-        seeds = route_seed_parameters(problem, self.config.routes, v_limits=(cost.v_min, cost.v_max),
-                                      dtype=self.dtype, device=self.device)
+        seeds = route_seed_parameters(problem, self.config.routes, dtype=self.dtype, device=self.device)
         return None if seeds is None else seeds.params
 
     # ------------------------------------------------------------------ stage 1

@@ -22,7 +22,7 @@ from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import START_OCCUPIED_THRESHOLD, Scene, validate_scene
 from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
-from ..systems.car import BIAS, KinematicCar
+from ..systems.registry import make_system
 
 __all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON"]
 
@@ -122,7 +122,7 @@ class PlanningProblem:
     Attributes:
         scene: occupancy grid, nominal start, goal position and planning box.
         initial_distribution: law of the true initial state (full state, ``system.nx`` dimensions).
-        system: the dynamics (default: the kinematic car).
+        system: the dynamics (default: the registry's default system, the kinematic car).
         parameterization: reference-input parameterisation (10 segments of 1 s, 0.01-s fine grid, 0.1-s planning
             grid); its horizon must not exceed the scene's time span.
         risk: how collision is read (body) and its probability estimated (section ``[risk]``).
@@ -133,7 +133,7 @@ class PlanningProblem:
 
     scene: Scene
     initial_distribution: InitialDistribution
-    system: System = field(default_factory=KinematicCar)
+    system: System = field(default_factory=make_system)
     parameterization: PiecewiseConstantInputs = field(default_factory=PiecewiseConstantInputs)
     risk: RiskConfig = field(default_factory=RiskConfig)
     start_threshold: float = START_OCCUPIED_THRESHOLD
@@ -167,15 +167,14 @@ class PlanningProblem:
         risk: RiskConfig | None = None,
         planning: PlanningConfig | None = None,
     ) -> PlanningProblem:
-        """The paper's default problem: its 5-component Gaussian mixture on the XE0 box around the scene start,
-        drawn with ``seed``. The horizon comes from ``parameterization`` if given, else from ``planning`` (default
+        """The paper's default problem: its 5-component Gaussian mixture on the system's XE0 box
+        (``system.initial_error_max``) around the scene start (``system.state_from_pose(*scene.start)``), drawn
+        with ``seed``. The horizon comes from ``parameterization`` if given, else from ``planning`` (default
         :class:`PlanningConfig`: the scene's suggestion or 10 s)."""
         check_seed("seed", seed)
-        system = system or KinematicCar()
-        half_width = getattr(getattr(system, "config", None), "initial_error_max", None)
-        if half_width is None:
-            raise ValueError("from_scene needs a system with config.initial_error_max (the XE0 box)")
-        dist = paper_gaussian_mixture(scene.start, half_width, torch.Generator().manual_seed(seed))
+        system = system or make_system()
+        start = system.state_from_pose(*scene.start)
+        dist = paper_gaussian_mixture(start, system.initial_error_max, torch.Generator().manual_seed(seed))
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
         return cls(scene, dist, system, parameterization, risk or RiskConfig())
@@ -194,11 +193,10 @@ class PlanningProblem:
         return self.scene.grid.slices_for(self.t_start, par.plan_dt if dt is None else dt, n).to(device)
 
     def reference_start(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Tensor:
-        """Start of the reference: the mean of the initial distribution, with zero heading bias (the reference is
-        the nominal, unbiased trajectory; the bias only enters the measurement)."""
-        start = self.initial_distribution.mean.clone()
-        if isinstance(self.system, KinematicCar):
-            start[BIAS] = 0.0
+        """Start of the reference: the mean of the initial distribution with the states a plan cannot know at their
+        nominal values (``system.nominal_state``; for the car a zero heading bias: the reference is the nominal,
+        unbiased trajectory, the bias only enters the measurement)."""
+        start = self.system.nominal_state(self.initial_distribution.mean.clone())
         return start.to(dtype=dtype, device=device)
 
     @property

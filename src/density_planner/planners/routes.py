@@ -438,9 +438,10 @@ def fit_reference_parameters(
     be followed exactly with one turn rate per segment, and the fit then errs towards the inside of the road rather
     than across its edge) per candidate by Adam over the
     parameters through :func:`~density_planner.control.reference.plan_grid_reference`, projected onto the input
-    bounds after every step. Works for the kinematic car (state ``x, y, theta, v, ...``, inputs
-    ``omega, a``); the initial guess reads the turn rate and acceleration off the targets per segment (needs
-    ``headings (M, T)`` [rad], else they are taken from the target positions).
+    bounds after every step. Works for any system with a heading and a speed state; the initial guess reads the
+    acceleration (``system.acceleration_input``) and, where the system has one, the turn rate
+    (``system.turn_rate_input``) off the targets per segment (needs ``headings (M, T)`` [rad], else they are taken
+    from the target positions); other inputs start at 0.
 
     Args:
         start: ``(nx,)`` reference start state.
@@ -465,8 +466,12 @@ def fit_reference_parameters(
         d = targets[:, 1:] - targets[:, :-1]
         h = torch.atan2(d[..., 1], d[..., 0])
         headings = torch.cat([h, h[:, -1:]], dim=1)
-    theta = torch.as_tensor(_unwrap_from(float(start[2]), headings.detach().cpu().double().numpy()))
-    theta[:, 0] = float(start[2])  # the reference starts at the vehicle's own heading
+    ih, iv = system.heading_index, system.speed_index
+    if ih is None or iv is None or system.acceleration_input is None:
+        raise ValueError(f"route seeds need a system with heading, speed and an acceleration input; "
+                         f"{type(system).__name__} lacks one")
+    theta = torch.as_tensor(_unwrap_from(float(start[ih]), headings.detach().cpu().double().numpy()))
+    theta[:, 0] = float(start[ih])  # the reference starts at the vehicle's own heading
     theta = theta.to(dtype=dtype, device=device)
     seg_t = torch.linspace(0, t - 1, par.n_segments + 1, device=device).round().long()
     if stride is not None:
@@ -475,16 +480,19 @@ def fit_reference_parameters(
     omega = (theta[:, seg_t[1:]] - theta[:, seg_t[:-1]]) / dur
     acc = (speeds[:, seg_t[1:]] - speeds[:, seg_t[:-1]]) / dur
     acc = acc.clone()
-    acc[:, 0] = acc[:, 0] + (speeds[:, 0] - start[3]) / dur  # start speed differs from the profile's
-    params = torch.stack([omega, acc], dim=1)
+    acc[:, 0] = acc[:, 0] + (speeds[:, 0] - start[iv]) / dur  # start speed differs from the profile's
+    params = torch.zeros(m, system.nu, par.n_segments, dtype=dtype, device=device)
+    params[:, system.acceleration_input] = acc
+    if system.turn_rate_input is not None:
+        params[:, system.turn_rate_input] = omega
     params = torch.maximum(torch.minimum(params, high), low).contiguous()
     opt = BatchedAdam(params, lr=lr, update_clip=None, low=low, high=high)
     start = start.to(dtype=dtype, device=device)
 
     def loss_of(p: Tensor) -> tuple[Tensor, Tensor]:
         x, _ = plan_grid_reference(system, start, p, par)
-        pos = (x[..., :2] - targets).pow(2).sum(-1).mean(-1)
-        spd = (x[..., 3] - speeds).pow(2).mean(-1)
+        pos = (system.positions(x) - targets).pow(2).sum(-1).mean(-1)
+        spd = (x[..., iv] - speeds).pow(2).mean(-1)
         loss = pos + speed_weight * spd
         if road_cost is not None:
             loss = loss + road_weight * road_cost(x).mean(-1)
@@ -562,7 +570,8 @@ def route_seed_parameters(
 
     Args:
         lane_graph: the lanes (default: :func:`scene_lane_graph` of the problem's scene).
-        v_limits: ``(v_min, v_max)`` [m/s] of the speed profiles (default: the system's speed bounds).
+        v_limits: ``(v_min, v_max)`` [m/s] of the speed profiles (default: the speed range of the system's
+            planning bounds, ``system.planning_bounds()``).
         road_cost: per-state road penalty ``x (..., nx) -> (...)`` added to the fit; ``"scene"``: the road barrier
             of the scene's road with default settings (:class:`~density_planner.cost.road.RoadBarrierCost`); ``None``
             (default): none. Measured on the suite, the stiff barrier in the 80-iteration fit made the seeds worse
@@ -577,12 +586,16 @@ def route_seed_parameters(
     t0 = time.perf_counter()
     system, par = problem.system, problem.parameterization
     start = problem.reference_start(torch.float64)
-    sx, sy, sth, sv = (float(v) for v in start[:4])
+    if system.heading_index is None or system.speed_index is None or system.acceleration_input is None:
+        return None  # seeds follow lanes at a speed profile: they need heading, speed and acceleration
+    sx, sy = (float(v) for v in system.positions(start))
+    sth, sv = float(start[system.heading_index]), float(start[system.speed_index])
     if v_limits is None:
-        lo, hi = system.state_bounds
-        v_limits = (max(float(lo[3]), 0.0), float(hi[3]))
+        lo, hi = system.planning_bounds()
+        v_limits = (max(float(lo[system.speed_index]), 0.0), float(hi[system.speed_index]))
     tau = np.arange(par.n_plan) * par.plan_dt
-    a_max = 0.9 * min(abs(float(system.input_bounds[0][-1])), abs(float(system.input_bounds[1][-1])))
+    ia = system.acceleration_input
+    a_max = 0.9 * min(abs(float(system.input_bounds[0][ia])), abs(float(system.input_bounds[1][ia])))
     horizon = float(tau[-1])
     shapes, interval = _goal_of(problem, cfg.goal_point_radius)
     reach = max(sv, v_limits[1]) * horizon + 10.0

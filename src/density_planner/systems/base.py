@@ -58,6 +58,17 @@ class System(ABC):
     position_indices: tuple[int, int] = (0, 1)
     #: index of the heading [rad] in the state (counter-clockwise from the x axis), ``None`` without heading
     heading_index: int | None = None
+    #: index of the speed [m/s] in the state, ``None`` when the system has no speed state
+    speed_index: int | None = None
+    #: index of the longitudinal acceleration [m/s^2] in the input, ``None`` when no input is one (its bounds give
+    #: the reachable distance of road scenes)
+    acceleration_input: int | None = None
+    #: index of the input that sets the heading rate [rad/s] directly, ``None`` when none does (initial guesses
+    #: of route-following references)
+    turn_rate_input: int | None = None
+    #: indices of states the vehicle cannot measure or know when it plans (the car's heading bias): a reference
+    #: starts with them at 0 (:meth:`nominal_state`) and a replan keeps their initial law
+    hidden_states: tuple[int, ...] = ()
     #: the body; a point unless the system says otherwise
     footprint: Footprint = Footprint()
 
@@ -71,6 +82,70 @@ class System(ABC):
     def headings(self, x: Tensor) -> Tensor | None:
         """Headings ``(...)`` [rad] of states ``x (..., nx)``, or ``None`` for a system without heading."""
         return None if self.heading_index is None else x[..., self.heading_index]
+
+    def speeds(self, x: Tensor) -> Tensor | None:
+        """Speeds ``(...)`` [m/s] of states ``x (..., nx)``, or ``None`` for a system without a speed state."""
+        return None if self.speed_index is None else x[..., self.speed_index]
+
+    @property
+    def speed_max(self) -> float:
+        """Largest speed of the state box [m/s] (``inf`` without a speed state): starts above it lie outside the
+        domain of the controller and of the density predictors trained for the system."""
+        if self.speed_index is None:
+            return math.inf
+        return float(self.state_bounds[1][self.speed_index])
+
+    # ------------------------------------------------------------ scene facts
+    def state_from_pose(self, x: float, y: float, heading: float, speed: float) -> tuple[float, ...]:
+        """The nominal state (``nx`` numbers) of a vehicle at position ``(x, y)`` [m] with ``heading`` [rad] and
+        ``speed`` [m/s]: how a scene's start (a pose and a speed, :class:`~density_planner.environment.scene.Scene`)
+        becomes a state. States the pose does not fix (a measurement bias, a steering angle) are 0.
+
+        The default fills :attr:`position_indices`, :attr:`heading_index` and :attr:`speed_index`; a system without
+        heading or speed state accepts only ``heading = 0`` / ``speed = 0``. Systems override it where a state
+        needs more (e.g. wrapping the heading into the state box)."""
+        state = [0.0] * self.nx
+        state[self.position_indices[0]], state[self.position_indices[1]] = float(x), float(y)
+        for name, index, value in (("heading", self.heading_index, heading), ("speed", self.speed_index, speed)):
+            if index is not None:
+                state[index] = float(value)
+            elif value != 0:
+                raise ValueError(f"{type(self).__name__} has no {name} state: a start with {name} {value:g} "
+                                 "cannot be represented (use a system with one, e.g. --system car)")
+        return tuple(state)
+
+    def pose(self, x: Tensor) -> tuple[float, float, float, float]:
+        """``(x, y, heading, speed)`` of one state ``x (nx,)``: the inverse of :meth:`state_from_pose` (heading and
+        speed 0 for a system without them); a replan's scene starts there."""
+        px, py = (float(v) for v in self.positions(x.detach()))
+        h, v = self.headings(x.detach()), self.speeds(x.detach())
+        return px, py, 0.0 if h is None else float(h), 0.0 if v is None else float(v)
+
+    def nominal_state(self, x: Tensor) -> Tensor:
+        """``x (..., nx)`` with the states a plan cannot know (:attr:`hidden_states`, e.g. a measurement bias) at 0:
+        the start of the reference, i.e. of the nominal trajectory."""
+        if not self.hidden_states:
+            return x
+        return x.index_fill(-1, torch.tensor(self.hidden_states, device=x.device), 0.0)
+
+    @property
+    def initial_error_max(self) -> tuple[float, ...]:
+        """Half-widths (``nx``) of the box of initial-state uncertainty around a scene's start (the paper's XE0): the
+        support of the default initial distribution (:meth:`~density_planner.planners.problem.PlanningProblem.
+        from_scene`). Systems that plan from scenes define it."""
+        raise NotImplementedError(
+            f"{type(self).__name__} defines no initial-error box (initial_error_max); build the PlanningProblem "
+            "with an explicit initial_distribution"
+        )
+
+    def planning_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(lower, upper) box (``nx`` each) that planned trajectories should stay in, apart from the position,
+        which the scene's planning box bounds (the position entries here are infinite): the bounds cost J_B
+        (paper Eq. (6)) penalises leaving it. Default: the state box."""
+        lo, hi = (list(map(float, b)) for b in self.state_bounds)
+        for i in self.position_indices:
+            lo[i], hi[i] = -math.inf, math.inf
+        return tuple(lo), tuple(hi)
 
     @property
     def nx(self) -> int:

@@ -23,9 +23,10 @@ from torch import Tensor
 
 from ..checks import broadcast_shape
 from .base import ControlAffineSystem, Footprint
+from .registry import register_system
 
-__all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "PX", "PY", "THETA", "V",
-           "BIAS", "OMEGA", "ACC"]
+__all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "wrap_heading", "PX",
+           "PY", "THETA", "V", "BIAS", "OMEGA", "ACC"]
 
 #: state indices
 PX, PY, THETA, V, BIAS = 0, 1, 2, 3, 4
@@ -64,6 +65,9 @@ class CarConfig:
     actuator_lateral_accel_max: float = math.inf
     #: name of the domain (``"paper"`` or ``"road"``, see :data:`CAR_DOMAINS`; free text for custom boxes)
     domain: str = "paper"
+    #: the planned trajectories' speeds should stay this far inside the speed box [m/s] (the bounds cost J_B; the
+    #: paper's X_MIN_MP / X_MAX_MP: v in [0.1, 9.9] m/s for the box [0, 10])
+    planning_speed_margin: float = 0.1
     #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
     length: float = 4.5
     #: body width [m]
@@ -82,6 +86,8 @@ class CarConfig:
         for name in ("error_max", "initial_error_max"):
             if any(v < 0 for v in getattr(self, name)):
                 raise ValueError(f"CarConfig.{name} must be non-negative")
+        if not 0 <= 2 * self.planning_speed_margin < self.state_max[V] - self.state_min[V]:
+            raise ValueError("CarConfig.planning_speed_margin must be >= 0 and leave a non-empty speed range")
         for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
@@ -162,6 +168,16 @@ def turn_rate_limit(v: Tensor, omega_max: float, lateral_accel_max: float) -> Te
     return (omega_max ** -4 + r ** 4) ** -0.25
 
 
+#: lower end of the heading range :func:`wrap_heading` maps into (the paper's box starts here, docs/spec.md)
+_THETA_MIN = -_PI + 0.2
+
+
+def wrap_heading(theta: float) -> float:
+    """Heading [rad] shifted by a multiple of 2 pi into ``[-pi + 0.2, pi + 0.2)``, inside the car's heading box
+    (the heading is kept unwrapped, so the box spans more than one turn)."""
+    return (theta - _THETA_MIN) % (2 * math.pi) + _THETA_MIN
+
+
 def car_domain(name: str) -> CarConfig:
     """The car configuration of a named domain (``"paper"`` or ``"road"``)."""
     try:
@@ -183,6 +199,10 @@ class KinematicCar(ControlAffineSystem):
 
     position_indices = (PX, PY)
     heading_index = THETA
+    speed_index = V
+    acceleration_input = ACC
+    turn_rate_input = OMEGA
+    hidden_states = (BIAS,)
 
     def __init__(self, config: CarConfig | None = None):
         self.config = config or CarConfig()
@@ -208,9 +228,20 @@ class KinematicCar(ControlAffineSystem):
         return self.config.actuator_min, self.config.actuator_max
 
     @property
-    def speed_max(self) -> float:
-        """Largest speed of the car's domain [m/s] (``config.speed_max``)."""
-        return self.config.speed_max
+    def initial_error_max(self) -> tuple[float, ...]:
+        """The XE0 box of the domain (``config.initial_error_max``)."""
+        return tuple(self.config.initial_error_max)
+
+    def state_from_pose(self, x: float, y: float, heading: float, speed: float) -> tuple[float, ...]:
+        """``(x, y, wrap_heading(heading), speed, 0)``: the heading shifted by a multiple of 2 pi into
+        ``[-pi + 0.2, pi + 0.2)``, inside both domains' heading boxes; the bias is 0."""
+        return (float(x), float(y), wrap_heading(float(heading)), float(speed), 0.0)
+
+    def planning_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """Heading in the state box, speed ``config.planning_speed_margin`` inside the speed box, bias free."""
+        inf, m = math.inf, self.config.planning_speed_margin
+        lo, hi = self.config.state_min, self.config.state_max
+        return (-inf, -inf, lo[THETA], lo[V] + m, -inf), (inf, inf, hi[THETA], hi[V] - m, inf)
 
     def turn_rate_limit(self, v: Tensor) -> Tensor:
         """``|omega|`` bound of the references at speed ``v`` (``config.turn_rate_limit``) [rad/s]."""
@@ -325,3 +356,9 @@ def _exclusive_cumsum(increments: Tensor, start: Tensor) -> Tensor:
     """``[start, start + d0, start + d0 + d1, ...]`` along the last axis (length K + 1)."""
     csum = torch.cumsum(increments, dim=-1)
     return torch.cat([start.unsqueeze(-1), start.unsqueeze(-1) + csum], dim=-1)
+
+
+@register_system("car", domains=tuple(CAR_DOMAINS), description="the paper's kinematic car with an unknown heading "
+                 "bias (x, y, heading, speed, bias; inputs turn rate and acceleration)")
+def _build_car(domain: str) -> KinematicCar:
+    return KinematicCar(car_domain(domain))
