@@ -10,7 +10,7 @@ from ._common import add_config, add_controller, add_out, add_progress, add_thre
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
-    from ..evaluation.benchmark import SETTINGS
+    from ..evaluation.benchmark_settings import SETTINGS
 
     settings = "; ".join(
         f"{s.name}: {s.description} (planners {', '.join(s.planners)}; variants {', '.join(s.variants)}; "
@@ -104,7 +104,9 @@ def parse_seeds(text: str) -> range:
 
 def spec_from_args(args: argparse.Namespace, run_config):
     """The :class:`BenchmarkSpec` of the command line (validates every choice with a one-line error)."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec, artificial_envs, real_envs
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
+    from ..evaluation.environments import artificial_envs, real_envs
     from ..planners.registry import planner_names
 
     setting = SETTINGS[args.setting]
@@ -141,13 +143,7 @@ def spec_from_args(args: argparse.Namespace, run_config):
     envs = real_envs(indices, args.data_dir) if args.setting == "real" else artificial_envs(indices)
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    if args.scheduler is not None:
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            from ..errors import OptionalDependencyError
-
-            raise OptionalDependencyError("distributed", "dask", "--scheduler (a Dask cluster)") from None
+    _check_scheduler(args)
     return BenchmarkSpec(args.setting, envs, planners, variants, run_config, controller=args.controller,
                          density=args.density)
 
@@ -174,7 +170,8 @@ def _check_planners(args, default: tuple[str, ...]) -> tuple[str, ...]:
 
 def _commonroad_spec(args: argparse.Namespace, run_config):
     """The spec of ``bench commonroad --scenarios DIR``: one environment per scenario file."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
     from ..evaluation.commonroad_bench import commonroad_envs
 
     if args.scenarios is None:
@@ -218,16 +215,14 @@ def _resolve_components(spec):
     workers will resolve it) and put their names and the digest of their weights into the spec."""
     from dataclasses import replace
 
-    from ..control.registry import load_controller
-    from ..density.registry import load_predictor
     from ..evaluation.benchmark import component_digest
-    from ..systems.car import KinematicCar
+    from ..planners.context import build_context
 
-    controller = load_controller(spec.controller)
     planning = spec.run_config.planning  # an explicit horizon is known before the scenes: check the predictor now
     par = planning.parameterization() if planning.horizon is not None else None
-    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville,
-                               parameterization=par)
+    # the package's default model set, whatever the scenes' (the digest of existing records depends on it)
+    ctx = build_context(spec.run_config, controller=spec.controller, density=spec.density, parameterization=par)
+    controller, predictor = ctx.controller, ctx.predictor()
     label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
              f"{component_digest(controller, predictor) or '-'}")
     return replace(spec, components=label)
@@ -237,7 +232,7 @@ def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     """Tables and figures of ``out`` from its records (and the verdict summary of a commonroad sweep)."""
     import sys
 
-    from ..evaluation.benchmark import scan_records
+    from ..evaluation.records import scan_records
     from ..evaluation.report import write_tables
     from ..viz.benchmark import write_figures
 
