@@ -6,7 +6,16 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import add_config, add_controller, add_out, add_progress, add_threads, out_dir, show_progress
+from ._common import (
+    add_config,
+    add_out,
+    add_progress,
+    add_system,
+    add_threads,
+    apply_system_args,
+    out_dir,
+    show_progress,
+)
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
@@ -48,9 +57,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="local worker processes (default: the number of cores; 1 = serial in this process)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on a Dask distributed cluster at ADDRESS (e.g. tcp://host:8786; extra 'dask')")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the density planner (default: the package default)")
-    add_controller(p)
+    add_system(p)
     add_config(p)
     add_threads(p)
     p.add_argument("--validate-risk", action="store_true",
@@ -144,8 +151,7 @@ def spec_from_args(args: argparse.Namespace, run_config):
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     _check_scheduler(args)
-    return BenchmarkSpec(args.setting, envs, planners, variants, run_config, controller=args.controller,
-                         density=args.density)
+    return BenchmarkSpec(args.setting, envs, planners, variants, run_config)
 
 
 def _mode_planners(args: argparse.Namespace, default: tuple[str, ...]) -> tuple[str, ...]:
@@ -196,8 +202,7 @@ def _commonroad_spec(args: argparse.Namespace, run_config):
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     _check_scheduler(args)
     planners = _check_planners(args, _mode_planners(args, SETTINGS["commonroad"].planners))
-    return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config, controller=args.controller,
-                         density=args.density)
+    return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config)
 
 
 def _check_scheduler(args: argparse.Namespace) -> None:
@@ -259,7 +264,7 @@ def run_bench(args: argparse.Namespace) -> int:
     from ..settings import RunConfig
     from .plan import versions
 
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     if args.validate_risk and not run_config.risk.validate_samples:
         from ..config import update
 

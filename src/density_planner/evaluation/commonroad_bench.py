@@ -75,11 +75,13 @@ def run_commonroad_job(job: Job) -> JobResult:
     """:func:`~density_planner.evaluation.jobs.run_job` for one scenario and planner, with the scenario's
     refusal as a record and the verdict of the executed trajectory in every record (a module-level function:
     picklable for joblib and Dask workers)."""
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
 
-    try:  # the scene and its planning problem; a refusal is a record, not an error
+    try:  # the scene and its planning problem (the run's system); a refusal is a record, not an error
         scene = job_scene(job)
-        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning)
+        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+                                   system=run_system(job.run_config, job.env.kind))
     except (ValueError, OSError, ImportError) as exc:
         return JobResult([_refused_record(job, v, refusal_reason(exc)) for v in job.variants])
     except Exception:  # noqa: BLE001 - a bug: recorded with its traceback, the sweep goes on

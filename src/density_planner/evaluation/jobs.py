@@ -29,7 +29,6 @@ from ..planners.base import PlanResult
 from ..planners.context import run_model_set, run_system
 from ..planners.problem import PlanningProblem
 from ..planners.registry import ExecutionMode, make_planner, planner_info
-from ..systems.car import BIAS
 from .benchmark_settings import SETTINGS
 from .config import EvaluationConfig
 from .environments import EnvSpec, build_scene, stable_seed
@@ -206,11 +205,10 @@ def _true_states(
     return x_true, mc
 
 
-def _variant_state(x: torch.Tensor, variant: str) -> torch.Tensor:
-    x = x.clone()
-    if variant != "biased" and x.shape[-1] > BIAS:
-        x[..., BIAS] = 0.0
-    return x
+def _variant_state(system, x: torch.Tensor, variant: str) -> torch.Tensor:
+    """The true states of a variant: "biased" keeps the hidden states (the car's heading bias) drawn from the initial
+    distribution, the others set them to 0 (``system.nominal_state``)."""
+    return x.clone() if variant == "biased" else system.nominal_state(x.clone())
 
 
 def _mc_count(mode: ExecutionMode, cfg: EvaluationConfig) -> int:
@@ -229,11 +227,11 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
     mode = planner_info(job.planner, default=True).execution
     rec["execution"] = mode.value if setting.closed_loop else "planned"
     car = problem.system
-    box = evaluation_box(scene, car.config.state_min, car.config.state_max, eval_cfg.position_bounds)
+    box = evaluation_box(scene, *car.state_bounds, eval_cfg.position_bounds)
     cost_cfg = job.run_config.density_planner.cost
     plan_dt = problem.parameterization.plan_dt
-    x0 = _variant_state(x_true, variant)
-    mc0 = _variant_state(mc_states[: _mc_count(mode, eval_cfg)], variant)
+    x0 = _variant_state(car, x_true, variant)
+    mc0 = _variant_state(car, mc_states[: _mc_count(mode, eval_cfg)], variant)
     rec["true_state"] = _floats(x0)
 
     if not setting.closed_loop:  # ablation: the planned reference
