@@ -11,7 +11,7 @@ import math
 import os
 
 from density_planner.config import update
-from density_planner.evaluation.benchmark import JobResult, run_job
+from density_planner.evaluation.jobs import JobResult, run_job
 from density_planner.planners.base import Planner
 from density_planner.planners.registry import register_planner
 from density_planner.settings import RunConfig
