@@ -4,11 +4,15 @@ At every step ``h`` (``t_h = h * 0.1 s``) the controller solves, from the measur
 
     min   w_G(h) ||p_H - p_goal||^2  +  alpha_C sum_{k=1}^{H} S_k^2  +  alpha_I sum_{k=0}^{H-1} ||u_k||^2
     s.t.  x_{k+1} = F(x_k, u_k)                       (multiple shooting; F = 10 Euler steps of 0.01 s)
-          |omega_k|, |a_k| <= 3,  theta, v in the car's state box,
+          u_k in the input box,  the other states in the state box   (the car: |omega|, |a| <= 3; theta, v)
           p_k in the map, shrunk by the tube radius r      (tube MPC: constraints enforced within the tube)
 
-with ``x_0 = x_hat`` (4 states, no bias), ``H = 10`` stages of 0.1 s, and ``S_k = sum_j sum_{d in D_r}
-D(c_j(x_k) + d, t_{h+k})``: the bilinear interpolation of the body occupancy ``D`` (the disc-dilated grid of
+for any system with symbolic dynamics (:meth:`~density_planner.systems.base.System.f_symbolic`): ``x`` is its
+nominal state (:attr:`~density_planner.systems.base.System.nominal_indices`: the hidden states, e.g. the car's
+heading bias, are not modelled; the car: ``[p_x, p_y, theta, v]``), ``F`` its explicit-Euler step
+(:func:`~density_planner.planners._nlp.step_function`), the bounds its state and input boxes. ``x_0 = x_hat``,
+``H = 10`` stages of 0.1 s, and ``S_k = sum_j sum_{d in D_r} D(c_j(x_k) + d, t_{h+k})``: the bilinear
+interpolation of the body occupancy ``D`` (the disc-dilated grid of
 :class:`~density_planner.risk.collision.CollisionModel`) at the body's disc centres ``c_j`` (the position for a point
 vehicle; the sum over the discs is a smooth stand-in for their maximum), at the predicted position (M0,
 ``D_0 = {0}``) or summed over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for
@@ -18,18 +22,21 @@ The stage-0 collision term depends on the measurement only and is left out of th
 paper) or ``alpha_G (h / N)^2`` (``goal_weight_growth``, the paper's code).
 
 **Built once, re-solved with parameters.** The NLP is built with CasADi (``nlpsol`` + IPOPT) on the first use and
-rebuilt only if the map's cell size changes (:attr:`MPCPlanner.n_builds` counts constructions). Its parameters
+rebuilt only if the map's cell size or the system's model changes (:attr:`MPCPlanner.n_builds` counts
+constructions). Its parameters
 are the measured state, the goal, the goal weight and, per stage ``k``, a square window of the occupancy slice
 of time ``t_{h+k}`` around the measured position, read by a *parametric* linear interpolant
 (``casadi.interpolant(..., 'linear', grid, 1)``, values as an input). The window of stage ``k`` has a fixed size
-covering every position reachable in ``k`` stages (``k * 0.1 s * (v_max + a_max * 0.1 s)``) plus the tube radius,
+covering every position reachable in ``k`` stages (``k * 0.1 s * (v_max + a_max * 0.1 s)``, the bound of
+:func:`~density_planner.planners._nlp.position_rate_bound`: the system's speed box, or for a system without a speed
+state its position rate over the state box) plus the tube radius and the body,
 so the NLP structure is the same for every step and every map, the parameter vector stays small (1.8e5 values
 for M0 at 0.1 m instead of 10 x 241 x 401 for full slices) and large recorded maps cost no
 more than the artificial ones.
 The reachable box is also imposed as (non-binding) variable bounds, so that intermediate IPOPT iterates never
 leave the windows. Cells of a window outside the map read 1 ("outside the map is occupied").
 Each step warm-starts IPOPT from the previous solution shifted by one stage (the first step: zero inputs and
-the constant-input rollout). The solve is limited by ``max_iter`` and ``max_cpu_time``; when IPOPT stops
+the zero-input rollout of ``F``). The solve is limited by ``max_iter`` and ``max_cpu_time``; when IPOPT stops
 without converging, the first input of its last iterate is applied (as the paper's code) and the step is
 recorded as failed. The iteration limit is deterministic; the CPU-time cap is not (how many iterations fit in
 0.1 s depends on the machine and its load). M0 keeps the paper's cap of 0.1 s per step by default (its real-time
@@ -61,8 +68,17 @@ from ..checks import check_choice
 from ..cost.composite import CostConfig
 from ..environment.grid import OccupancyGrid
 from ..risk.collision import CollisionModel
-from ..systems.car import THETA, KinematicCar, V
-from ._nlp import BufferedNLP, SolveInfo, car_step_function, check_ipopt_limits, import_casadi, ipopt_options
+from ..systems.base import System
+from ._nlp import (
+    BufferedNLP,
+    NLPModel,
+    SolveInfo,
+    check_ipopt_limits,
+    import_casadi,
+    ipopt_options,
+    position_rate_bound,
+    step_function,
+)
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .problem import PlanningProblem
@@ -246,9 +262,11 @@ class MPCStep:
 
     Attributes:
         step: closed-loop step index ``h`` (time ``h * stage_dt``).
-        input: ``(2,)`` applied input ``[omega, a]`` (first input of the returned iterate, clipped to the bounds).
-        predicted: ``(H + 1, 4)`` predicted states ``[p_x, p_y, theta, v]`` from the measured state.
-        predicted_inputs: ``(H, 2)`` predicted inputs.
+        input: ``(nu,)`` applied input (the car: ``[omega, a]``; first input of the returned iterate, clipped to the
+            bounds).
+        predicted: ``(H + 1, nn)`` predicted nominal states (the car: ``[p_x, p_y, theta, v]``) from the measured
+            state.
+        predicted_inputs: ``(H, nu)`` predicted inputs.
         status: IPOPT return status (``"Solve_Succeeded"``, ``"Maximum_CpuTime_Exceeded"``, ...), or
             ``"Exception"`` / ``"Invalid_Iterate"`` when no usable iterate came back.
         success: IPOPT converged.
@@ -273,21 +291,26 @@ class MPCStep:
 
 
 @dataclass(frozen=True)
-class _Limits:
-    """Car bounds used by the NLP (from the system's configuration)."""
+class _Model:
+    """What the MPC's NLP reads from the system: its nominal model and bounds, and the bound on the position's rate
+    that sizes the occupancy windows (two equal models build the same NLP)."""
 
-    u_min: tuple[float, ...]
-    u_max: tuple[float, ...]
-    theta: tuple[float, float]
-    v: tuple[float, float]
+    model: NLPModel
+    #: bound [m/s] on the rate of either position coordinate within a stage (:func:`position_rate_bound`)
+    rate: float
 
 
 class _MPCProgram:
     """The NLP of one MPC configuration for one map cell size: structure, windows and the buffered solver."""
 
-    def __init__(self, ca: Any, config: MPCConfig, cell: float, limits: _Limits, precomputed: bool,
+    def __init__(self, ca: Any, system: System, config: MPCConfig, cell: float, limits: _Model, precomputed: bool,
                  body: tuple[float, ...] = (0.0,)):
         self.config, self.cell, self.limits, self.precomputed = config, cell, limits, precomputed
+        model = limits.model
+        if model.heading is None and any(body):
+            raise ValueError(f"{model.system} has no heading: its body must be a single disc centred on the position")
+        #: nominal states, inputs, nominal indices of the position and of the heading
+        self.nn, self.nu, self.pos, self.heading = model.nn, model.nu, model.position, model.heading
         #: longitudinal offsets [m] of the body's disc centres from the position (CollisionModel.cover.offsets)
         self.body = tuple(body)
         H = config.horizon
@@ -298,29 +321,38 @@ class _MPCProgram:
         #: offsets evaluated by the NLP
         self.offsets = np.zeros((1, 2)) if precomputed else self.tube
         radius = float(np.linalg.norm(self.offsets, axis=1).max()) + max(abs(v) for v in self.body)
-        v_reach = max(abs(limits.v[0]), abs(limits.v[1])) + max(map(abs, limits.u_min + limits.u_max)) * dt
-        #: reachable distance [m] after k stages (k = 1..H) from the measured position (exact bound of F)
+        v_reach = limits.rate
+        #: reachable distance [m] after k stages (k = 1..H) from the measured position (a bound of F)
         self.reach = np.array([k * dt * v_reach for k in range(1, H + 1)])
         #: window half-width [cells] and edge length [cells] per stage
         self.half = np.ceil((self.reach + radius + config.window_margin) / cell).astype(int) + 1
         self.size = 2 * self.half + 2
         n_win = self.size**2
-        # parameter layout: x0 (4), goal (2), goal weight (1), window origins (2 H), windows
-        self.i_x0, self.i_goal, self.i_wg, self.i_org = 0, 4, 6, 7
-        self.win_start = 7 + 2 * H + np.concatenate([[0], np.cumsum(n_win)[:-1]])
-        n_p = int(7 + 2 * H + n_win.sum())
+        nn, nu = self.nn, self.nu
+        # parameter layout: x0 (nn), goal (2), goal weight (1), window origins (2 H), windows
+        self.i_x0, self.i_goal, self.i_wg, self.i_org = 0, nn, nn + 2, nn + 3
+        self.win_start = self.i_org + 2 * H + np.concatenate([[0], np.cumsum(n_win)[:-1]])
+        n_p = int(self.i_org + 2 * H + n_win.sum())
 
-        F = car_step_function(ca, dt, config.substeps)
-        X = ca.MX.sym("X", 4, H)
-        U = ca.MX.sym("U", 2, H)
+        F = step_function(ca, system, dt, config.substeps)
+        #: the constant-input rollout of the first step's initial guess: (x0 (nn,), U (nu, H)) -> X (nn, H)
+        self.rollout = F.mapaccum("rollout", H)
+        X = ca.MX.sym("X", nn, H)
+        U = ca.MX.sym("U", nu, H)
         P = ca.MX.sym("p", n_p)
-        x0 = P[0:4]
-        goal = P[4:6]
-        w_goal = P[6]
+        x0 = P[0:nn]
+        goal = P[self.i_goal : self.i_goal + 2]
+        w_goal = P[self.i_wg]
+        i, j = self.pos
+        th = self.heading
+
+        def position(k: int) -> Any:
+            return X[i : i + 2, k] if j == i + 1 else ca.vertcat(X[i, k], X[j, k])
+
         D = ca.DM(self.offsets.T)
         M = self.offsets.shape[0]
         w = config.weights
-        J = w_goal * ca.sumsqr(X[0:2, H - 1] - goal) + w.input * ca.sumsqr(U)
+        J = w_goal * ca.sumsqr(position(H - 1) - goal) + w.input * ca.sumsqr(U)
         g = []
         prev = x0
         for k in range(H):
@@ -329,50 +361,47 @@ class _MPCProgram:
             s = int(self.size[k])
             axis = [float(v) for v in np.arange(s) * cell]
             occ = ca.interpolant(f"occ_{k + 1}", "linear", [axis, axis], 1)
-            origin = P[7 + 2 * k : 9 + 2 * k]
+            origin = P[self.i_org + 2 * k : self.i_org + 2 * k + 2]
             start = int(self.win_start[k])
             values = P[start : start + s * s]
             s_k = 0
             for off in self.body:
-                centre = X[0:2, k] + (off * ca.vertcat(ca.cos(X[2, k]), ca.sin(X[2, k])) if off else 0)
+                centre = position(k) + (off * ca.vertcat(ca.cos(X[th, k]), ca.sin(X[th, k])) if off else 0)
                 pts = ca.repmat(centre - origin, 1, M) + D
                 s_k = s_k + ca.sum2(occ(pts, values))
             J = J + w.collision * s_k**2
         nlp = {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "p": P, "f": J, "g": ca.vertcat(*g)}
         opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
         self.nlp = BufferedNLP(ca.nlpsol("mpc", "ipopt", nlp, opts))
-        self.n_x = 4 * H
+        self.n_x = nn * H
         # Fortran-order views on the windows inside the parameter vector (first grid axis fastest, as CasADi)
         p = self.nlp.args["p"]
         self.windows = [
             p[int(a) : int(a) + int(s) * int(s)].reshape(int(s), int(s), order="F")
             for a, s in zip(self.win_start, self.size)
         ]
-        # constant bounds: inputs and heading/speed; positions are set per step
+        # constant bounds: inputs and the non-position states (the system's box); positions are set per step
         lbx, ubx = self.nlp.args["lbx"], self.nlp.args["ubx"]
-        lbx[self.n_x :: 2], ubx[self.n_x :: 2] = limits.u_min[0], limits.u_max[0]
-        lbx[self.n_x + 1 :: 2], ubx[self.n_x + 1 :: 2] = limits.u_min[1], limits.u_max[1]
-        lbx[2 : self.n_x : 4], ubx[2 : self.n_x : 4] = limits.theta
-        lbx[3 : self.n_x : 4], ubx[3 : self.n_x : 4] = limits.v
+        for m in range(nu):
+            lbx[self.n_x + m :: nu], ubx[self.n_x + m :: nu] = model.input_lo[m], model.input_hi[m]
+        for m in range(nn):
+            if m not in self.pos:
+                lbx[m : self.n_x : nn], ubx[m : self.n_x : nn] = model.state_lo[m], model.state_hi[m]
 
     def cold_start(self, x0: np.ndarray) -> None:
-        """Initial guess of the first step: zero inputs and the constant-input rollout of the nominal model."""
+        """Initial guess of the first step: zero inputs and the states of the zero-input rollout of the nominal
+        model (the car: constant speed and heading)."""
         guess = self.nlp.args["x0"]
-        H, dt = self.H, self.config.stage_dt
-        k = np.arange(1, H + 1)
-        xs = np.empty((H, 4))
-        xs[:, 0] = x0[0] + k * dt * x0[3] * math.cos(x0[2])
-        xs[:, 1] = x0[1] + k * dt * x0[3] * math.sin(x0[2])
-        xs[:, 2], xs[:, 3] = x0[2], x0[3]
-        guess[: self.n_x] = xs.reshape(-1)
+        xs = np.asarray(self.rollout(x0, np.zeros((self.nu, self.H))))  # (nn, H)
+        guess[: self.n_x] = xs.T.reshape(-1)
         guess[self.n_x :] = 0.0
 
     def shift(self) -> None:
         """Warm start of the next step: the last solution shifted by one stage (last stage repeated)."""
         sol, guess = self.nlp.res["x"], self.nlp.args["x0"]
         H = self.H
-        xs = sol[: self.n_x].reshape(H, 4)
-        us = sol[self.n_x :].reshape(H, 2)
+        xs = sol[: self.n_x].reshape(H, self.nn)
+        us = sol[self.n_x :].reshape(H, self.nu)
         guess[: self.n_x] = np.concatenate([xs[1:], xs[-1:]]).reshape(-1)
         guess[self.n_x :] = np.concatenate([us[1:], us[-1:]]).reshape(-1)
 
@@ -409,7 +438,7 @@ class MPCPlanner(Planner):
         config: MPCConfig | None = None,
         *,
         name: str | None = None,
-        system: KinematicCar | None = None,
+        system: System | None = None,
         evaluation_cost: CostConfig | None = None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str = "cpu",
@@ -418,7 +447,8 @@ class MPCPlanner(Planner):
         Args:
             config: MPC settings.
             name: planner name in results (default ``"mpc"``, or ``"tube_mpc_<r>"`` when the tube radius is > 0).
-            system: the car (its input and state bounds enter the NLP); default :class:`KinematicCar`.
+            system: the system planned for (its nominal dynamics and bounds enter the NLP); :meth:`reset` replaces
+                it by the problem's system.
             evaluation_cost: cost configuration of the reported (evaluation-form) cost, shared with the density
                 planner for comparability (default :class:`CostConfig`).
             dtype, device: of the returned tensors.
@@ -429,7 +459,7 @@ class MPCPlanner(Planner):
         self._ca = import_casadi("MPC baselines")
         self.config = config or MPCConfig()
         self.name = name or ("mpc" if self.config.tube_radius == 0 else tube_mpc_name(self.config.tube_radius))
-        self.system = system or KinematicCar()
+        self.system = system
         self.evaluation_cost = evaluation_cost or CostConfig()
         self.dtype = dtype
         self.device = torch.device(device)
@@ -446,12 +476,10 @@ class MPCPlanner(Planner):
         self._reset_times = (0.0, 0.0)
 
     # ------------------------------------------------------------------ set-up
-    def _limits(self, system: KinematicCar) -> _Limits:
-        cfg = system.config
-        return _Limits(
-            u_min=tuple(cfg.input_min), u_max=tuple(cfg.input_max),
-            theta=(cfg.state_min[THETA], cfg.state_max[THETA]), v=(cfg.state_min[V], cfg.state_max[V]),
-        )
+    def _limits(self, system: System) -> _Model:
+        """The system's NLP model and window bound (errors name the fact the system lacks)."""
+        model = NLPModel.of(self._ca, system)
+        return _Model(model, position_rate_bound(self._ca, system, self.config.stage_dt))
 
     def _precomputed(self, cell: float) -> bool:
         cfg = self.config
@@ -463,13 +491,14 @@ class MPCPlanner(Planner):
                              f"number of map cells ({cell} m); use 'offsets' or 'auto'")
         return cfg.tube_method == "precomputed" or (cfg.tube_method == "auto" and exact)
 
-    def _program_for(self, cell: float, limits: _Limits, body: tuple[float, ...] = (0.0,)) -> _MPCProgram:
+    def _program_for(self, system: System, cell: float, limits: _Model,
+                     body: tuple[float, ...] = (0.0,)) -> _MPCProgram:
         prog = self._program
         pre = self._precomputed(cell)
         if (prog is None or not math.isclose(prog.cell, cell, rel_tol=1e-9) or prog.limits != limits
                 or prog.precomputed != pre or prog.body != tuple(body)):
             t0 = time.perf_counter()
-            prog = _MPCProgram(self._ca, self.config, cell, limits, pre, body)
+            prog = _MPCProgram(self._ca, system, self.config, cell, limits, pre, body)
             self.build_time = time.perf_counter() - t0
             self.n_builds += 1
             self._program = prog
@@ -479,15 +508,15 @@ class MPCPlanner(Planner):
 
     def reset(self, problem: PlanningProblem) -> None:
         """Bind ``problem``'s scene and goal (building the NLP if this is the first map of its cell size) and
-        forget the warm start. Raises :class:`ValueError` if the problem's system is not the kinematic car."""
+        forget the warm start. Raises :class:`NotImplementedError` for a system without symbolic dynamics
+        (:meth:`System.f_symbolic`) and :class:`ValueError` when no bound on its speed follows from its facts
+        (:func:`~density_planner.planners._nlp.position_rate_bound`)."""
         system = problem.system
-        if not isinstance(system, KinematicCar):
-            raise ValueError(f"the MPC baselines need the KinematicCar system, got {type(system).__name__}")
         self.system = system
         builds = self.n_builds
         collision = problem.collision()
         grid: OccupancyGrid = collision.body_grid  # occupancy seen by a body disc (the point's P_occ for a point)
-        prog = self._program_for(grid.cell_size, self._limits(system), collision.cover.offsets)
+        prog = self._program_for(system, grid.cell_size, self._limits(system), collision.cover.offsets)
         cfg = self.config
         n_steps = cfg.n_steps or int(round(problem.parameterization.horizon / cfg.stage_dt))
         # occupancy slices of the absolute times t_start + k stage_dt: the closed loop's own steps must lie in the
@@ -554,36 +583,42 @@ class MPCPlanner(Planner):
             p[prog.i_org + 2 * k : prog.i_org + 2 * k + 2] = b.origin + b.cell * np.array([i0, j0])
 
     def solve(self, state: np.ndarray | Tensor, step: int) -> MPCStep:
-        """One MPC step from the measured state ``[p_x, p_y, theta, v]`` (extra entries are ignored) at step ``step``
-        (time ``step * stage_dt``) of the problem bound by :meth:`reset`. Never raises for solver trouble."""
+        """One MPC step from the measured state at step ``step`` (time ``step * stage_dt``) of the problem bound by
+        :meth:`reset`: the full state ``(nx,)`` (its hidden states, e.g. the car's bias, are dropped) or the nominal
+        state ``(nn,)`` (the car: ``[p_x, p_y, theta, v]``). Never raises for solver trouble."""
         t_start = time.perf_counter()
         if self._bound is None or self._program is None:
             raise ValueError("call reset(problem) before solve(state, step)")
         b, prog, cfg = self._bound, self._program, self.config
-        x0 = np.asarray(state.detach().cpu() if isinstance(state, Tensor) else state, dtype=float).reshape(-1)[:4]
-        if x0.shape != (4,) or not np.all(np.isfinite(x0)):
-            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {x0!r}")
+        model = prog.limits.model
+        x0 = np.asarray(state.detach().cpu() if isinstance(state, Tensor) else state, dtype=float).reshape(-1)
+        if x0.shape == (len(b.problem.system.state_names),) and x0.shape != (model.nn,):
+            x0 = model.nominal_of(x0)
+        if x0.shape != (model.nn,) or not np.all(np.isfinite(x0)):
+            raise ValueError(f"state must hold {len(b.problem.system.state_names)} (the state) or {model.nn} (the "
+                             f"nominal state) finite numbers, got {x0!r}")
         args = prog.nlp.args
         p = args["p"]
-        p[0:4] = x0
-        p[4:6] = b.goal
+        p[prog.i_x0 : prog.i_x0 + model.nn] = x0
+        p[prog.i_goal : prog.i_goal + 2] = b.goal
         growth = (step / b.n_steps) ** 2 if cfg.goal_weight_growth else 1.0
-        p[6] = cfg.weights.goal * growth
-        self._fill_windows(prog, b, x0[:2], step)
+        p[prog.i_wg] = cfg.weights.goal * growth
+        pos = x0[list(prog.pos)]
+        self._fill_windows(prog, b, pos, step)
         # per-stage position bounds: the map (tightened) intersected with the reachable box of the windows
         lbx, ubx = args["lbx"], args["ubx"]
-        for axis in (0, 1):
-            lo = np.maximum(b.pos_lo[axis], x0[axis] - prog.reach)
-            hi = np.minimum(b.pos_hi[axis], x0[axis] + prog.reach)
-            lbx[axis : prog.n_x : 4], ubx[axis : prog.n_x : 4] = lo, np.maximum(hi, lo)
+        for axis, i in enumerate(prog.pos):
+            lo = np.maximum(b.pos_lo[axis], pos[axis] - prog.reach)
+            hi = np.minimum(b.pos_hi[axis], pos[axis] + prog.reach)
+            lbx[i : prog.n_x : prog.nn], ubx[i : prog.n_x : prog.nn] = lo, np.maximum(hi, lo)
         if not b.warm:
             prog.cold_start(x0)
         info: SolveInfo = prog.nlp.solve()
         sol = prog.nlp.res["x"]
-        xs = sol[: prog.n_x].reshape(prog.H, 4)
-        us = sol[prog.n_x :].reshape(prog.H, 2)
+        xs = sol[: prog.n_x].reshape(prog.H, prog.nn)
+        us = sol[prog.n_x :].reshape(prog.H, prog.nu)
         status, message = info.status, info.message
-        lo_u, hi_u = np.asarray(prog.limits.u_min), np.asarray(prog.limits.u_max)
+        lo_u, hi_u = np.asarray(model.input_lo), np.asarray(model.input_hi)
         finite = bool(np.all(np.isfinite(sol)))
         if finite:
             u = np.clip(us[0], lo_u, hi_u)
@@ -591,7 +626,8 @@ class MPCPlanner(Planner):
             b.warm = True
         else:
             # no usable iterate: continue the previous plan (its next input is the warm start's first input)
-            u = np.clip(np.nan_to_num(args["x0"][prog.n_x : prog.n_x + 2]), lo_u, hi_u) if b.warm else np.zeros(2)
+            u = (np.clip(np.nan_to_num(args["x0"][prog.n_x : prog.n_x + prog.nu]), lo_u, hi_u) if b.warm
+                 else np.zeros(prog.nu))
             status = "Invalid_Iterate" if status != "Exception" else status
             message = message or "IPOPT returned a non-finite iterate"
             b.warm = False
@@ -724,8 +760,8 @@ def mpc_objective(
 
 
 def _mpc_factory(ctx: PlannerContext, config: MPCConfig, name: str) -> MPCPlanner:
-    return MPCPlanner(config, name=name, system=ctx.system if isinstance(ctx.system, KinematicCar) else None,
-                      evaluation_cost=ctx.config.density_planner.cost, dtype=ctx.dtype, device=ctx.device)
+    return MPCPlanner(config, name=name, system=ctx.system, evaluation_cost=ctx.config.density_planner.cost,
+                      dtype=ctx.dtype, device=ctx.device)
 
 
 @register_planner("mpc", "standard MPC M0 (CasADi/IPOPT, 1-s horizon, collision term P_occ^2; extra 'mpc')",

@@ -4,18 +4,19 @@
 One NLP (CasADi ``nlpsol`` + IPOPT)::
 
     min   alpha_G ||p_N - p_goal||^2 + alpha_C sum_{k=1}^{N} P_occ(p_k, t_k)^2 + alpha_I sum_{k=0}^{N-1} ||u_k||^2
-    s.t.  x_{k+1} = F(x_k, u_k),  x_0 = true initial state (4 states; the oracle never sees the bias)
+    s.t.  x_{k+1} = F(x_k, u_k),  x_0 = true initial state (nominal states only; the car's bias is not seen)
           u_k = p[:, segment(k)]     (the planner's piecewise-constant inputs: 10 segments of 1 s)
-          |p| <= 3,  p_k in the map,  theta and v in the car's state box
+          p in the input box (the car: |p| <= 3),  p_k in the map,  the other states in the state box
 
-over the parameters ``p (2, 10)`` and the states ``x_1..x_N`` (multiple shooting on the 0.1-s planning grid,
-``F`` = 10 explicit-Euler steps of 0.01 s, identical to the reference rollout). The occupancy enters through a
-linear interpolant over (x, y, slice) whose values are the scene's whole occupancy grid as constant data, so the
-NLP is built once per scene (``n_builds`` counts it; the restarts and later :meth:`OraclePlanner.plan_from`
-calls on the same scene reuse it): the full grid is 101 x 241 x 401 values, too many to pass as a parameter on
-every function evaluation. With a body, the interpolated grid is the body's disc-dilated grid
-(:class:`~density_planner.risk.collision.CollisionModel`) and ``P_occ(p_k, t_k)`` becomes the sum of its values at
-the disc centres of ``x_k`` (a smooth stand-in for their maximum).
+over the parameters ``p (nu, 10)`` and the nominal states ``x_1..x_N`` (:attr:`System.nominal_indices`; the car:
+``[p_x, p_y, theta, v]``) of any system with symbolic dynamics (:meth:`System.f_symbolic`; multiple shooting on
+the 0.1-s planning grid, ``F`` = 10 explicit-Euler steps of 0.01 s, identical to the reference rollout). The
+occupancy enters through a linear interpolant over (x, y, slice) whose values are the scene's whole occupancy grid
+as constant data, so the NLP is built once per scene (``n_builds`` counts it; the restarts and later
+:meth:`OraclePlanner.plan_from` calls on the same scene reuse it): the full grid is 101 x 241 x 401 values, too
+many to pass as a parameter on every function evaluation. With a body, the interpolated grid is the body's
+disc-dilated grid (:class:`~density_planner.risk.collision.CollisionModel`) and ``P_occ(p_k, t_k)`` becomes the
+sum of its values at the disc centres of ``x_k`` (a smooth stand-in for their maximum).
 
 Restarts (``docs/spec.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
 ``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every returned
@@ -41,8 +42,7 @@ from torch import Tensor
 from ..checks import check_choice, check_seed
 from ..control.reference import make_reference
 from ..cost.composite import CostConfig
-from ..systems.car import BIAS, THETA, KinematicCar, V
-from ._nlp import BufferedNLP, SolveInfo, car_step_function, check_ipopt_limits, import_casadi, ipopt_options
+from ._nlp import BufferedNLP, NLPModel, SolveInfo, check_ipopt_limits, import_casadi, ipopt_options, step_function
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .mpc import MPCWeights, mpc_objective
@@ -87,12 +87,13 @@ class OracleConfig:
 class _OracleProgram:
     """The oracle NLP for one scene (grid values are constants of the interpolant)."""
 
-    def __init__(self, ca: Any, config: OracleConfig, problem: PlanningProblem):
+    def __init__(self, ca: Any, config: OracleConfig, problem: PlanningProblem, model: NLPModel):
         par = problem.parameterization
         collision = problem.collision()
         grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
-        car = problem.system
-        assert isinstance(car, KinematicCar), "checked by OraclePlanner._plan"
+        if model.heading is None and any(collision.cover.offsets):
+            raise ValueError(f"{model.system} has no heading: its body must be a single disc centred on the position")
+        self.model = model
         self.grid = grid
         self.n_seg = par.n_segments
         self.N = par.n_plan - 1  # stages of plan_dt
@@ -110,51 +111,55 @@ class _OracleProgram:
         occ = ca.interpolant("occ", "linear", [xs, ys, ts], values)
         slices = problem.slices(self.N + 1).tolist()  # absolute times t_start + k plan_dt
 
-        F = car_step_function(ca, par.plan_dt, par.plan_stride)
-        Pm = ca.MX.sym("params", 2, self.n_seg)
-        X = ca.MX.sym("X", 4, self.N)
-        prm = ca.MX.sym("p", 6)  # x0 (4), goal (2)
+        nn, nu = model.nn, model.nu
+        (i, j), th = model.position, model.heading
+        F = step_function(ca, problem.system, par.plan_dt, par.plan_stride)
+        Pm = ca.MX.sym("params", nu, self.n_seg)
+        X = ca.MX.sym("X", nn, self.N)
+        prm = ca.MX.sym("p", nn + 2)  # x0 (nn), goal (2)
         w = config.weights
         g = []
-        prev = prm[0:4]
+        prev = prm[0:nn]
         for k in range(self.N):
             g.append(X[:, k] - F(prev, Pm[:, k // per_seg]))
             prev = X[:, k]
         # body: the interpolated disc-dilated occupancy summed over the disc centres (a smooth stand-in for the max)
         occ_sum = 0
+
+        def positions(cols: Any) -> Any:
+            return X[i : i + 2, cols] if j == i + 1 else ca.vertcat(X[i, cols], X[j, cols])
+
         for off in collision.cover.offsets:
-            centre = X[0:2, :] + (off * ca.vertcat(ca.cos(X[2, :]), ca.sin(X[2, :])) if off else 0)
+            centre = positions(slice(None)) + (off * ca.vertcat(ca.cos(X[th, :]), ca.sin(X[th, :])) if off else 0)
             occ_sum = occ_sum + occ(ca.vertcat(centre, ca.DM([slices[1:]])))
-        J = (w.goal * ca.sumsqr(X[0:2, self.N - 1] - prm[4:6]) + w.collision * ca.sumsqr(occ_sum)
+        J = (w.goal * ca.sumsqr(positions(self.N - 1) - prm[nn : nn + 2]) + w.collision * ca.sumsqr(occ_sum)
              + w.input * per_seg * ca.sumsqr(Pm))
         nlp = {"x": ca.vertcat(ca.vec(Pm), ca.vec(X)), "p": prm, "f": J, "g": ca.vertcat(*g)}
         opts = ipopt_options(max_iter=config.max_iter, max_cpu_time=config.max_cpu_time, hessian=config.hessian)
         self.nlp = BufferedNLP(ca.nlpsol("oracle", "ipopt", nlp, opts))
-        self.n_p = 2 * self.n_seg
+        self.n_p = nu * self.n_seg
         lbx, ubx = self.nlp.args["lbx"], self.nlp.args["ubx"]
-        cfg = car.config
-        lbx[0 : self.n_p : 2], ubx[0 : self.n_p : 2] = cfg.input_min[0], cfg.input_max[0]
-        lbx[1 : self.n_p : 2], ubx[1 : self.n_p : 2] = cfg.input_min[1], cfg.input_max[1]
+        for m in range(nu):
+            lbx[m : self.n_p : nu], ubx[m : self.n_p : nu] = model.input_lo[m], model.input_hi[m]
         xmin, xmax, ymin, ymax = grid.bounds
-        boxes = [(xmin, xmax), (ymin, ymax), (cfg.state_min[THETA], cfg.state_max[THETA]),
-                 (cfg.state_min[V], cfg.state_max[V])]
-        for i, (lo, hi) in enumerate(boxes):
-            lbx[self.n_p + i :: 4], ubx[self.n_p + i :: 4] = lo, hi
-        self.state_lo = [b[0] for b in boxes]
-        self.state_hi = [b[1] for b in boxes]
-        self.limits = (cfg.input_min, cfg.input_max)
+        self.state_lo, self.state_hi = list(model.state_lo), list(model.state_hi)  # the system's box, and the map:
+        (self.state_lo[i], self.state_hi[i]), (self.state_lo[j], self.state_hi[j]) = (xmin, xmax), (ymin, ymax)
+        for m in range(nn):
+            lbx[self.n_p + m :: nn], ubx[self.n_p + m :: nn] = self.state_lo[m], self.state_hi[m]
+        self.limits = (model.input_lo, model.input_hi)
 
     def feasible(self, x_plan: Tensor, tol: float = 1e-3) -> bool:
-        """Whether re-simulated states ``(T, >=4)`` respect the NLP's state bounds (positions, theta, v) within
-        ``tol`` (a non-converged iterate may violate the dynamics, so its re-simulation may leave them)."""
+        """Whether re-simulated states ``(T, nx)`` respect the NLP's bounds on the nominal states (positions in the
+        map, the others in the system's box) within ``tol`` (a non-converged iterate may violate the dynamics, so
+        its re-simulation may leave them)."""
         lo = torch.as_tensor(self.state_lo, dtype=x_plan.dtype)
         hi = torch.as_tensor(self.state_hi, dtype=x_plan.dtype)
-        x = x_plan[1:, :4]
+        x = x_plan[1:, list(self.model.nominal)]
         return bool(((x >= lo - tol) & (x <= hi + tol)).all())
 
     def params_of(self, sol: np.ndarray) -> np.ndarray:
-        """``(2, n_segments)`` parameters of a solution vector."""
-        return sol[: self.n_p].reshape(self.n_seg, 2).T.copy()
+        """``(nu, n_segments)`` parameters of a solution vector."""
+        return sol[: self.n_p].reshape(self.n_seg, self.model.nu).T.copy()
 
 
 class OraclePlanner(Planner):
@@ -189,13 +194,14 @@ class OraclePlanner(Planner):
         self._program_key: tuple | None = None
 
     def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
-        assert isinstance(problem.system, KinematicCar), "checked by OraclePlanner._plan"
-        key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config, problem.risk)
+        system = problem.system
+        model = NLPModel.of(self._ca, system)  # the dynamics and bounds the NLP reads
+        key = (problem.scene.grid, problem.t_start, problem.parameterization, model, system.footprint, problem.risk)
         if self._program is None or self._program_key is None or any(
             a is not b and a != b for a, b in zip(self._program_key, key)
         ):
             t0 = time.perf_counter()
-            self._program = _OracleProgram(self._ca, self.config, problem)
+            self._program = _OracleProgram(self._ca, self.config, problem, model)
             self._program_key = key
             self.n_builds += 1
             t = time.perf_counter() - t0
@@ -222,24 +228,24 @@ class OraclePlanner(Planner):
         lo, hi = problem.system.input_bounds
         n_seg = problem.parameterization.n_segments
         gen = torch.Generator().manual_seed(cfg.seed)
-        rand = cfg.init_std * torch.randn(cfg.restarts - 1, 2, n_seg, dtype=torch.float64, generator=gen)
-        p = torch.cat([torch.zeros(1, 2, n_seg, dtype=torch.float64), rand])
+        nu = problem.system.nu
+        rand = cfg.init_std * torch.randn(cfg.restarts - 1, nu, n_seg, dtype=torch.float64, generator=gen)
+        p = torch.cat([torch.zeros(1, nu, n_seg, dtype=torch.float64), rand])
         low = torch.tensor(lo, dtype=torch.float64)[:, None]
         high = torch.tensor(hi, dtype=torch.float64)[:, None]
         return torch.maximum(torch.minimum(p, high), low)
 
     def _plan(self, problem: PlanningProblem, true_state: Tensor, t_start: float) -> PlanResult:
-        if not isinstance(problem.system, KinematicCar):
-            raise ValueError(f"the oracle needs the KinematicCar system, got {type(problem.system).__name__}")
         system, par, cfg = problem.system, problem.parameterization, self.config
-        prog, t_build = self._program_for(problem)
         start = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
         if start.shape != (system.nx,) or not bool(torch.isfinite(start).all()):
             raise ValueError(f"true_state must hold {system.nx} finite numbers, got {true_state!r}")
-        start[BIAS] = 0.0  # the oracle knows the exact model: no measurement bias
+        prog, t_build = self._program_for(problem)
+        nominal, nn = list(prog.model.nominal), prog.model.nn
+        start = system.nominal_state(start)  # the oracle knows the exact model: hidden states (a bias) at 0
         args = prog.nlp.args
-        args["p"][0:4] = start[:4].numpy()
-        args["p"][4:6] = problem.goal
+        args["p"][0:nn] = start[nominal].numpy()
+        args["p"][nn : nn + 2] = problem.goal
         stride = par.plan_stride
         restarts: list[dict[str, Any]] = []
         best: tuple[int, float] | None = None
@@ -247,7 +253,7 @@ class OraclePlanner(Planner):
         for r, p0 in enumerate(self._guesses(problem)):
             ref0 = make_reference(system, start, p0, par)
             args["x0"][: prog.n_p] = p0.T.reshape(-1).numpy()
-            args["x0"][prog.n_p :] = ref0.x[stride::stride, :4].reshape(-1).numpy()
+            args["x0"][prog.n_p :] = ref0.x[stride::stride][:, nominal].reshape(-1).numpy()
             args["lam_x0"][:] = 0.0
             args["lam_g0"][:] = 0.0
             info: SolveInfo = prog.nlp.solve()
