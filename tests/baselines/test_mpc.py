@@ -184,13 +184,17 @@ def test_solver_limits_are_reported_not_raised():
 
 def test_errors_become_status():
     from density_planner.density.distributions import UniformBox
+    from density_planner.systems.base import System
     from density_planner.systems.linear import LinearSystem
 
+    class NoSymbolic(LinearSystem):
+        f_symbolic = System.f_symbolic
+
     scene = small_empty()
-    system = LinearSystem(torch.zeros(5, 5), torch.zeros(5, 2))
+    system = NoSymbolic(torch.zeros(5, 5), torch.zeros(5, 2))
     problem = PlanningProblem(scene, UniformBox(torch.zeros(5) - 1, torch.zeros(5) + 1), system=system)
     res = MPCPlanner(_cfg()).plan(problem)
-    assert res.status == PlanStatus.ERROR and "KinematicCar" in res.message
+    assert res.status == PlanStatus.ERROR and "NoSymbolic has no symbolic dynamics" in res.message
 
 
 def test_biased_measurement_changes_the_run():

@@ -213,7 +213,7 @@ def position_rate_bound(ca: Any, system: System, dt: float) -> float:
         return v_abs + sup(speed, "speed") * dt
     # no speed state: the position rate over the box, the states it depends on widened by one stage of drift
     position = sorted({nominal.index(i) for i in system.position_indices})
-    needed = [any(ca.which_depends(rate[k], x, 1, True)[m] for k in position) for m in range(nn)]
+    needed = [any(ca.depends_on(rate[k], x[m]) for k in position) for m in range(nn)]
     widen = [sup(m, f"state {system.state_names[nominal[m]]!r}") * dt
              if needed[m] and m not in position and math.isfinite(lo[m]) and math.isfinite(hi[m]) else 0.0
              for m in range(nn)]

@@ -25,10 +25,13 @@ class LinearSystem(ControlAffineSystem):
         B: Sequence[Sequence[float]],
         *,
         input_bounds: tuple[Sequence[float], Sequence[float]] | None = None,
+        state_bounds: tuple[Sequence[float], Sequence[float]] | None = None,
         footprint: Footprint | None = None,
     ):
-        """``footprint``: the body (no heading, so ``length == width``: a disc; default a point); the position is
-        the first two state components."""
+        """``input_bounds`` / ``state_bounds``: (lower, upper) boxes (default unbounded; a finite box on the
+        velocities of a double integrator bounds how far it moves, which the MPC baselines need). ``footprint``: the
+        body (no heading, so ``length == width``: a disc; default a point); the position is the first two state
+        components."""
         a = torch.as_tensor(A, dtype=torch.float64)
         b = torch.as_tensor(B, dtype=torch.float64)
         if a.ndim != 2 or a.shape[0] != a.shape[1]:
@@ -42,6 +45,12 @@ class LinearSystem(ControlAffineSystem):
         self.constant_input_matrix = tuple(tuple(float(v) for v in row) for row in b.tolist())
         inf = float("inf")
         self._input_bounds = input_bounds or ((-inf,) * b.shape[1], (inf,) * b.shape[1])
+        self._state_bounds = state_bounds or ((-inf,) * a.shape[0], (inf,) * a.shape[0])
+        for name, (lo, hi), n in (("input_bounds", self._input_bounds, b.shape[1]),
+                                  ("state_bounds", self._state_bounds, a.shape[0])):
+            if len(lo) != n or len(hi) != n or any(not lo_k <= hi_k for lo_k, hi_k in zip(lo, hi)):
+                raise ValueError(f"{name} must be (lower, upper) with {n} entries each and lower <= upper, got "
+                                 f"{(tuple(lo), tuple(hi))}")
         if footprint is not None:
             if footprint.length != footprint.width:
                 raise ValueError("a LinearSystem has no heading: its footprint must be a disc (length == width)")
@@ -49,8 +58,7 @@ class LinearSystem(ControlAffineSystem):
 
     @property
     def state_bounds(self):
-        inf = float("inf")
-        return (-inf,) * self.nx, (inf,) * self.nx
+        return self._state_bounds
 
     @property
     def input_bounds(self):
