@@ -147,7 +147,7 @@ def test_nlp_collision_term_matches_the_grid(radius, method):
     model = problem.collision()  # the body: disc centres on the disc-dilated grid
     c = model.centres(xs[1:])  # (10, m, 2)
     s_k = model.body_grid.lookup(c[:, :, None, :] + d[None, None], k[:, None, None]).sum(dim=(-1, -2))
-    w = cfg.weights
+    w = mpc.weights
     growth = (step_index / 100) ** 2
     goal = w.goal * growth * float((xs[-1, :2] - torch.tensor(scene.goal, dtype=torch.float64)).pow(2).sum())
     expected = goal + w.input * float(us.pow(2).sum()) + w.collision * float(s_k.pow(2).sum())

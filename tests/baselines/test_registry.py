@@ -61,6 +61,30 @@ def test_make_casadi_planners(name):
         assert planner.config.tube_radius == 0.0 and planner.config.max_iter == 300
 
 
+@pytest.mark.parametrize("name", ["mpc", "tube_mpc_0.5", "oracle"])
+def test_nlp_weights_default_to_the_density_planners_cost(name):
+    """J_MPC's weights are the density planner's cost weights (one source of truth) unless the planner's section
+    sets one; the TOML of the defaults writes none of them."""
+    pytest.importorskip("casadi", reason="the MPC baselines and the oracle need the optional 'mpc' extra")
+    from density_planner.config import dumps_toml
+    from density_planner.cost.composite import CostWeights
+    from density_planner.planners.mpc import MPCWeights
+
+    default = make_planner(name, _context())
+    w = CostWeights()
+    assert (default.weights.goal, default.weights.input, default.weights.collision) == (w.goal, w.input, w.collision)
+    assert (w.goal, w.input, w.collision) == (1e-2, 1e-6, 0.1)  # the paper's alphas (docs/spec.md §9)
+    section = {"mpc": "mpc", "oracle": "oracle"}.get(name, "tube_mpc")
+    cfg = apply_overrides(RunConfig(), ["density_planner.cost.weights.collision=0.3",
+                                        "density_planner.cost.weights.goal=0.02", f"{section}.weights.goal=0.05"])
+    planner = make_planner(name, _context(cfg))
+    assert (planner.weights.goal, planner.weights.input, planner.weights.collision) == (0.05, 1e-6, 0.3)
+    assert "weights]" not in dumps_toml(RunConfig()).split("[search]")[0].split("[mpc]")[1]  # nothing unset written
+    assert f"[{section}.weights]\ngoal = 0.05\n" in dumps_toml(cfg)
+    with pytest.raises(ValueError, match="MPC weight collision"):
+        MPCWeights(collision=-1.0)
+
+
 @pytest.mark.parametrize("name", NEEDS_CASADI)
 def test_missing_casadi_names_the_extra(monkeypatch, name):
     monkeypatch.setitem(sys.modules, "casadi", None)  # import casadi -> ImportError

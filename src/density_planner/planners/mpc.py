@@ -65,7 +65,7 @@ import torch
 from torch import Tensor
 
 from ..checks import check_choice
-from ..cost.composite import CostConfig
+from ..cost.composite import CostConfig, CostWeights
 from ..environment.grid import OccupancyGrid
 from ..risk.collision import CollisionModel
 from ..systems.base import System
@@ -89,6 +89,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MPCWeights",
+    "ResolvedWeights",
     "MPCConfig",
     "TubeMPCConfig",
     "MPCStep",
@@ -108,20 +109,45 @@ TUBE_RADII = (0.3, 0.5, 1.0)
 
 @dataclass(frozen=True)
 class MPCWeights:
-    """Weights ``alpha`` of ``J_MPC`` (paper Eq. (11)); the paper takes them from the planner's cost (§9)."""
+    """Weights ``alpha`` of ``J_MPC`` (paper Eq. (11)). The paper takes them from the density planner's cost (§9):
+    a weight left unset (``None``, the default; omitted from ``config.toml``) is the one of
+    ``[density_planner.cost.weights]`` (:class:`~density_planner.cost.composite.CostWeights`: 1e-2, 1e-6, 0.1); a
+    number overrides it (``--set mpc.weights.collision=0.3``). :meth:`resolved` fills them in."""
 
-    #: alpha_G on the squared terminal distance to the goal [1/m^2]
-    goal: float = 1e-2
-    #: alpha_I on the squared inputs, summed over the stages (1e-6 = the original's 1e-4 times its factor 0.01)
-    input: float = 1e-6
-    #: alpha_C on the squared (tube-summed) occupancy at the predicted positions
-    collision: float = 0.1
+    #: alpha_G on the squared terminal distance to the goal [1/m^2] (None: the density planner's)
+    goal: float | None = None
+    #: alpha_I on the squared inputs, summed over the stages (None: the density planner's)
+    input: float | None = None
+    #: alpha_C on the squared (tube-summed) occupancy at the predicted positions (None: the density planner's)
+    collision: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("goal", "input", "collision"):
+        for name in _WEIGHT_NAMES:
             v = getattr(self, name)
+            if v is None:
+                continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"MPC weight {name} must be a finite number >= 0, got {v!r}")
+                raise ValueError(f"MPC weight {name} must be a finite number >= 0 (or unset), got {v!r}")
+
+    def resolved(self, cost: CostWeights | None = None) -> ResolvedWeights:
+        """The weights with each unset one taken from ``cost`` (default: :class:`CostWeights`, the density
+        planner's defaults)."""
+        cost = cost or CostWeights()
+        return ResolvedWeights(*(float(getattr(cost, n) if getattr(self, n) is None else getattr(self, n))
+                                 for n in _WEIGHT_NAMES))
+
+
+#: the terms of J_MPC, in the order of :class:`ResolvedWeights`
+_WEIGHT_NAMES = ("goal", "input", "collision")
+
+
+@dataclass(frozen=True)
+class ResolvedWeights:
+    """The numbers of :class:`MPCWeights` after :meth:`MPCWeights.resolved`."""
+
+    goal: float
+    input: float
+    collision: float
 
 
 @dataclass(frozen=True)
@@ -303,8 +329,8 @@ class _Model:
 class _MPCProgram:
     """The NLP of one MPC configuration for one map cell size: structure, windows and the buffered solver."""
 
-    def __init__(self, ca: Any, system: System, config: MPCConfig, cell: float, limits: _Model, precomputed: bool,
-                 body: tuple[float, ...] = (0.0,)):
+    def __init__(self, ca: Any, system: System, config: MPCConfig, weights: ResolvedWeights, cell: float,
+                 limits: _Model, precomputed: bool, body: tuple[float, ...] = (0.0,)):
         self.config, self.cell, self.limits, self.precomputed = config, cell, limits, precomputed
         model = limits.model
         if model.heading is None and any(body):
@@ -351,7 +377,7 @@ class _MPCProgram:
 
         D = ca.DM(self.offsets.T)
         M = self.offsets.shape[0]
-        w = config.weights
+        w = weights
         J = w_goal * ca.sumsqr(position(H - 1) - goal) + w.input * ca.sumsqr(U)
         g = []
         prev = x0
@@ -450,7 +476,8 @@ class MPCPlanner(Planner):
             system: the system planned for (its nominal dynamics and bounds enter the NLP); :meth:`reset` replaces
                 it by the problem's system.
             evaluation_cost: cost configuration of the reported (evaluation-form) cost, shared with the density
-                planner for comparability (default :class:`CostConfig`).
+                planner for comparability (default :class:`CostConfig`); its weights are those of ``J_MPC`` that
+                ``config.weights`` leaves unset.
             dtype, device: of the returned tensors.
 
         Raises:
@@ -461,6 +488,8 @@ class MPCPlanner(Planner):
         self.name = name or ("mpc" if self.config.tube_radius == 0 else tube_mpc_name(self.config.tube_radius))
         self.system = system
         self.evaluation_cost = evaluation_cost or CostConfig()
+        #: the weights of J_MPC: the configuration's, unset ones from the density planner's cost (evaluation_cost)
+        self.weights = self.config.weights.resolved(self.evaluation_cost.weights)
         self.dtype = dtype
         self.device = torch.device(device)
         #: number of NLP constructions so far (one per planner and map cell size)
@@ -498,7 +527,7 @@ class MPCPlanner(Planner):
         if (prog is None or not math.isclose(prog.cell, cell, rel_tol=1e-9) or prog.limits != limits
                 or prog.precomputed != pre or prog.body != tuple(body)):
             t0 = time.perf_counter()
-            prog = _MPCProgram(self._ca, system, self.config, cell, limits, pre, body)
+            prog = _MPCProgram(self._ca, system, self.config, self.weights, cell, limits, pre, body)
             self.build_time = time.perf_counter() - t0
             self.n_builds += 1
             self._program = prog
@@ -602,7 +631,7 @@ class MPCPlanner(Planner):
         p[prog.i_x0 : prog.i_x0 + model.nn] = x0
         p[prog.i_goal : prog.i_goal + 2] = b.goal
         growth = (step / b.n_steps) ** 2 if cfg.goal_weight_growth else 1.0
-        p[prog.i_wg] = cfg.weights.goal * growth
+        p[prog.i_wg] = self.weights.goal * growth
         pos = x0[list(prog.pos)]
         self._fill_windows(prog, b, pos, step)
         # per-stage position bounds: the map (tightened) intersected with the reachable box of the windows
@@ -703,7 +732,7 @@ class MPCPlanner(Planner):
             try:
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
                 result.extras["objective"] = mpc_objective(problem.scene.grid, x, u, problem.goal,
-                                                           self.config.weights, dt=self.config.stage_dt,
+                                                           self.weights, dt=self.config.stage_dt,
                                                            collision=problem.collision(),
                                                            t_start=problem.t_start)
             except Exception as exc:  # noqa: BLE001
@@ -722,7 +751,7 @@ def mpc_objective(
     states: Tensor,
     inputs: Tensor,
     goal: tuple[float, float],
-    weights: MPCWeights,
+    weights: MPCWeights | ResolvedWeights,
     *,
     offsets: np.ndarray | None = None,
     dt: float = 0.1,
@@ -754,6 +783,8 @@ def mpc_objective(
         "input": float(inputs.pow(2).sum()),
         "collision": float(occ.pow(2).sum()),
     }
+    if isinstance(weights, MPCWeights):
+        weights = weights.resolved()
     terms["total"] = weights.goal * terms["goal"] + weights.input * terms["input"] + weights.collision * terms[
         "collision"]
     return terms

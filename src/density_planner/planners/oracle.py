@@ -45,7 +45,7 @@ from ..cost.composite import CostConfig
 from ._nlp import BufferedNLP, NLPModel, SolveInfo, check_ipopt_limits, import_casadi, ipopt_options, step_function
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
-from .mpc import MPCWeights, mpc_objective
+from .mpc import MPCWeights, ResolvedWeights, mpc_objective
 from .problem import PlanningProblem
 from .registry import PlannerContext, register_planner
 
@@ -71,7 +71,7 @@ class OracleConfig:
     max_cpu_time: float = math.inf
     #: IPOPT Hessian: "exact" or "limited-memory"
     hessian: Literal["exact", "limited-memory"] = "exact"
-    #: weights of J_MPC (the paper: the planner's alphas)
+    #: weights of J_MPC (unset ones: the density planner's alphas, as the paper)
     weights: MPCWeights = field(default_factory=MPCWeights)
 
     def __post_init__(self) -> None:
@@ -87,7 +87,8 @@ class OracleConfig:
 class _OracleProgram:
     """The oracle NLP for one scene (grid values are constants of the interpolant)."""
 
-    def __init__(self, ca: Any, config: OracleConfig, problem: PlanningProblem, model: NLPModel):
+    def __init__(self, ca: Any, config: OracleConfig, weights: ResolvedWeights, problem: PlanningProblem,
+                 model: NLPModel):
         par = problem.parameterization
         collision = problem.collision()
         grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
@@ -117,7 +118,7 @@ class _OracleProgram:
         Pm = ca.MX.sym("params", nu, self.n_seg)
         X = ca.MX.sym("X", nn, self.N)
         prm = ca.MX.sym("p", nn + 2)  # x0 (nn), goal (2)
-        w = config.weights
+        w = weights
         g = []
         prev = prm[0:nn]
         for k in range(self.N):
@@ -178,7 +179,8 @@ class OraclePlanner(Planner):
         """
         Args:
             config: oracle settings.
-            evaluation_cost: cost configuration of the reported (evaluation-form) cost (default :class:`CostConfig`).
+            evaluation_cost: cost configuration of the reported (evaluation-form) cost (default :class:`CostConfig`);
+                its weights are those of ``J_MPC`` that ``config.weights`` leaves unset.
 
         Raises:
             OptionalDependencyError: CasADi (extra ``mpc``) is not installed.
@@ -186,6 +188,8 @@ class OraclePlanner(Planner):
         self._ca = import_casadi("the oracle baseline")
         self.config = config or OracleConfig()
         self.evaluation_cost = evaluation_cost or CostConfig()
+        #: the weights of J_MPC: the configuration's, unset ones from the density planner's cost (evaluation_cost)
+        self.weights = self.config.weights.resolved(self.evaluation_cost.weights)
         self.dtype = dtype
         self.device = torch.device(device)
         #: number of NLP constructions so far (one per scene)
@@ -201,7 +205,7 @@ class OraclePlanner(Planner):
             a is not b and a != b for a, b in zip(self._program_key, key)
         ):
             t0 = time.perf_counter()
-            self._program = _OracleProgram(self._ca, self.config, problem, model)
+            self._program = _OracleProgram(self._ca, self.config, self.weights, problem, model)
             self._program_key = key
             self.n_builds += 1
             t = time.perf_counter() - t0
@@ -236,7 +240,7 @@ class OraclePlanner(Planner):
         return torch.maximum(torch.minimum(p, high), low)
 
     def _plan(self, problem: PlanningProblem, true_state: Tensor, t_start: float) -> PlanResult:
-        system, par, cfg = problem.system, problem.parameterization, self.config
+        system, par = problem.system, problem.parameterization
         start = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
         if start.shape != (system.nx,) or not bool(torch.isfinite(start).all()):
             raise ValueError(f"true_state must hold {system.nx} finite numbers, got {true_state!r}")
@@ -267,7 +271,7 @@ class OraclePlanner(Planner):
                 params = torch.maximum(torch.minimum(params, torch.tensor(hi, dtype=torch.float64)[:, None]),
                                        torch.tensor(lo, dtype=torch.float64)[:, None])
                 ref = make_reference(system, start, params, par)
-                obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
+                obj = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, self.weights,
                                     collision=problem.collision(), dt=par.plan_dt,
                                     t_start=problem.t_start)
                 feasible = prog.feasible(ref.x_plan)
@@ -297,7 +301,7 @@ class OraclePlanner(Planner):
         cost, coll = evaluate_trajectory(problem, ref.x_plan, ref.u_plan, cost_config=self.evaluation_cost)
         extras["best_restart"] = i_best
         extras["best_converged"] = bool(restarts[i_best]["success"])
-        extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, cfg.weights,
+        extras["objective"] = mpc_objective(problem.scene.grid, ref.x_plan, ref.u_plan, problem.goal, self.weights,
                                             collision=problem.collision(), dt=par.plan_dt,
                                             t_start=problem.t_start)
         n_conv = sum(1 for e in restarts if e["success"])
