@@ -206,7 +206,7 @@ def write_plan_solution(path, scene, result, problem, run_config) -> None:
                    scenario_id=str(meta.get("scenario_id") or scene.name),
                    planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
                    scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
-                   config=run_config.solution, state_names=problem.system.state_names,
+                   config=run_config.solution, state_names=problem.system.state_names, system=problem.system,
                    computation_time=result.timings.get("total"),
                    frame_offset=tuple(meta.get("frame_offset") or (0.0, 0.0)))
 

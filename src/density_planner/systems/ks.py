@@ -118,6 +118,13 @@ class KSConfig:
     #: share of the vehicle's steering-angle limit the controller may command (the rest is the margin of its
     #: smooth saturation); also the planning box of the steering angle
     steering_use: float = 0.9
+    #: box of reference start states drawn for controller checks and density training data (any heading, nearly
+    #: straight wheels, 0.5-38 m/s)
+    reference_start_min: tuple[float, float, float, float, float] = (-10.0, -10.0, -0.1, 0.5, -_PI)
+    reference_start_max: tuple[float, float, float, float, float] = (10.0, 10.0, 0.1, 38.0, _PI)
+    #: standard deviations of the random reference inputs of those references (clipped to the input box) [rad/s,
+    #: m/s^2]: steering rates of 0.1 rad/s keep the steering angle of a 10-s reference within about 0.3 rad
+    reference_input_scale: tuple[float, float] = (0.1, 2.0)
     #: half-widths of the initial-error box XE0 (px, py, delta, v, psi)
     initial_error_max: tuple[float, float, float, float, float] = (1.0, 1.0, 0.05, 0.5, 0.2)
     #: planned speeds stay this far inside the speed box [m/s]
