@@ -17,9 +17,10 @@
    bounded by the smooth saturation of :class:`~density_planner.control.base.SmoothSaturation` (identity on the
    reference input box, tanh tail up to the actuator limits).
 
-On the reference (zero error) it returns ``u_ref`` exactly. Its tangents (for the exact Liouville divergence) are
-written out by hand: one pass for all directions instead of one ``torch.func.jvp`` each (about 40 times faster). The whole law is infinitely differentiable except for
-the C^2 saturation knees, so the exact Liouville equation (which needs the closed loop's divergence) applies.
+On the reference (zero error) it returns ``u_ref`` exactly. The whole law is infinitely differentiable except for
+the C^2 saturation knees, so the exact Liouville equation (which needs the closed loop's divergence) applies. Its
+tangents (for that divergence) are written out by hand: one pass for all directions instead of one
+``torch.func.jvp`` each (about 30 times faster).
 
 The module registers the model set ``"ks"`` (the KS system's ``road`` domain, for every scene kind) and the
 controller ``"analytic"`` of the system ``"ks"``.
@@ -33,7 +34,7 @@ import torch
 from torch import Tensor
 
 from ..systems.base import System
-from ..systems.ks import ACC, DELTA, PSI, PX, PY, STEER_RATE, V, KinematicSingleTrack, KSConfig
+from ..systems.ks import ACC, DELTA, PSI, PX, PY, STEER_RATE, KinematicSingleTrack, KSConfig, V
 from .base import SmoothSaturation, TrackingController, soft_clip
 from .registry import ModelSet, register_controller, register_model_set
 
