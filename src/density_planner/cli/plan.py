@@ -68,7 +68,7 @@ def build_context(args: argparse.Namespace, run_config, progress: bool, paramete
     # auto: the default learned predictor if it was trained for this controller, else exact Liouville
     predictor = load_predictor(None if sys_cfg.density == "auto" else sys_cfg.density, car, controller,
                                liouville=run_config.liouville,
-                               parameterization=parameterization)
+                               parameterization=parameterization, models=models.name)
     if hasattr(predictor, "to"):
         predictor = predictor.to(device=device, dtype=dtype)
     return PlannerContext(
