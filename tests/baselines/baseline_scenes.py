@@ -10,7 +10,7 @@ from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.scene import Scene
 
 #: start (0, -8) heading up at 3 m/s; goal (0, 6): 14 m ahead
-START = (0.0, -8.0, math.pi / 2, 3.0, 0.0)
+START = (0.0, -8.0, math.pi / 2, 3.0)
 GOAL = (0.0, 6.0)
 
 
@@ -59,4 +59,4 @@ def corridor_empty() -> Scene:
     goal (0, 8), 36 m ahead: the distance the ablation baselines' acceptance rules are made for (the goal must
     still be approached in every one-second segment)."""
     grid = OccupancyGrid(torch.zeros(101, 121, 401), origin=(-6.0, -30.0), cell_size=0.1, dt=0.1)
-    return Scene(grid, (0.0, -28.0, math.pi / 2, 3.0, 0.0), (0.0, 8.0), (-5.9, 5.9, -29.9, 9.9), name="corridor")
+    return Scene(grid, (0.0, -28.0, math.pi / 2, 3.0), (0.0, 8.0), (-5.9, 5.9, -29.9, 9.9), name="corridor")

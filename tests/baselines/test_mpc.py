@@ -210,7 +210,7 @@ def test_large_maps_use_the_same_windows():
     """A 60 m x 50 m map at 0.2 m: same parameter count as a small map of that cell size, no rebuild."""
     big = OccupancyGrid(torch.zeros(101, 301, 251), origin=(-30.0, -20.0), cell_size=0.2)
     small = OccupancyGrid(torch.zeros(101, 61, 101), origin=(-6.0, -10.0), cell_size=0.2)
-    start, goal = (0.0, -8.0, math.pi / 2, 3.0, 0.0), (0.0, 6.0)
+    start, goal = (0.0, -8.0, math.pi / 2, 3.0), (0.0, 6.0)
     mpc = MPCPlanner(_cfg(n_steps=3))
     for grid in (small, big):
         res = mpc.plan(_problem(Scene(grid, start, goal, (-5.0, 5.0, -9.0, 9.0))))

@@ -122,7 +122,7 @@ def test_nothing_acceptable_is_explained():
     from density_planner.environment.scene import Scene
 
     scene = corridor_empty()
-    scene = Scene(scene.grid, (0.0, -28.0, math.pi / 2, 0.01, 0.0), scene.goal, scene.planning_box)
+    scene = Scene(scene.grid, (0.0, -28.0, math.pi / 2, 0.01), scene.goal, scene.planning_box)
     res = SearchPlanner(_exact(), SearchConfig(n_samples=20)).plan(PlanningProblem.from_scene(scene, seed=0))
     assert res.status == PlanStatus.FAILED and res.states is None
     assert "'bounds' rule" in res.message

@@ -163,7 +163,7 @@ def test_registry_defaults_to_shipped_c3m():
     assert isinstance(load_controller("c3m"), C3MController)
     assert isinstance(load_controller("analytic"), CarTrackingController)
     assert isinstance(load_c3m_controller(), C3MController)
-    with pytest.raises(ValueError, match="unknown controller 'pid'; valid choices: c3m, analytic"):
+    with pytest.raises(ValueError, match="unknown controller 'pid' for the system 'car'; valid choices: c3m, analytic"):
         load_controller("pid")
     with pytest.raises(CheckpointError, match="weights file not found"):
         load_controller("missing_controller.pt")

@@ -91,7 +91,7 @@ def test_density_cli_params_file(tmp_path):
         (["--params", "nan.json"], "NaN"),
         (["--params", "big.json"], "input bounds"),
         (["--controller", "nonsense"], "unknown controller"),
-        (["--start", "0", "0", "nan", "1", "0"], "--start contains NaN"),
+        (["--start", "0", "0", "nan", "1"], "--start contains NaN"),
     ],
 )
 def test_density_cli_errors_are_one_line(tmp_path, capsys, monkeypatch, args, match):

@@ -23,7 +23,7 @@ def test_random(tmp_path, capsys):
     scene = load_scene(out / "occupancy.npz")
     assert torch.equal(scene.grid.probs, random_scene(3).grid.probs)
     info = json.loads((out / "scene.json").read_text())
-    assert info["start"] == [0.0, -28.0, 1.5, 3.0, 0.0] and info["goal"] == [0.0, 8.0]
+    assert info["start"] == [0.0, -28.0, 1.5, 3.0] and info["goal"] == [0.0, 8.0]
     assert info["grid"]["shape"] == [101, 241, 401]
     with Image.open(out / "occupancy.png") as im:
         assert im.size[0] > 400

@@ -47,7 +47,7 @@ def test_same_scene_on_every_machine():
     assert boxes[-1] == BoxObstacle(-6.0, -3.0, 2.9, 3.7, 0.9, 29, -2, 1, "dynamic")
     scene = random_scene(20)
     assert scene.start == pytest.approx(
-        (-1.109936936697947, 8.984706621712782, -1.6695780751722937, 7.50507990155933, 0.0), abs=1e-12
+        (-1.109936936697947, 8.984706621712782, -1.6695780751722937, 7.50507990155933), abs=1e-12
     )
     assert scene.goal == pytest.approx((-1.4232199776922192, -26.685868973097097), abs=1e-12)
     # float32 sums of the same numbers: identical up to summation order (1e-6 relative)
@@ -155,16 +155,16 @@ def test_clamped_sum():
 def test_fixed_start_and_goal_below_seed_20():
     for seed in (0, 7, 19):
         scene = random_scene(seed)
-        assert scene.start == (0.0, -28.0, 1.5, 3.0, 0.0) and scene.goal == (0.0, 8.0)
+        assert scene.start == (0.0, -28.0, 1.5, 3.0) and scene.goal == (0.0, 8.0)
 
 
 @pytest.mark.parametrize("seed", [20, 21, 33, 57])
 def test_random_start_and_goal_pass_the_acceptance_tests(seed):
     cfg = RandomSceneConfig()
     scene = random_scene(seed)
-    sx, sy, th, v, bias = scene.start
+    sx, sy, th, v = scene.start
     gx, gy = scene.goal
-    assert -5 <= sx <= 5 and 5 <= sy <= 10 and -2.1 <= th <= -0.5 and 1 <= v <= 9 and bias == 0.0
+    assert -5 <= sx <= 5 and 5 <= sy <= 10 and -2.1 <= th <= -0.5 and 1 <= v <= 9
     assert -5 <= gx <= 5 and -30 <= gy <= -20
     assert 10 <= math.hypot(gx - sx, gy - sy) <= 70
     probs = scene.grid.probs.numpy()

@@ -121,9 +121,9 @@ def test_roadscene_vehicle_on_road_and_json_round_trip():
 def test_scene_save_load_keeps_the_road(tmp_path):
     grid = OccupancyGrid(torch.zeros(3, 10, 10), (-5.0, -5.0), 3.0, 0.1, 0.5)
     road = _road()
-    scene = Scene(grid, (0, 0, 0, 1, 0), road.goal.representative_point(), (-5, 25, -5, 25), road=road)
+    scene = Scene(grid, (0, 0, 0, 1), road.goal.representative_point(), (-5, 25, -5, 25), road=road)
     back = load_scene(save_scene(scene, tmp_path / "s.npz"))
     assert back.road is not None and back.road.source == road.source
     assert back.road.goal.time_interval == (2.0, 3.0)
-    plain = load_scene(save_scene(Scene(grid, (0, 0, 0, 1, 0), (1, 1), (-5, 25, -5, 25)), tmp_path / "p.npz"))
+    plain = load_scene(save_scene(Scene(grid, (0, 0, 0, 1), (1, 1), (-5, 25, -5, 25)), tmp_path / "p.npz"))
     assert plain.road is None

@@ -24,7 +24,7 @@ def small_scene(**kw) -> Scene:
     probs[:, :3, :] = 1.0  # a wall at x <= 0.2 m
     args = {
         "grid": OccupancyGrid(probs, (0.0, 0.0), 0.1),
-        "start": (1.0, 1.0, 0.0, 2.0, 0.0),
+        "start": (1.0, 1.0, 0.0, 2.0),
         "goal": (1.5, 2.5),
         "planning_box": (0.1, 1.9, 0.1, 2.9),
         "name": "small",
@@ -43,6 +43,21 @@ def test_round_trip(tmp_path):
     assert back.name == scene.name and back.meta == json.loads(json.dumps(scene.meta))
     # the grid part is also readable as a plain grid file
     assert torch.equal(OccupancyGrid.load(path).probs, scene.grid.probs)
+
+
+def test_version_1_files_with_a_car_state_are_read(tmp_path):
+    """Scene files of format 1 stored the car's 5-entry start state (bias 0): read as the pose and speed."""
+    from density_planner.io.atomic import atomic_save_npz
+
+    scene = small_scene()
+    header = {"scene_format_version": 1, "name": "old", "start": [1.0, 1.0, 0.0, 2.0, 0.0], "goal": [1.5, 2.5],
+              "planning_box": [0.1, 1.9, 0.1, 2.9], "t_start": 0.0, "meta": {}}
+    path = atomic_save_npz(tmp_path / "v1.npz", **scene.grid.to_arrays(), scene_json=np.asarray(json.dumps(header)))
+    assert load_scene(path).start == (1.0, 1.0, 0.0, 2.0)
+    header["start"][4] = 0.1  # a biased start is no pose
+    path = atomic_save_npz(tmp_path / "v1b.npz", **scene.grid.to_arrays(), scene_json=np.asarray(json.dumps(header)))
+    with pytest.raises(DataError, match="zero heading bias"):
+        load_scene(path)
 
 
 def test_load_errors(tmp_path):
@@ -65,9 +80,9 @@ def test_validate_scene_accepts_a_good_scene():
     ("changes", "match"),
     [
         ({"goal": (5.0, 1.0)}, "goal .* outside the map"),
-        ({"start": (1.0, 9.0, 0.0, 2.0, 0.0)}, "start position .* outside the map"),
-        ({"start": (0.1, 1.0, 0.0, 2.0, 0.0)}, "occupied cell at t=0"),
-        ({"start": (1.0, 1.0, 0.0, -1.0, 0.0)}, "speed"),
+        ({"start": (1.0, 9.0, 0.0, 2.0)}, "start position .* outside the map"),
+        ({"start": (0.1, 1.0, 0.0, 2.0)}, "occupied cell at t=0"),
+        ({"start": (1.0, 1.0, 0.0, -1.0)}, "speed"),
         ({"planning_box": (5.0, 6.0, 0.0, 1.0)}, "does not overlap"),
     ],
 )
@@ -84,8 +99,10 @@ def test_validate_scene_rejects_nan_after_in_place_edit():
 
 
 def test_scene_construction_errors():
-    with pytest.raises(ValueError, match="start must have 5"):
+    with pytest.raises(ValueError, match="start must have 4"):
         small_scene(start=(1.0, 2.0))
+    with pytest.raises(ValueError, match="start must have 4"):  # a car state is not a pose
+        small_scene(start=(1.0, 1.0, 0.0, 2.0, 0.0))
     with pytest.raises(ValueError, match="finite"):
         small_scene(goal=(np.nan, 1.0))
     with pytest.raises(ValueError, match="planning_box"):

@@ -30,7 +30,7 @@ def _scene(p_block: float = 0.0) -> Scene:
     if p_block:
         probs[:, 110:131, 250:271] = p_block
     grid = OccupancyGrid(probs, origin=(-12.0, -30.0), cell_size=0.1, dt=0.1)
-    return Scene(grid, (0.0, -20.0, math.pi / 2, 3.0, 0.0), (0.0, 5.0), (-9.9, 9.9, -29.9, 9.9))
+    return Scene(grid, (0.0, -20.0, math.pi / 2, 3.0), (0.0, 5.0), (-9.9, 9.9, -29.9, 9.9))
 
 
 def _straight(x: float = 0.0, y0: float = -20.0, y1: float = 5.0, T: int = 101) -> torch.Tensor:
@@ -96,7 +96,7 @@ def test_evaluation_box_positions():
     assert (low[0], high[0], low[1], high[1]) == pytest.approx((-12.0, 12.0, -30.0, 10.0))
     # a map reaching beyond +-50 m: "auto" uses the map
     probs = torch.zeros(101, 10, 10)
-    far = Scene(OccupancyGrid(probs, origin=(-80.0, 0.0), cell_size=0.1, dt=0.1), (-79.5, 0.5, 0.0, 1.0, 0.0),
+    far = Scene(OccupancyGrid(probs, origin=(-80.0, 0.0), cell_size=0.1, dt=0.1), (-79.5, 0.5, 0.0, 1.0),
                 (-79.2, 0.6), (-80.0, -79.1, 0.0, 0.9))
     low, _ = evaluation_box(far, CAR.state_min, CAR.state_max, "auto")
     assert low[0] == pytest.approx(-80.0)

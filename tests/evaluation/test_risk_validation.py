@@ -41,7 +41,7 @@ def _ramp_scene() -> Scene:
     ys = torch.linspace(-30, 10, 401)
     field = (0.6 * torch.sigmoid((xs[:, None] - 0.5) / 0.8) * torch.sigmoid((ys[None, :] + 12) / 1.5))
     grid = OccupancyGrid(field.expand(101, -1, -1).contiguous(), origin=(-12.0, -30.0), cell_size=0.1, dt=0.1)
-    return Scene(grid, (0.0, -20.0, 1.5707963, 3.0, 0.0), (0.0, 5.0), (-9.9, 9.9, -29.9, 9.9), name="ramp")
+    return Scene(grid, (0.0, -20.0, 1.5707963, 3.0), (0.0, 5.0), (-9.9, 9.9, -29.9, 9.9), name="ramp")
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ from density_planner.planners.base import Planner, PlanResult, PlanStatus
 from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.car import KinematicCar
 
-START = (0.0, -20.0, math.pi / 2, 3.0, 0.0)
+START = (0.0, -20.0, math.pi / 2, 3.0)
 
 
 def _problem() -> PlanningProblem:
@@ -35,7 +35,7 @@ def _problem() -> PlanningProblem:
     scene = Scene(grid, START, (0.0, 5.0), (-9.9, 9.9, -29.9, 9.9))
     car = KinematicCar()
     hw = torch.tensor(car.config.initial_error_max, dtype=torch.float64)
-    s = torch.tensor(START, dtype=torch.float64)
+    s = torch.tensor((*START, 0.0), dtype=torch.float64)
     return PlanningProblem(scene, UniformBox(s - hw, s + hw), car)
 
 

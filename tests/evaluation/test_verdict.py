@@ -40,7 +40,7 @@ def road_scene(*, obstacles=(), goal_time=(8.0, 12.0), goal_box=(40.0, 55.0, -2.
     road = RoadScene(drivable, tuple(obstacles), goal, dt=0.1, t_start=t_start, source="hand-made",
                      vehicle_length=4.0, vehicle_width=1.6)
     grid = OccupancyGrid(torch.zeros(101, 23, 9), (-10.0, -20.0), 5.0, 0.1, 0.0)
-    return Scene(grid, (0.0, 0.0, 0.0, 5.0, 0.0), (47.5, 0.0), (-10.0, 100.0, -20.0, 20.0), name="hand", road=road)
+    return Scene(grid, (0.0, 0.0, 0.0, 5.0), (47.5, 0.0), (-10.0, 100.0, -20.0, 20.0), name="hand", road=road)
 
 
 def test_footprint_is_the_rotated_rectangle():
@@ -128,7 +128,7 @@ def test_scene_without_road_uses_goal_tolerance_occupancy_and_map():
     probs = torch.zeros(101, 31, 21)
     probs[:, 24:27, 9:12] = 1.0  # an obstacle around (15, 0) on a 1-m grid over x in [-10, 20], y in [-10, 10]
     grid = OccupancyGrid(probs, (-10.0, -10.0), 1.0, 0.1, 0.0)
-    scene = Scene(grid, (0.0, 0.0, 0.0, 1.0, 0.0), (8.0, 0.0), (-9.0, 9.0, -9.0, 9.0), name="grid-only")
+    scene = Scene(grid, (0.0, 0.0, 0.0, 1.0), (8.0, 0.0), (-9.0, 9.0, -9.0, 9.0), name="grid-only")
     x, u = straight(v=0.5)  # ends at (5, 0): 3 m from the goal, inside the paper's 4.5 m
     v = judge(scene, x, u, system=CAR, dt=DT)
     assert v.ok and v.basis == "occupancy"

@@ -103,7 +103,7 @@ def _replan_problem(problem, scene, state, t):
 
     mean = state.to(torch.float64).clone()
     mean[-1] = problem.initial_distribution.mean[-1]
-    sc = OraclePrediction(scene).scene_at(t, problem.parameterization.horizon, start=tuple(state.tolist()))
+    sc = OraclePrediction(scene).scene_at(t, problem.parameterization.horizon, start=problem.system.pose(state))
     return PlanningProblem(sc, recentred(problem.initial_distribution, mean), problem.system,
                            problem.parameterization, problem.risk)
 

@@ -33,7 +33,7 @@ def _synthetic(tracks, *, t_end: float = 6.0) -> Scene:
     grid = OccupancyGrid(torch.zeros(n, 201, 81), (0.0, -20.0), 0.5, 0.1, 0.0)
     road = RoadScene(shapely.box(-1.0, -21.0, 101.0, 21.0), tuple(tracks),
                      GoalRegion(shapely.box(90, -5, 99, 5), (0.0, t_end)), 0.1, 0.0, "synthetic")
-    return Scene(grid, (5.0, 0.0, 0.0, 5.0, 0.0), (95.0, 0.0), (0.0, 100.0, -20.0, 20.0), name="synthetic",
+    return Scene(grid, (5.0, 0.0, 0.0, 5.0), (95.0, 0.0), (0.0, 100.0, -20.0, 20.0), name="synthetic",
                  road=road)
 
 

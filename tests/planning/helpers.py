@@ -8,7 +8,7 @@ from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.scene import Scene
 
 
-def empty_scene(start=(0.0, -20.0, 1.5707963, 3.0, 0.0), goal=(0.0, 5.0), n_slices=101) -> Scene:
+def empty_scene(start=(0.0, -20.0, 1.5707963, 3.0), goal=(0.0, 5.0), n_slices=101) -> Scene:
     """Free 24 m x 40 m map (x in [-12, 12], y in [-30, 10]) at 0.1 m."""
     probs = torch.zeros(n_slices, 241, 401)
     grid = OccupancyGrid(probs, origin=(-12.0, -30.0), cell_size=0.1, dt=0.1)

@@ -69,7 +69,7 @@ def drivable(graph: LaneGraph | None = None):
     return shapely.union_all([lane.polygon.buffer(1e-3) for lane in graph.lanes.values()])
 
 
-def road_scene(goal: GoalRegion, *, start=(10.0, 1.75, 0.0, 6.0, 0.0), n_slices: int = 101,
+def road_scene(goal: GoalRegion, *, start=(10.0, 1.75, 0.0, 6.0), n_slices: int = 101,
                graph: LaneGraph | None = None) -> Scene:
     """A :class:`Scene` of the hand-made road (free occupancy; grid 0.25 m over x in [-10, 160], y in [-30, 20])
     with ``scene.road`` set."""

@@ -122,6 +122,23 @@ def test_build_cost_uses_scene_box_and_config():
     assert build_cost(scene).terms["goal"].far_factor == 10.0
 
 
+def test_bounds_come_from_the_system_planning_bounds():
+    """Heading and speed bounds are the system's (the paper's X_MIN_MP / X_MAX_MP for its box, 0.1 inside the speed
+    range); the road car's 15 m/s is inside its bounds (the cost once capped every system at the paper's 9.9 m/s)."""
+    from density_planner.systems.car import KinematicCar, car_domain
+
+    scene = empty_scene()
+    for domain, v_hi in (("paper", 9.9), ("road", 39.9)):
+        car = KinematicCar(car_domain(domain))
+        bounds = build_cost(scene, system=car).terms["bounds"]
+        assert float(bounds.low[3]) == pytest.approx(0.1) and float(bounds.high[3]) == pytest.approx(v_hi)
+        assert float(bounds.low[0]) == -9.9 and float(bounds.high[1]) == 9.9
+        assert float(bounds.low[2]) == car.config.state_min[2] and float(bounds.high[2]) == car.config.state_max[2]
+        x = torch.zeros(1, 1, 3, 5)
+        x[..., 3] = 15.0
+        assert (float(bounds.violation(x).max()) > 0) == (domain == "paper")
+
+
 def test_inactive_terms_are_zero_and_skipped():
     scene = block_scene()
     cost = build_cost(scene)
@@ -135,8 +152,7 @@ def test_inactive_terms_are_zero_and_skipped():
     torch.testing.assert_close(out.terms["collision"][mask], full.terms["collision"][mask])
 
 
-@pytest.mark.parametrize("kwargs", [{"beta": -1.0}, {"plateau_scales": (0,)}, {"goal_far_factor": 0.5},
-                                    {"v_min": 5.0, "v_max": 1.0}])
+@pytest.mark.parametrize("kwargs", [{"beta": -1.0}, {"plateau_scales": (0,)}, {"goal_far_factor": 0.5}])
 def test_bad_cost_config(kwargs):
     with pytest.raises(ValueError):
         CostConfig(**kwargs)

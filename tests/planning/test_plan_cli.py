@@ -31,10 +31,11 @@ def test_plan_writes_outputs_and_config(tmp_path, capsys):
     for name in ("plan.png", "plan.gif", "costs.png", "config.toml"):
         assert (out / name).stat().st_size > 0
     assert verdict["status"] in capsys.readouterr().out
-    # the effective configuration reproduces the run
+    # the effective configuration, [system] included (the flags wrote it), reproduces the run on its own
+    assert data["config"]["system"] == {"name": "car", "models": "auto", "controller": "analytic", "density": "exact"}
     out2 = tmp_path / "p2"
-    assert main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density", "exact",
-                 "--config", str(out / "config.toml"), "-q", "--no-gif", "--out", str(out2)]) == rc
+    assert main(["plan", "--env", "random", "--seed", "1", "--config", str(out / "config.toml"), "-q", "--no-gif",
+                 "--out", str(out2)]) == rc
     data2 = json.loads((out2 / "plan.json").read_text())
     assert data2["params"] == data["params"]
 
@@ -50,6 +51,9 @@ def test_plan_writes_outputs_and_config(tmp_path, capsys):
         (["--env", "file"], "needs --file"),
         (["--env", "random", "--config", "missing.toml"], "config file not found"),
         (["--env", "random", "--device", "cuda:7"], "cuda"),
+        (["--env", "random", "--system", "boat"], "unknown system 'boat'; valid choices: car"),
+        (["--env", "random", "--models", "moon"], "unknown model set 'moon'"),
+        (["--env", "random", "--set", "system.name=boat"], "unknown system 'boat'"),
     ],
 )
 def test_plan_errors_are_one_line(tmp_path, capsys, monkeypatch, args, match):

@@ -128,7 +128,7 @@ def test_fit_reproduces_the_route(route_goal, speed):
 
 def test_route_seeds_for_a_problem_and_none_without_lanes():
     goal = GoalRegion(_box(110.5, 113.0, -10.5, -8.5), (9.0, 10.0))
-    scene = road_scene(goal, start=(40.0, 1.75, 0.0, 6.0, 0.0))
+    scene = road_scene(goal, start=(40.0, 1.75, 0.0, 6.0))
     problem = PlanningProblem.from_scene(scene)
     seeds = route_seed_parameters(problem, RouteSeedConfig(max_routes=2), lane_graph=lane_graph(),
                                   v_limits=(0.1, 9.9), dtype=torch.float64)
@@ -156,7 +156,7 @@ def test_stage_one_with_route_seeds_turns_at_the_junction_and_stays_on_the_road(
     """Stage 1 on the hand-made junction (goal on the right turn's exit in 9-10 s): the kept candidate is a route
     seed, its reference reaches the goal region inside the interval, and its rectangle never leaves the road."""
     goal = GoalRegion(_box(110.5, 113.0, -14.0, -8.5), (9.0, 10.0))
-    scene = road_scene(goal, start=(40.0, 1.75, 0.0, 6.0, 0.0))
+    scene = road_scene(goal, start=(40.0, 1.75, 0.0, 6.0))
     problem = PlanningProblem.from_scene(scene)
     graph = lane_graph()
     cfg = DensityPlannerConfig(n_candidates=10, epochs_init=20)

@@ -34,7 +34,7 @@ def moving_grid(t0: float = 0.0, n: int = T) -> OccupancyGrid:
 
 def scene_at(t_start: float, grid: OccupancyGrid | None = None, **meta) -> Scene:
     grid = grid or moving_grid()
-    return Scene(grid, (50.0, 8.0, 0.0, 0.0, 0.0), (55.0, 8.0), (0.0, 60.0, -10.0, 10.0), name="moving",
+    return Scene(grid, (50.0, 8.0, 0.0, 0.0), (55.0, 8.0), (0.0, 60.0, -10.0, 10.0), name="moving",
                  meta=meta, t_start=t_start)
 
 

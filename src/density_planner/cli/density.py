@@ -9,10 +9,10 @@ import numpy as np
 import torch
 
 from ._common import (
-    add_controller,
     add_device,
     add_out,
     add_seed,
+    add_system,
     check_out,
     load_params_file,
     out_dir,
@@ -20,9 +20,10 @@ from ._common import (
     resolve_dtype,
 )
 
-#: default start state [p_x, p_y, theta, v, theta_bias] (the fixed start of the artificial scenes)
-DEFAULT_START = (0.0, -28.0, 1.5, 3.0, 0.0)
-#: default reference parameters (2, 10): a gentle S-curve while speeding up, then braking
+#: default start pose [x, y, heading, speed] (the fixed start of the artificial scenes)
+DEFAULT_START = (0.0, -28.0, 1.5, 3.0)
+#: default reference parameters (2, 10) of a two-input system: for the car a gentle S-curve while speeding up, then
+#: braking (other input counts: zeros)
 DEFAULT_PARAMS = (
     (0.3, 0.3, 0.0, -0.3, -0.3, 0.0, 0.2, 0.2, 0.0, 0.0),
     (0.8, 0.5, 0.3, 0.0, 0.0, 0.0, 0.0, -0.3, -0.5, -0.5),
@@ -39,12 +40,12 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     p.add_argument("--samples", type=int, default=500, help="number of initial samples (default 500)")
     p.add_argument("--params", type=str, default=None, metavar="FILE",
-                   help="reference parameters (2x10) as .json/.npy/.npz (default: a built-in S-curve)")
-    p.add_argument("--start", type=float, nargs=5, default=DEFAULT_START, metavar="X",
-                   help="reference start px py theta v theta_bias (default: %(default)s)")
+                   help="reference parameters (nu x 10) as .json/.npy/.npz (default: a built-in S-curve)")
+    p.add_argument("--start", type=float, nargs=4, default=DEFAULT_START, metavar="X",
+                   help="start pose x y heading speed, mapped to the system's state (default: %(default)s)")
     p.add_argument("--integrator", default=None, choices=("euler", "rk4"), help="integration scheme (default rk4)")
     p.add_argument("--dt", type=float, default=None, help="integration step [s] (default 0.1 for rk4, 0.01 euler)")
-    add_controller(p)
+    add_system(p, density=False)
     add_seed(p)
     add_device(p)
     add_out(p)
@@ -52,13 +53,14 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..config import update
     from ..control.reference import make_reference
-    from ..control.registry import load_controller
+    from ..control.registry import load_controller, model_set_for_scene
     from ..density.distributions import paper_gaussian_mixture
     from ..density.liouville import LiouvilleConfig, propagate_density
     from ..io.atomic import atomic_save_npz
     from ..memory import check_memory
-    from ..systems.car import KinematicCar
+    from ..systems.registry import SystemConfig
 
     if args.samples < 1:
         raise ValueError(f"--samples must be >= 1, got {args.samples}")
@@ -69,21 +71,24 @@ def run(args: argparse.Namespace) -> int:
     itemsize = 8 if dtype == torch.float64 else 4
     check_memory(args.samples * (101 * 6 * (itemsize + 8) + 8192), f"--samples {args.samples}",
                  "lower --samples")
-    car = KinematicCar()
-    controller = load_controller(args.controller).to(device=device, dtype=dtype)
+    sys_cfg = update(SystemConfig(), {k: v for k, v in (("name", args.system), ("models", args.models)) if v})
+    models = model_set_for_scene("random", sys_cfg.models, sys_cfg.name)
+    car = models.make_system()
+    controller = load_controller(args.controller, models=models).to(device=device, dtype=dtype)
 
     where = "reference parameters" if args.params is None else f"--params {args.params}"
-    params = np.asarray(DEFAULT_PARAMS) if args.params is None else load_params_file(args.params)
+    default = np.asarray(DEFAULT_PARAMS) if car.nu == 2 else np.zeros((car.nu, 10))
+    params = default if args.params is None else load_params_file(args.params)
     if params.shape != (car.nu, 10):
         raise ValueError(f"{where}: reference parameters must have shape ({car.nu}, 10), got {params.shape}")
     if not np.isfinite(params).all():
         raise ValueError(f"{where}: reference parameters contain NaN or infinite values")
-    lo, hi = car.config.input_min, car.config.input_max
+    lo, hi = car.input_bounds
     if (params < np.asarray(lo)[:, None]).any() or (params > np.asarray(hi)[:, None]).any():
         raise ValueError(f"{where}: reference parameters must lie within the input bounds [{lo}, {hi}]")
-    start = torch.tensor(args.start, dtype=dtype, device=device)
-    if not bool(torch.isfinite(start).all()):
+    if not all(np.isfinite(args.start)):
         raise ValueError("--start contains NaN or infinite values")
+    start = torch.tensor(car.state_from_pose(*args.start), dtype=dtype, device=device)
 
     integrator = args.integrator or "rk4"
     dt = args.dt if args.dt is not None else (0.1 if integrator == "rk4" else 0.01)
@@ -91,11 +96,10 @@ def run(args: argparse.Namespace) -> int:
 
     out = out_dir(args.out)  # every input is valid: create the output directory
     gen = torch.Generator().manual_seed(args.seed)
-    dist = paper_gaussian_mixture(start.cpu().double(), car.config.initial_error_max, gen)
+    dist = paper_gaussian_mixture(start.cpu().double(), car.initial_error_max, gen)
     x0 = dist.sample(args.samples, gen, dtype=dtype, device=device)
     log_rho0 = dist.log_prob(x0)
-    ref_start = start.clone()
-    ref_start[4] = 0.0  # the reference is the nominal (unbiased) trajectory
+    ref_start = car.nominal_state(start.clone())  # the reference is the nominal (unbiased) trajectory
     reference = make_reference(car, ref_start, torch.as_tensor(params, dtype=dtype, device=device))
 
     t0 = time.perf_counter()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_out, check_out, out_dir
+from ._common import add_config, add_out, add_system, apply_system_args, check_out, out_dir
 from ._scenes import add_scene_args, scene_from_args
 
 KINDS = ("random", "ind", "commonroad")
@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     )
     add_scene_args(p, flag="--kind", kinds=KINDS)
     p.add_argument("--no-gif", action="store_true", help="skip occupancy.gif")
+    add_system(p, density=False)
     add_config(p)
     add_out(p)
     p.set_defaults(func=run)
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from ..settings import RunConfig
 
     check_out(args.out)
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     t0 = time.perf_counter()
     scene = scene_from_args(args, run_config, kind_flag="--kind")
     elapsed = time.perf_counter() - t0

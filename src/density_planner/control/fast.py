@@ -73,6 +73,33 @@ class NumpyC3M:
         hidden = np.tanh(a.reshape(self.rank, N_ERR) @ e)
         return np.asarray(u_ref, float) + b.reshape(-1, self.rank) @ hidden
 
+    @staticmethod
+    def supports(system) -> bool:
+        """Whether :meth:`track` can drive ``system`` (the kinematic car C3M controllers are trained for)."""
+        from ..systems.car import KinematicCar
+
+        return isinstance(system, KinematicCar)
+
+    def track(self, x: np.ndarray, x_refs: np.ndarray, u_refs: np.ndarray, dt: float,
+              times: list[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Explicit-Euler closed loop of the car (state ``p_x, p_y, theta, v, theta_bias``, heading-biased
+        measurement) over the references ``x_refs (K, 5)``, ``u_refs (K, 2)`` from ``x (5,)``: returns the final
+        state and the first applied input; appends each controller evaluation's wall time to ``times``."""
+        import time
+
+        xn = np.array(x, dtype=np.float64)
+        u_first = None
+        for j in range(x_refs.shape[0]):
+            xh = np.array([xn[0], xn[1], xn[2] + xn[4], xn[3], 0.0])  # KinematicCar.measure
+            tc = time.perf_counter()
+            u = self(xh, x_refs[j], u_refs[j])
+            if times is not None:
+                times.append(time.perf_counter() - tc)
+            if u_first is None:
+                u_first = u
+            xn = xn + dt * np.array([xn[3] * math.cos(xn[2]), xn[3] * math.sin(xn[2]), u[0], u[1], 0.0])
+        return xn, u_first
+
     def __call__(self, x_hat: np.ndarray, x_ref: np.ndarray, u_ref: np.ndarray) -> np.ndarray:
         u = self.raw(x_hat, x_ref, u_ref)
         sat = self.sat

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..systems.base import System
 from ..systems.car import CarConfig, KinematicCar, car_domain
-from ..systems.registry import DEFAULT_SYSTEM, make_system
+from ..systems.registry import DEFAULT_SYSTEM, make_system, system_entry
 from .analytic import CarTrackingController
 from .base import TrackingController
 
@@ -159,6 +159,7 @@ def model_set_for_scene(kind: str | None, override: str | None = None, system: s
                              f"of {', '.join(n for n, m in MODEL_SETS.items() if m.system == system)}")
         return mset
     system = system or DEFAULT_SYSTEM
+    system_entry(system)  # an unknown name fails here, with the valid choices
     sets = [m for m in MODEL_SETS.values() if m.system == system]
     if not sets:
         raise ValueError(f"no model set is registered for the system {system!r}")

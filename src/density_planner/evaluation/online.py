@@ -262,11 +262,18 @@ def recentred(dist: Any, mean: Tensor) -> Any:
 
 def braking_parameters(system: System, v0: float, segment_duration: float, n_segments: int,
                        steer: tuple[float, ...]) -> Tensor:
-    """``(len(steer), nu, S)`` braking manoeuvres of the car from speed ``v0``: the largest deceleration until
-    standstill (the last braking segment only removes the remaining speed), with a constant steering rate
-    ``steer * omega_max`` while moving, 0 once stopped."""
+    """``(len(steer), nu, S)`` braking manoeuvres from speed ``v0``: the largest deceleration (the system's
+    acceleration input) until standstill (the last braking segment only removes the remaining speed), with the
+    steering input (the turn-rate input, else the first other input) at ``steer`` times its bound while moving, 0
+    once stopped."""
+    ia = system.acceleration_input
+    if ia is None:
+        raise ValueError(f"braking needs a system with an acceleration input; {type(system).__name__} has none")
+    steer_i = system.turn_rate_input
+    if steer_i is None:
+        steer_i = next((i for i in range(system.nu) if i != ia), None)
     lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in system.input_bounds)
-    a_min = float(lo[1])
+    a_min = float(lo[ia])
     v = max(float(v0), 0.0)
     acc, moving = [], []
     for _ in range(n_segments):
@@ -278,8 +285,9 @@ def braking_parameters(system: System, v0: float, segment_duration: float, n_seg
     mov = torch.tensor(moving, dtype=torch.float64)
     out = torch.zeros(len(steer), system.nu, n_segments, dtype=torch.float64)
     for i, s in enumerate(steer):
-        out[i, 0] = (s * float(hi[0]) if s >= 0 else -s * float(lo[0])) * mov
-        out[i, 1] = acc_t
+        if steer_i is not None:
+            out[i, steer_i] = (s * float(hi[steer_i]) if s >= 0 else -s * float(lo[steer_i])) * mov
+        out[i, ia] = acc_t
     return out
 
 
@@ -397,16 +405,17 @@ def drive(
     dtype = getattr(planner, "dtype", torch.float32)
     device = getattr(planner, "device", torch.device("cpu"))
     law0 = problem0.initial_distribution
-    is_car = list(getattr(system, "state_names", ()))[-1:] == ["theta_bias"]
-    a_min = float(system.input_bounds[0][1]) if is_car else 0.0
+    iv, ia = system.speed_index, system.acceleration_input
+    hidden = list(system.hidden_states)
+    a_min = float(system.input_bounds[0][ia]) if ia is not None else 0.0
     speed_range = getattr(getattr(planner, "predictor", None), "speed_range", None)
     v_floor = float(speed_range[0]) if speed_range is not None else -math.inf
     fast = None
-    if config.fast_controller and is_car:
+    if config.fast_controller:
         from ..control.c3m import C3MController
         from ..control.fast import NumpyC3M
 
-        if isinstance(controller, C3MController):
+        if isinstance(controller, C3MController) and NumpyC3M.supports(system):
             fast = NumpyC3M(controller)
     warm_capable = all(hasattr(planner, m) for m in ("initialise", "refine", "evaluate"))
 
@@ -427,11 +436,11 @@ def drive(
 
     def brake(grid: Any, x_now: Tensor, t: float) -> tuple[_Active, float]:
         """The least-risk braking manoeuvre from the measurement ``x_now`` at ``t`` in ``grid``."""
-        cand = braking_parameters(system, float(x_now[3]), par.segment_duration, par.n_segments,
-                                  config.brake_steer).to(dtype=dtype, device=device)
-        start = x_now.detach().to(dtype=dtype, device=device).clone()
-        if is_car:
-            start[-1] = 0.0  # the car's heading bias is not part of a reference
+        speed = system.speeds(x_now)
+        cand = braking_parameters(system, 0.0 if speed is None else float(speed), par.segment_duration,
+                                  par.n_segments, config.brake_steer).to(dtype=dtype, device=device)
+        # hidden states (the car's heading bias) are not part of a reference
+        start = system.nominal_state(x_now.detach().to(dtype=dtype, device=device).clone())
         refs = make_reference(system, start, cand, par)
         risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i]) for i in range(cand.shape[0])]
         risks = [r if math.isfinite(r) else math.inf for r in risks]
@@ -452,7 +461,8 @@ def drive(
         n_ahead = max(1, min(grid.n_slices, int(round(snapshot_lookahead / grid.dt)) + 1))
         k0 = int(grid.slice_index(t, clamp=True))
         sub = grid.probs[k0 : k0 + n_ahead, i0:i1:st, j0:j1:st].detach().cpu().float()
-        snapshots.append({"t": float(t), "plan": active.reference.x_plan[:, :2].detach().cpu().numpy().astype(float),
+        snapshots.append({"t": float(t),
+                          "plan": system.positions(active.reference.x_plan).detach().cpu().numpy().astype(float),
                           "position": np.asarray(pos[:2], dtype=float), "occupancy": sub[0].numpy(),
                           "swept": sub.amax(dim=0).numpy(), "extent": tuple(float(e) for e in extent)})
     t_start = scene.t_start
@@ -472,7 +482,7 @@ def drive(
         replans.append(Replan(t_start, "initial", wall0, warm_start=False, fallback="brake",
                               reason=f"the initial plan failed: {initial_plan.message or initial_plan.status.value}",
                               previous_p_coll=p_b))
-    snapshot(t_start, prediction.window(t_start, horizon), x_init)
+    snapshot(t_start, prediction.window(t_start, horizon), system.positions(torch.from_numpy(x_init)).numpy())
 
     states = [x.detach().cpu().numpy().astype(np.float64)]
     inputs: list[np.ndarray] = []
@@ -487,12 +497,12 @@ def drive(
         if k > 0 and k % period_steps == 0:
             i_replan += 1
             x_hat = system.measure(x[None])[0]
-            if is_car:  # plan from the state box (a tracking overshoot below standstill) and from the speeds the
-                # learned predictor serves (online, its exact-Liouville fallback would take minutes)
+            if iv is not None:  # plan from the state box (a tracking overshoot below standstill) and from the
+                # speeds the learned predictor serves (online, its exact-Liouville fallback would take minutes)
                 lo_s, hi_s = system.state_bounds
                 x_hat = x_hat.clone()
-                x_hat[3] = x_hat[3].clamp(max(float(lo_s[3]), v_floor), float(hi_s[3]))
-            centre = tuple(float(v) for v in x_hat.detach().cpu())
+                x_hat[iv] = x_hat[iv].clamp(max(float(lo_s[iv]), v_floor), float(hi_s[iv]))
+            centre = system.pose(x_hat.detach().cpu())
             tp = time.perf_counter()
             rec = Replan(t, "failed", 0.0)
             prob = None
@@ -501,8 +511,8 @@ def drive(
             try:
                 scene_t = replace(prediction.scene, grid=grid_t, t_start=grid_t.t0, start=centre)
                 mean = x_hat.detach().to(torch.float64).clone()
-                if is_car:
-                    mean[-1] = law0.mean[-1]  # the heading bias keeps its law (unknown to the vehicle)
+                if hidden:  # hidden states (the car's heading bias) keep their law: unknown to the vehicle
+                    mean[hidden] = law0.mean[hidden].to(mean)
                 prob = PlanningProblem(scene_t, recentred(law0, mean), system, par, risk, start_threshold=math.inf)
             except ValueError as exc:
                 rec.reason = f"no planning problem at the measurement: {exc}"
@@ -511,13 +521,14 @@ def drive(
                 warm = None
                 offset = int(round((t - active.t0) / dt))
                 if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
-                    gap = float(torch.linalg.vector_norm(active.x_ref[offset, :2] - x_hat[:2].to(dtype)))
+                    gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
+                                                         - system.positions(x_hat).to(dtype)))
                     if gap <= config.restart_distance:
                         tail = None
-                        if is_car:  # past the old horizon: straight, braking towards standstill
-                            v_end = float(active.reference.x[-1, 3])
-                            tail = torch.tensor([0.0, max(a_min, -v_end / par.segment_duration)],
-                                                dtype=torch.float64)
+                        if iv is not None and ia is not None:  # past the old horizon: straight, braking
+                            v_end = float(active.reference.x[-1, iv])
+                            tail = torch.zeros(system.nu, dtype=torch.float64)
+                            tail[ia] = max(a_min, -v_end / par.segment_duration)
                         warm = shift_parameters(active.params.detach().to(torch.float64), t - active.t0,
                                                 par.segment_duration, tail)
                 t1 = time.perf_counter()
@@ -577,7 +588,7 @@ def drive(
             step_extra = rec.wall_time + rec.prediction_time
             if progress is not None:
                 progress(t, rec)
-            snapshot(t, grid_t, x.detach().cpu().numpy())
+            snapshot(t, grid_t, system.positions(x).detach().cpu().numpy())
         # -- track the active reference for one planning step (per_plan integration steps, one state)
         offset = int(round((t - active.t0) / dt))
         if offset + per_plan > active.x_ref.shape[0]:  # the reference ended (long fallback): brake from here
@@ -587,16 +598,10 @@ def drive(
                                   previous_p_coll=p_b))
             offset = 0
         u_first = None
-        if fast is not None:  # torch-free loop of the car (state p_x, p_y, theta, v, theta_bias)
-            xn = x.detach().cpu().double().numpy().copy()
-            for j in range(per_plan):
-                xh = np.array([xn[0], xn[1], xn[2] + xn[4], xn[3], 0.0])  # KinematicCar.measure
-                tc = time.perf_counter()
-                u = fast(xh, active.x_ref_np[offset + j], active.u_ref_np[offset + j])
-                ctrl_times.append(time.perf_counter() - tc)
-                if u_first is None:
-                    u_first = torch.from_numpy(u)
-                xn = xn + dt * np.array([xn[3] * math.cos(xn[2]), xn[3] * math.sin(xn[2]), u[0], u[1], 0.0])
+        if fast is not None:  # torch-free closed loop (control/fast.py)
+            xn, u_np = fast.track(x.detach().cpu().double().numpy(), active.x_ref_np[offset:offset + per_plan],
+                                  active.u_ref_np[offset:offset + per_plan], dt, ctrl_times)
+            u_first = torch.from_numpy(u_np)
             x = torch.from_numpy(xn).to(dtype=dtype, device=device)
         else:
             with torch.no_grad():
@@ -614,8 +619,8 @@ def drive(
         k += 1
         if road is not None and config.stop_at_goal:
             tk = np.array([t_start + k * plan_dt])
-            xy = states[-1][None, :2]
-            inside = road.goal.contains(xy, tk, v=np.array([states[-1][3]]), theta=np.array([states[-1][2]]))
+            px, py, heading, speed = system.pose(torch.from_numpy(states[-1]))
+            inside = road.goal.contains(np.array([[px, py]]), tk, v=np.array([speed]), theta=np.array([heading]))
             if bool(inside[0]):
                 log.info("t = %.2f s: in the goal region during its time interval; stopping", float(tk[0]))
                 break

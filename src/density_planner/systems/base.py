@@ -66,6 +66,9 @@ class System(ABC):
     #: index of the input that sets the heading rate [rad/s] directly, ``None`` when none does (initial guesses
     #: of route-following references)
     turn_rate_input: int | None = None
+    #: indices of states the vehicle cannot measure or know when it plans (the car's heading bias): a reference
+    #: starts with them at 0 (:meth:`nominal_state`) and a replan keeps their initial law
+    hidden_states: tuple[int, ...] = ()
     #: the body; a point unless the system says otherwise
     footprint: Footprint = Footprint()
 
@@ -111,10 +114,19 @@ class System(ABC):
                                  "cannot be represented (use a system with one, e.g. --system car)")
         return tuple(state)
 
+    def pose(self, x: Tensor) -> tuple[float, float, float, float]:
+        """``(x, y, heading, speed)`` of one state ``x (nx,)``: the inverse of :meth:`state_from_pose` (heading and
+        speed 0 for a system without them); a replan's scene starts there."""
+        px, py = (float(v) for v in self.positions(x.detach()))
+        h, v = self.headings(x.detach()), self.speeds(x.detach())
+        return px, py, 0.0 if h is None else float(h), 0.0 if v is None else float(v)
+
     def nominal_state(self, x: Tensor) -> Tensor:
-        """``x (..., nx)`` with the states a plan cannot know (a measurement bias) at their nominal value: the
-        start of the reference, i.e. of the nominal trajectory (default: ``x`` unchanged)."""
-        return x
+        """``x (..., nx)`` with the states a plan cannot know (:attr:`hidden_states`, e.g. a measurement bias) at 0:
+        the start of the reference, i.e. of the nominal trajectory."""
+        if not self.hidden_states:
+            return x
+        return x.index_fill(-1, torch.tensor(self.hidden_states, device=x.device), 0.0)
 
     @property
     def initial_error_max(self) -> tuple[float, ...]:

@@ -202,6 +202,7 @@ class KinematicCar(ControlAffineSystem):
     speed_index = V
     acceleration_input = ACC
     turn_rate_input = OMEGA
+    hidden_states = (BIAS,)
 
     def __init__(self, config: CarConfig | None = None):
         self.config = config or CarConfig()
@@ -235,11 +236,6 @@ class KinematicCar(ControlAffineSystem):
         """``(x, y, wrap_heading(heading), speed, 0)``: the heading shifted by a multiple of 2 pi into
         ``[-pi + 0.2, pi + 0.2)``, inside both domains' heading boxes; the bias is 0."""
         return (float(x), float(y), wrap_heading(float(heading)), float(speed), 0.0)
-
-    def nominal_state(self, x: Tensor) -> Tensor:
-        """``x`` with zero heading bias: the reference is the nominal, unbiased trajectory; the bias only enters the
-        measurement."""
-        return x.index_fill(-1, torch.tensor([BIAS], device=x.device), 0.0)
 
     def planning_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """Heading in the state box, speed ``config.planning_speed_margin`` inside the speed box, bias free."""
