@@ -113,7 +113,7 @@ def evaluate_tracking(
     reference = sample_feasible_references(system, n_references, gen, dtype=dtype)
     e_biased = sample_initial_errors(n_references, gen, box=system.initial_error_max, with_bias=True, dtype=dtype)
     x0 = {"unbiased": system.nominal_state(reference.start + e_biased), "biased": reference.start + e_biased}
-    variants = BIAS_VARIANTS if type(system).measure is not System.measure else ("unbiased",)
+    variants = BIAS_VARIANTS if system.hidden_states else ("unbiased",)
     xs: dict[str, dict[str, np.ndarray]] = {}
     errs: dict[str, dict[str, np.ndarray]] = {}
     walls: dict[str, float] = {}
