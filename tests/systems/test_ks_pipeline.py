@@ -67,6 +67,7 @@ def test_plan_random_scene_with_ks(tmp_path):
     data = json.loads((out / "plan.json").read_text())
     assert rc == (0 if data["status"] == "success" else 3) and data["planner_status"] == "success"
     assert data["config"]["system"]["name"] == "ks" and data["controller"] == "KSTrackingController"
+    assert data["models"] == "ks"
     states = np.asarray(data["states"])
     assert states.shape[1] == 5
     # the plan starts at the mean of the initial law around the scene's pose (inside the XE0 box), and its steering

@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
-        "models": getattr(getattr(ctx.controller, "car", None), "domain", None),
+        "models": run_model_set(run_config, args.kind).name,
         "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "config": to_dict(run_config),
         "versions": versions(),
