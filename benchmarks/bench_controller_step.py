@@ -26,9 +26,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     from density_planner.control.fast import NumpyC3M
-    from density_planner.control.registry import load_controller, model_set_for_scene
+    from density_planner.control.registry import load_controller, model_set
 
-    models = model_set_for_scene("commonroad" if args.models == "road" else "random", None)
+    models = model_set(args.models)
     ctrl = load_controller("c3m", models=models)
     fast = NumpyC3M(ctrl)
     x_ref = torch.tensor([[1.0, 2.0, 0.3, 8.0, 0.0]])

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,9 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from density_planner.environment import IndSceneConfig, load_ind_scene, random_scene, write_ind_recording
+from density_planner.environment import IndSceneConfig, load_ind_scene, random_scene
 from density_planner.environment.footprints import RoadUserTracks, rasterise_road_users
 from density_planner.environment.ind import class_id, read_tracks, read_tracks_meta, tracks_in_window
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the inD writer of the tests
+from ind_testdata import write_ind_recording  # noqa: E402
 
 AREA = (0.0, 100.0, -80.0, 0.0)
 

@@ -46,17 +46,15 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("commonroad").setLevel(logging.ERROR)
 
     from density_planner.cli.drive import _scene_for_drive
-    from density_planner.cli.plan import build_context
     from density_planner.config import load_config, update
-    from density_planner.control.registry import model_set_for_scene
     from density_planner.environment.prediction import make_prediction
     from density_planner.evaluation.online import drive
     from density_planner.evaluation.simulate import execute
     from density_planner.evaluation.verdict import judge
+    from density_planner.planners.context import build_context, run_system
     from density_planner.planners.problem import PlanningProblem
     from density_planner.planners.registry import make_planner
     from density_planner.settings import RunConfig
-    from density_planner.systems.car import KinematicCar
 
     run_config = load_config(RunConfig, None, args.overrides)
     files = sorted(args.scenarios.glob("*.xml"))
@@ -94,9 +92,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{f.name}: refused: {str(exc).splitlines()[0]}", flush=True)
             continue
         t_scene = time.perf_counter() - t0
-        system = KinematicCar(model_set_for_scene("commonroad", None).car)
+        system = run_system(cfg, "commonroad")
         problem = PlanningProblem.from_scene(scene, seed=0, planning=cfg.planning, risk=cfg.risk, system=system)
-        ctx = build_context(ns, cfg, progress=False, parameterization=problem.parameterization)
+        ctx = build_context(cfg, kind="commonroad", parameterization=problem.parameterization, system=system)
         planner = make_planner("density", ctx)
         x0 = problem.initial_distribution.sample(1, torch.Generator().manual_seed(cfg.online.seed),
                                                  dtype=torch.float64)[0]

@@ -31,25 +31,21 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
 
     from density_planner.config import load_config, update
-    from density_planner.control.registry import load_controller, model_set_for_scene
-    from density_planner.density.registry import load_predictor
     from density_planner.environment.prediction import OraclePrediction
     from density_planner.environment.random_scene import random_scene
     from density_planner.evaluation.online import recentred, shift_parameters, warm_replan
     from density_planner.evaluation.verdict import judge_plan
+    from density_planner.planners.context import build_context
     from density_planner.planners.density_planner import DensityPlanner
     from density_planner.planners.problem import PlanningProblem
     from density_planner.settings import RunConfig
-    from density_planner.systems.car import KinematicCar
 
     cfg = load_config(RunConfig, None, args.overrides)
     online = cfg.online
     n_slices = int(round((10.0 + args.replans * online.period + 10.0) / 0.1)) + 1
     cfg = update(cfg, {"random_scene": {"n_slices": max(cfg.random_scene.n_slices, n_slices)}})
-    models = model_set_for_scene("random", None)
-    car = KinematicCar(models.car)
-    ctrl = load_controller("c3m", models=models)
-    pred = load_predictor(None, car, ctrl)
+    ctx = build_context(cfg, kind="random", controller="c3m")
+    car, pred = ctx.system, ctx.predictor()
     planner = DensityPlanner(pred, cfg.density_planner)
     samples = online.replan_samples or cfg.density_planner.n_samples
     full_t, full_ok, re_t, re_ok, re_warm = [], [], [], [], []

@@ -23,7 +23,9 @@ import time
 from pathlib import Path
 
 from density_planner.config import update
-from density_planner.evaluation.benchmark import SETTINGS, BenchmarkSpec, artificial_envs, run_benchmark
+from density_planner.evaluation.benchmark import BenchmarkSpec, run_benchmark
+from density_planner.evaluation.benchmark_settings import SETTINGS
+from density_planner.evaluation.environments import artificial_envs
 from density_planner.settings import RunConfig
 
 SMALL = {

@@ -35,10 +35,10 @@ from density_planner.io.atomic import atomic_write_json, atomic_write_text
 
 def judging_system():
     """The car whose bounds the verdict's ``within_model`` uses: the road domain where the package has it."""
-    from density_planner.control.registry import model_set_for_scene
-    from density_planner.systems.car import KinematicCar
+    from density_planner.planners.context import run_system
+    from density_planner.settings import RunConfig
 
-    return KinematicCar(model_set_for_scene("commonroad").car)
+    return run_system(RunConfig(), "commonroad")
 
 
 def judge_one(xml: Path, runs: Path, system, timeout: float) -> dict:

@@ -19,10 +19,10 @@ from density_planner.environment import (
     read_tracks,
     read_tracks_meta,
     sample_start_goal,
-    write_ind_recording,
 )
 from density_planner.environment.ind import tracks_in_window
 from density_planner.errors import DataError
+from ind_testdata import write_ind_recording
 
 
 def test_readers_return_the_columns(ind_dir):

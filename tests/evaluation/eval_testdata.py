@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 
 from density_planner.config import update
-from density_planner.evaluation.benchmark import JobResult, run_job
+from density_planner.evaluation.jobs import JobResult, run_job
 from density_planner.planners.base import Planner
 from density_planner.planners.registry import register_planner
 from density_planner.settings import RunConfig

@@ -9,20 +9,9 @@ import pytest
 from eval_testdata import run_job_with_test_planners, tiny_run_config
 
 from density_planner.config import update
-from density_planner.evaluation.benchmark import (
-    BenchmarkSpec,
-    EnvSpec,
-    artificial_envs,
-    config_hash,
-    identity_view,
-    load_records,
-    load_scene_map,
-    make_jobs,
-    real_envs,
-    record_path,
-    run_benchmark,
-    stable_seed,
-)
+from density_planner.evaluation.benchmark import BenchmarkSpec, config_hash, make_jobs, run_benchmark
+from density_planner.evaluation.environments import EnvSpec, artificial_envs, real_envs, stable_seed
+from density_planner.evaluation.records import identity_view, load_records, load_scene_map, record_path
 from density_planner.evaluation.report import summary_rows
 
 TIME_COLUMNS = ("offline_time", "online_time")
@@ -160,7 +149,7 @@ def test_real_environments_from_the_shipped_commonroad_scenarios():
 def test_real_environments_from_ind_recordings(tmp_path):
     import numpy as np
 
-    from density_planner.environment.ind import write_ind_recording
+    from ind_testdata import write_ind_recording
 
     f = np.arange(1000)  # 40 s at 25 Hz
     car = {"id": 1, "class": "car", "length": 4.5, "width": 1.8, "frames": f, "x": 0.2 * f, "y": np.zeros(f.size),
@@ -179,7 +168,7 @@ def test_real_environments_from_ind_recordings(tmp_path):
 
 @pytest.mark.slow
 def test_real_commonroad_scene_with_sampled_start_goal():
-    from density_planner.evaluation.benchmark import build_scene
+    from density_planner.evaluation.environments import build_scene
 
     env = real_envs(range(4))[3]  # US101, start/goal seed 1
     scene = build_scene(env, tiny_run_config())

@@ -11,8 +11,8 @@ import pytest
 from eval_testdata import TINY_DP
 
 from density_planner.cli import main
-from density_planner.evaluation.benchmark import shipped_commonroad_dir
 from density_planner.evaluation.commonroad_bench import commonroad_summary, summary_markdown
+from density_planner.evaluation.environments import shipped_commonroad_dir
 from density_planner.io.commonroad_solution import SolutionConfig, read_solution, write_solution
 
 TINY = [f"--set=density_planner.{k}={v}" for k, v in TINY_DP.items()] + ["--set=evaluation.mc_samples_tracked=2"]

@@ -160,7 +160,8 @@ def test_report_counts_runs_the_sweep_expects(tmp_path):
 
 
 def test_resumed_bench_recomputes_bad_records(tmp_path):
-    from density_planner.evaluation.benchmark import BenchmarkSpec, _existing, artificial_envs
+    from density_planner.evaluation.benchmark import BenchmarkSpec, _existing
+    from density_planner.evaluation.environments import artificial_envs
     from density_planner.settings import RunConfig
 
     spec = BenchmarkSpec("ablation", artificial_envs(range(2)), ("density",), ("nominal",), RunConfig())
@@ -181,7 +182,9 @@ def test_unreachable_scheduler_leaves_no_sweep_file(tmp_path, monkeypatch):
         yield  # pragma: no cover
 
     monkeypatch.setattr(bm, "run_tasks", refuse)
-    spec = bm.BenchmarkSpec("ablation", bm.artificial_envs(range(1)), ("density",), ("nominal",), RunConfig())
+    from density_planner.evaluation.environments import artificial_envs
+
+    spec = bm.BenchmarkSpec("ablation", artificial_envs(range(1)), ("density",), ("nominal",), RunConfig())
     with pytest.raises(ValueError, match="cannot connect"):
         bm.run_benchmark(spec, tmp_path, scheduler="tcp://127.0.0.1:1")
     assert not list(tmp_path.glob("sweep_*.json"))
@@ -189,7 +192,7 @@ def test_unreachable_scheduler_leaves_no_sweep_file(tmp_path, monkeypatch):
 
 # --------------------------------------------------------------------------------------------------- inD files
 def _ind(tmp_path) -> Path:
-    from density_planner.environment.ind import write_ind_recording
+    from ind_testdata import write_ind_recording
 
     f = np.arange(300)
     car = {"id": 1, "class": "car", "length": 4.5, "width": 1.8, "frames": f, "x": 10.0 + 0.2 * f,

@@ -131,7 +131,8 @@ def test_ind_start_time_5_cli(tmp_path):
     """``--env ind --start-time 5``: the scene starts at 5 s on the recording's clock and the planner reads the
     slices of 5 .. 15 s (a plan is made)."""
     from density_planner.cli import main
-    from density_planner.environment.ind import IndSceneConfig, load_ind_scene, write_ind_recording
+    from density_planner.environment.ind import IndSceneConfig, load_ind_scene
+    from ind_testdata import write_ind_recording
 
     f = np.arange(500)  # 20 s at 25 Hz
     tt = f / 25.0

@@ -16,8 +16,6 @@ __all__ = [
     "add_controller",
     "add_system",
     "apply_system_args",
-    "run_model_set",
-    "run_system",
     "add_threads",
     "apply_threads",
     "add_config",
@@ -126,19 +124,6 @@ def apply_system_args(args: argparse.Namespace, run_config):
     return update(run_config, {"system": changes}) if changes else run_config
 
 
-def run_model_set(run_config, kind: str | None):
-    """The model set of the run's ``[system]`` section for a scene of ``kind``."""
-    from ..control.registry import model_set_for_scene
-
-    cfg = run_config.system
-    return model_set_for_scene(kind, cfg.models, cfg.name)
-
-
-def run_system(run_config, kind: str | None):
-    """The run's system (``[system]`` name, in the domain of its model set for a scene of ``kind``)."""
-    return run_model_set(run_config, kind).make_system()
-
-
 def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:
     """``--config FILE.toml`` and ``--set KEY=VALUE``; ``example`` is a valid key of the command's configuration
     (tests/test_set_examples.py parses every example)."""
@@ -167,6 +152,18 @@ def resolve_device(name: str) -> torch.device:
 
 def resolve_dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[name]
+
+
+def context_from_args(args: argparse.Namespace, run_config, *, progress: bool = False, parameterization=None,
+                      system=None):
+    """:func:`~density_planner.planners.context.build_context` for the scene kind, ``--device`` and ``--dtype`` of
+    the command line (``--system``, ``--models``, ``--controller`` and ``--density`` are in ``run_config``'s
+    ``[system]`` section: :func:`apply_system_args`)."""
+    from ..planners.context import build_context
+
+    return build_context(run_config, kind=getattr(args, "kind", None), parameterization=parameterization,
+                         system=system, device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
+                         progress=progress)
 
 
 def check_out(path: Path) -> Path:

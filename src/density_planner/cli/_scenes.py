@@ -1,23 +1,22 @@
-"""Scene selection shared by the ``env``, ``plan`` and ``bench`` commands."""
+"""Scene selection shared by the ``env``, ``plan``, ``drive``, ``validate risk`` commands: the command-line face of
+:mod:`density_planner.environment.sources`."""
 
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
-from ..config import update
-
-__all__ = ["SCENE_KINDS", "add_scene_args", "scene_from_args"]
-
-SCENE_KINDS = ("random", "ind", "commonroad", "file")
+__all__ = ["add_scene_args", "scene_request", "scene_from_args"]
 
 
 def add_scene_args(p: argparse.ArgumentParser, *, flag: str = "--env", required: bool = True,
-                   kinds: tuple[str, ...] = SCENE_KINDS) -> None:
+                   kinds: tuple[str, ...] | None = None) -> None:
+    """The scene flags; ``kinds`` limits the sources (default: every registered one)."""
+    from ..environment.sources import scene_kinds, scene_source
+
+    kinds = kinds or scene_kinds()
     p.add_argument(flag, dest="kind", required=required, choices=kinds,
-                   help="scene source: random artificial scene, inD recording, CommonRoad XML"
-                   + (", or a saved scene (.npz from `density-planner env`)" if "file" in kinds else ""))
+                   help="scene source: " + "; ".join(f"{k}: {scene_source(k).description}" for k in kinds))
     p.add_argument("--seed", type=int, default=None,
                    help="random: scene number (default 0); ind: seed of the start/goal sampler; commonroad: "
                    "its seed with --set commonroad.sample_start_goal=true")
@@ -29,55 +28,27 @@ def add_scene_args(p: argparse.ArgumentParser, *, flag: str = "--env", required:
                    help="commonroad: scenario .xml; file: scene .npz written by `density-planner env`")
 
 
-def _reject(args: argparse.Namespace, kind: str, names: tuple[str, ...]) -> None:
-    for name in names:
-        if getattr(args, name.lstrip("-").replace("-", "_")) is not None:
-            raise ValueError(f"{name} is not used with {kind}")
+def scene_request(args: argparse.Namespace):
+    """The :class:`~density_planner.environment.sources.SceneRequest` of the scene arguments."""
+    from ..environment.sources import SceneRequest
 
-
-def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
-    """Build the scene selected by the scene arguments with the matching section of ``run_config``."""
     if args.seed is not None:
         from ..checks import check_seed
 
         check_seed("--seed", args.seed)
-    kind = args.kind
-    where = f"{kind_flag} {kind}"
-    seed = {} if args.seed is None else {"seed": args.seed}
-    if kind == "random":
-        from ..environment.random_scene import random_scene
+    return SceneRequest(args.kind, seed=args.seed, file=args.file, data_dir=args.data_dir,
+                        recording=args.recording, start_time=args.start_time)
 
-        _reject(args, where, ("--data-dir", "--recording", "--file", "--start-time"))
-        return random_scene(args.seed or 0, run_config.random_scene)
-    if kind == "ind":
-        from ..environment.ind import load_ind_scene
 
-        if args.data_dir is None or args.recording is None:
-            raise ValueError(f"{where} needs --data-dir D and --recording N")
-        _reject(args, where, ("--file",))
-        cfg = update(run_config.ind, seed)
-        if args.start_time is not None:
-            cfg = update(cfg, {"start_time": args.start_time})
-        return load_ind_scene(args.data_dir, args.recording, cfg)
-    if kind == "commonroad":
-        from ..environment.commonroad import load_commonroad_scene
+def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
+    """Build the scene selected by the scene arguments with the matching section of ``run_config`` (its
+    ``[system]`` section already holds ``--system`` / ``--models``)."""
+    from ..environment.sources import build_scene
+    from ..planners.context import run_system
 
-        if args.file is None:
-            raise ValueError(f"{where} needs --file F.xml")
-        _reject(args, where, ("--data-dir", "--recording", "--start-time"))
-        if not getattr(args, "verbose", 0):  # commonroad-io warns about every legacy element it converts
-            logging.getLogger("commonroad").setLevel(logging.ERROR)
-        from ._common import run_system
-
-        # the domain checks (start speed, reachable region) use the run's system in the domain of the scene's model
-        # set (the car on recorded traffic: road, 0-40 m/s)
-        system = run_system(run_config, kind)
-        return load_commonroad_scene(args.file, update(run_config.commonroad, seed), system=system)
-    if kind == "file":
-        from ..environment.scene import load_scene
-
-        if args.file is None:
-            raise ValueError(f"{where} needs --file SCENE.npz")
-        _reject(args, where, ("--data-dir", "--recording", "--start-time", "--seed"))
-        return load_scene(args.file)
-    raise ValueError(f"unknown scene kind {kind!r}; valid choices: {', '.join(SCENE_KINDS)}")
+    request = scene_request(args)
+    # the domain checks of recorded scenes (start speed, reachable region) use the run's system in the domain of
+    # the scene's model set (the car on recorded traffic: road, 0-40 m/s)
+    system = run_system(run_config, args.kind)
+    return build_scene(request, run_config, system=system, where=f"{kind_flag} {args.kind}",
+                       quiet=not getattr(args, "verbose", 0))

@@ -6,11 +6,20 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import add_config, add_controller, add_out, add_progress, add_threads, out_dir, show_progress
+from ._common import (
+    add_config,
+    add_out,
+    add_progress,
+    add_system,
+    add_threads,
+    apply_system_args,
+    out_dir,
+    show_progress,
+)
 
 
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
-    from ..evaluation.benchmark import SETTINGS
+    from ..evaluation.benchmark_settings import SETTINGS
 
     settings = "; ".join(
         f"{s.name}: {s.description} (planners {', '.join(s.planners)}; variants {', '.join(s.variants)}; "
@@ -48,9 +57,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="local worker processes (default: the number of cores; 1 = serial in this process)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on a Dask distributed cluster at ADDRESS (e.g. tcp://host:8786; extra 'dask')")
-    p.add_argument("--density", default=None, metavar="NAME",
-                   help="density predictor of the density planner (default: the package default)")
-    add_controller(p)
+    add_system(p)
     add_config(p)
     add_threads(p)
     p.add_argument("--validate-risk", action="store_true",
@@ -104,7 +111,9 @@ def parse_seeds(text: str) -> range:
 
 def spec_from_args(args: argparse.Namespace, run_config):
     """The :class:`BenchmarkSpec` of the command line (validates every choice with a one-line error)."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec, artificial_envs, real_envs
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
+    from ..evaluation.environments import artificial_envs, real_envs
     from ..planners.registry import planner_names
 
     setting = SETTINGS[args.setting]
@@ -141,15 +150,8 @@ def spec_from_args(args: argparse.Namespace, run_config):
     envs = real_envs(indices, args.data_dir) if args.setting == "real" else artificial_envs(indices)
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
-    if args.scheduler is not None:
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            from ..errors import OptionalDependencyError
-
-            raise OptionalDependencyError("distributed", "dask", "--scheduler (a Dask cluster)") from None
-    return BenchmarkSpec(args.setting, envs, planners, variants, run_config, controller=args.controller,
-                         density=args.density)
+    _check_scheduler(args)
+    return BenchmarkSpec(args.setting, envs, planners, variants, run_config)
 
 
 def _mode_planners(args: argparse.Namespace, default: tuple[str, ...]) -> tuple[str, ...]:
@@ -174,7 +176,8 @@ def _check_planners(args, default: tuple[str, ...]) -> tuple[str, ...]:
 
 def _commonroad_spec(args: argparse.Namespace, run_config):
     """The spec of ``bench commonroad --scenarios DIR``: one environment per scenario file."""
-    from ..evaluation.benchmark import SETTINGS, BenchmarkSpec
+    from ..evaluation.benchmark import BenchmarkSpec
+    from ..evaluation.benchmark_settings import SETTINGS
     from ..evaluation.commonroad_bench import commonroad_envs
 
     if args.scenarios is None:
@@ -199,8 +202,7 @@ def _commonroad_spec(args: argparse.Namespace, run_config):
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     _check_scheduler(args)
     planners = _check_planners(args, _mode_planners(args, SETTINGS["commonroad"].planners))
-    return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config, controller=args.controller,
-                         density=args.density)
+    return BenchmarkSpec("commonroad", envs, planners, ("unbiased",), run_config)
 
 
 def _check_scheduler(args: argparse.Namespace) -> None:
@@ -218,16 +220,14 @@ def _resolve_components(spec):
     workers will resolve it) and put their names and the digest of their weights into the spec."""
     from dataclasses import replace
 
-    from ..control.registry import load_controller
-    from ..density.registry import load_predictor
     from ..evaluation.benchmark import component_digest
-    from ..systems.car import KinematicCar
+    from ..planners.context import build_context
 
-    controller = load_controller(spec.controller)
     planning = spec.run_config.planning  # an explicit horizon is known before the scenes: check the predictor now
     par = planning.parameterization() if planning.horizon is not None else None
-    predictor = load_predictor(spec.density, KinematicCar(), controller, liouville=spec.run_config.liouville,
-                               parameterization=par)
+    # the package's default model set, whatever the scenes' (the digest of existing records depends on it)
+    ctx = build_context(spec.run_config, controller=spec.controller, density=spec.density, parameterization=par)
+    controller, predictor = ctx.controller, ctx.predictor()
     label = (f"{type(controller).__name__}/{getattr(predictor, 'name', type(predictor).__name__)}/"
              f"{component_digest(controller, predictor) or '-'}")
     return replace(spec, components=label)
@@ -237,7 +237,7 @@ def write_report(out: Path, plot_envs: int = 3) -> list[Path]:
     """Tables and figures of ``out`` from its records (and the verdict summary of a commonroad sweep)."""
     import sys
 
-    from ..evaluation.benchmark import scan_records
+    from ..evaluation.records import scan_records
     from ..evaluation.report import write_tables
     from ..viz.benchmark import write_figures
 
@@ -264,7 +264,7 @@ def run_bench(args: argparse.Namespace) -> int:
     from ..settings import RunConfig
     from .plan import versions
 
-    run_config = load_config(RunConfig, args.config, args.overrides)
+    run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     if args.validate_risk and not run_config.risk.validate_samples:
         from ..config import update
 

@@ -15,7 +15,6 @@ from ._common import (
     apply_system_args,
     check_out,
     out_dir,
-    run_system,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -83,10 +82,12 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict, update
     from ..evaluation.online import drive
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
+    from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
-    from .plan import build_context, versions
+    from ._common import context_from_args
+    from .plan import versions
 
     check_out(args.out)
     if args.distribution_seed is not None:
@@ -99,9 +100,9 @@ def run(args: argparse.Namespace) -> int:
         changes["period"] = args.period
     if changes:
         run_config = update(run_config, {"online": changes})
-    if args.planner in ("mpc", "m0", "m1", "m2", "m3") or args.planner.startswith("mpc"):
-        raise ValueError(f"--planner {args.planner}: the MPC baselines already run step by step (receding horizon) "
-                         "from the true state; compare them with `density-planner bench commonroad`")
+    if planner_info(args.planner).execution == ExecutionMode.RECEDING:
+        raise ValueError(f"--planner {args.planner}: this planner already runs step by step (receding horizon) from "
+                         "the true state; compare it with `density-planner bench commonroad`")
     t0 = time.perf_counter()
     scene, run_config = _scene_for_drive(args, run_config)
     t_scene = time.perf_counter() - t0
@@ -109,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
     system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, risk=run_config.risk,
                                          system=system)
-    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
+    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
+                            system=system)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)
     atomic_write_text(out / "config.toml", dumps_toml(run_config))

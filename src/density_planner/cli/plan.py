@@ -13,11 +13,8 @@ from ._common import (
     add_system,
     apply_system_args,
     check_out,
+    context_from_args,
     out_dir,
-    resolve_device,
-    resolve_dtype,
-    run_model_set,
-    run_system,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -51,39 +48,6 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run)
 
 
-def build_context(args: argparse.Namespace, run_config, progress: bool, parameterization=None):
-    """Planner context (system, controller, predictor factories) from the run's ``[system]`` section; a learned
-    predictor must fit ``parameterization`` (the plan's horizon) when given. The model set (the system's domain,
-    controller and density weights) follows the scene kind unless ``[system] models`` names one."""
-    from ..control.registry import load_controller
-    from ..density.liouville import ExactLiouville
-    from ..density.registry import load_predictor
-    from ..planners.registry import PlannerContext
-
-    device, dtype = resolve_device(args.device), resolve_dtype(args.dtype)
-    models = run_model_set(run_config, getattr(args, "kind", None))
-    car = models.make_system()
-    sys_cfg = run_config.system
-    controller = load_controller(sys_cfg.controller, models=models).to(device=device, dtype=dtype)
-    # auto: the default learned predictor if it was trained for this controller, else exact Liouville
-    predictor = load_predictor(None if sys_cfg.density == "auto" else sys_cfg.density, car, controller,
-                               liouville=run_config.liouville,
-                               parameterization=parameterization, models=models.name)
-    if hasattr(predictor, "to"):
-        predictor = predictor.to(device=device, dtype=dtype)
-    return PlannerContext(
-        system=car,
-        controller=controller,
-        config=run_config,
-        predictor_factory=lambda: predictor,
-        exact_factory=None if isinstance(predictor, ExactLiouville) else (
-            lambda: ExactLiouville(car, controller, run_config.liouville)),
-        device=device,
-        dtype=dtype,
-        progress=progress,
-    )
-
-
 def versions() -> dict[str, str]:
     """Versions of the package and its main dependencies (written next to results)."""
     import platform
@@ -111,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import run_model_set, run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
@@ -126,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
                                          risk=run_config.risk, system=system)
-    ctx = build_context(args, run_config, progress=show_progress(args), parameterization=problem.parameterization)
+    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
+                            system=system)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
     clock.lap("setup")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_device, add_out, add_system, apply_system_args, out_dir, run_system
+from ._common import add_config, add_device, add_out, add_system, apply_system_args, out_dir
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -47,13 +47,14 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.risk_validation import validate_risk
-    from ..evaluation.simulate import ExecutionMode, execution_mode
     from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
+    from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
     from ..viz.risk import plot_risk_validation
-    from .plan import build_context, versions
+    from ._common import context_from_args
+    from .plan import versions
 
     if args.samples < 2:
         raise ValueError(f"--samples must be at least 2, got {args.samples}")
@@ -63,13 +64,15 @@ def run(args: argparse.Namespace) -> int:
     run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     scene = scene_from_args(args, run_config)
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
+    system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk, planning=run_config.planning,
-                                         system=run_system(run_config, args.kind))
-    ctx = build_context(args, run_config, progress=not args.quiet)
-    planner = make_planner(args.planner, ctx)
-    if execution_mode(planner) != ExecutionMode.TRACK:
+                                         system=system)
+    mode = planner_info(args.planner).execution
+    if mode != ExecutionMode.TRACK:
         raise ValueError(f"validate risk needs a planner whose reference is tracked (density, search, sampling); "
-                         f"{args.planner!r} executes {execution_mode(planner).value}")
+                         f"{args.planner!r} executes {mode.value}")
+    ctx = context_from_args(args, run_config, progress=not args.quiet, system=system)
+    planner = make_planner(args.planner, ctx)
     t0 = time.perf_counter()
     plan = planner.plan(problem)
     t_plan = time.perf_counter() - t0

@@ -350,10 +350,10 @@ def controller_fingerprint(controller: nn.Module) -> str:
 
     A learned density predictor is only valid for the controller whose closed loop generated its training data.
     """
+    from ..io.checkpoint import hash_state
+
     h = hashlib.sha256(type(controller).__name__.encode())
-    for name, value in sorted(controller.state_dict().items()):
-        h.update(name.encode())
-        h.update(value.detach().to(torch.float32).cpu().contiguous().numpy().tobytes())
+    hash_state(h, controller, dtype=torch.float32)
     gains = getattr(controller, "gains", None)
     if gains is not None:
         h.update(repr(gains).encode())

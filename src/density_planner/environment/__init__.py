@@ -17,7 +17,6 @@ from .ind import (
     read_recording_meta,
     read_tracks,
     read_tracks_meta,
-    write_ind_recording,
 )
 from .random_scene import BoxObstacle, RandomSceneConfig, random_obstacles, random_scene, rasterise_boxes
 from .sampling import StartGoalConfig, sample_start_goal
@@ -46,7 +45,6 @@ __all__ = [
     "read_tracks",
     "read_tracks_meta",
     "read_recording_meta",
-    "write_ind_recording",
     "CommonRoadSceneConfig",
     "load_commonroad_scene",
 ]

@@ -47,6 +47,7 @@ from density_planner.memory import check_memory
 
 from ._rng import Stream
 from .grid import OccupancyGrid, lattice_size
+from .sampling import window_max
 from .scene import Scene
 
 __all__ = ["RandomSceneConfig", "BoxObstacle", "random_scene", "random_obstacles", "rasterise_boxes"]
@@ -302,16 +303,14 @@ def rasterise_boxes(
     return out
 
 
-def _window_max(probs_k: np.ndarray, cx: float, cy: float, half: int) -> float:
-    """Max of one slice over the cells within ``half`` cells of continuous cell coordinates (cx, cy); 1
-    outside."""
-    nx, ny = probs_k.shape
-    i, j = int(round(cx)), int(round(cy))
-    a, b = max(i - half, 0), min(i + half + 1, nx)
-    c, d = max(j - half, 0), min(j + half + 1, ny)
-    if a >= b or c >= d:
+def _point_max(window: np.ndarray, cx: float, cy: float, half: int) -> float:
+    """Max of a slice over the cells within ``half`` cells of the continuous cell coordinates (cx, cy), read from
+    its :func:`~.sampling.window_max` with cells outside the map ignored and a margin of ``half``; 1 when the
+    square lies wholly outside the map."""
+    i, j = int(round(cx)) + half, int(round(cy)) + half
+    if not (0 <= i < window.shape[0] and 0 <= j < window.shape[1]):
         return 1.0
-    return float(probs_k[a:b, c:d].max())
+    return float(window[i, j])
 
 
 def _draw_start_goal(
@@ -320,6 +319,7 @@ def _draw_start_goal(
     x0, y0, cell = cfg.x_range[0], cfg.y_range[0], cfg.cell_size
     half = int(round(cfg.check_half_width / cell))
     k_look = min(int(round(cfg.lookahead_time / cfg.dt)), probs.shape[0] - 1)
+    first, look, last = (window_max(probs[k], half, outside=0.0, margin=half) for k in (0, k_look, -1))
     lo, hi = cfg.start_box_min, cfg.start_box_max
     for attempt in range(1, cfg.max_attempts + 1):
         sx, sy = rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1])
@@ -328,13 +328,13 @@ def _draw_start_goal(
         dist = math.hypot(gx - sx, gy - sy)
         if not cfg.distance_range[0] <= dist <= cfg.distance_range[1]:
             continue
-        if _window_max(probs[0], (sx - x0) / cell, (sy - y0) / cell, half) > cfg.start_max_occupancy:
+        if _point_max(first, (sx - x0) / cell, (sy - y0) / cell, half) > cfg.start_max_occupancy:
             continue
         lx = sx + v * cfg.lookahead_time * math.cos(th)
         ly = sy + v * cfg.lookahead_time * math.sin(th)
-        if _window_max(probs[k_look], (lx - x0) / cell, (ly - y0) / cell, half) > cfg.lookahead_max_occupancy:
+        if _point_max(look, (lx - x0) / cell, (ly - y0) / cell, half) > cfg.lookahead_max_occupancy:
             continue
-        if _window_max(probs[-1], (gx - x0) / cell, (gy - y0) / cell, half) > cfg.goal_max_occupancy:
+        if _point_max(last, (gx - x0) / cell, (gy - y0) / cell, half) > cfg.goal_max_occupancy:
             continue
         return (sx, sy, th, v), (gx, gy), attempt
     raise ValueError(

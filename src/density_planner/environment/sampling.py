@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from density_planner.errors import DataError
 
@@ -79,21 +78,31 @@ class StartGoalConfig:
             raise ValueError("StartGoalConfig.max_attempts and batch must be >= 1")
 
 
-def _window_max(slice_: torch.Tensor, half: int) -> np.ndarray:
-    """Max over the (2 half + 1)^2 square around every cell (cells outside the map count as occupied)."""
-    if half == 0:
-        return slice_.float().cpu().numpy()
-    padded = F.pad(slice_.float().cpu()[None, None], (half, half, half, half), value=1.0)
+def window_max(slice_: torch.Tensor | np.ndarray, half: int, *, outside: float = 1.0, margin: int = 0) -> np.ndarray:
+    """Max of an occupancy slice ``(NX, NY)`` over the ``(2 half + 1)^2`` square around every cell (float32); cells
+    outside the map count as ``outside`` (1: occupied; 0: ignored, since P_occ >= 0). ``margin`` > 0 also covers the
+    ``margin`` cells around the map: the result is ``(NX + 2 margin, NY + 2 margin)``, cell ``(i, j)`` at
+    ``[i + margin, j + margin]``."""
+    x = slice_.detach().float().cpu().numpy() if isinstance(slice_, torch.Tensor) else np.asarray(slice_, np.float32)
+    padded = np.pad(x, half + margin, constant_values=outside) if half + margin else x.copy()
     k = 2 * half + 1
-    # separable: a square max is a max over rows of maxes over columns (O(k) instead of O(k^2) per cell)
-    return F.max_pool2d(F.max_pool2d(padded, (k, 1), stride=1), (1, k), stride=1)[0, 0].numpy()
+    # separable: a square max is a max over rows of maxes over columns; k shifted maxima per axis (exact)
+    n0 = padded.shape[0] - k + 1
+    rows = padded[:n0].copy()
+    for d in range(1, k):
+        np.maximum(rows, padded[d : d + n0], out=rows)
+    n1 = rows.shape[1] - k + 1
+    out = rows[:, :n1].copy()
+    for d in range(1, k):
+        np.maximum(out, rows[:, d : d + n1], out=out)
+    return out
 
 
 def free_mask(grid: OccupancyGrid, k: int, max_occupancy: float, half_width: float) -> np.ndarray:
     """``(NX, NY)`` bool: cells whose +-``half_width`` [m] square has max P_occ <= ``max_occupancy`` in slice
     k."""
     half = int(round(half_width / grid.cell_size))
-    return _window_max(grid.slice(k), half) <= max_occupancy
+    return window_max(grid.slice(k), half) <= max_occupancy
 
 
 def sample_start_goal(
@@ -111,10 +120,10 @@ def sample_start_goal(
     bx0, bx1, by0, by1 = planning_box
     in_box = ((xs >= bx0) & (xs <= bx1))[:, None] & ((ys >= by0) & (ys <= by1))[None, :]
     half = int(round(cfg.check_half_width / grid.cell_size))
-    start_ok = (_window_max(grid.slice(0), half) <= cfg.start_max_occupancy) & in_box
-    goal_ok = (_window_max(grid.slice(-1), half) <= cfg.goal_max_occupancy) & in_box
+    start_ok = (window_max(grid.slice(0), half) <= cfg.start_max_occupancy) & in_box
+    goal_ok = (window_max(grid.slice(-1), half) <= cfg.goal_max_occupancy) & in_box
     k_look = int(grid.slice_index(grid.t0 + cfg.lookahead_time, clamp=True))
-    look_max = _window_max(grid.slice(k_look), half)
+    look_max = window_max(grid.slice(k_look), half)
     start_cells = np.argwhere(start_ok)
     goal_cells = np.argwhere(goal_ok)
     if start_cells.size == 0:

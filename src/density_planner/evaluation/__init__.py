@@ -7,7 +7,8 @@
   failure flags) and their aggregation (failure rate, CRI/GCI/ICI against the best valid method, time means over
   valid runs);
 * :mod:`.benchmark`: the ``ablation``, ``artificial`` and ``real`` sweeps with one resumable JSON record per run,
-  serial, joblib or Dask;
+  serial, joblib or Dask; its settings (:mod:`.benchmark_settings`), environments (:mod:`.environments`), jobs
+  (:mod:`.jobs`, the worker side) and records on disk (:mod:`.records`);
 * :mod:`.report`: ``summary.csv`` / ``summary.md`` from the records alone (figures:
   :mod:`density_planner.viz.benchmark`);
 * :mod:`.verdict`: the verdict on every plan (goal region in time, true-shape collision, on road, within model),
@@ -15,20 +16,13 @@
 * :mod:`.commonroad_bench`: ``bench commonroad``, every scenario of a folder judged by the verdict.
 """
 
-from .benchmark import (
-    SETTINGS,
-    BenchmarkSpec,
-    EnvSpec,
-    Setting,
-    SweepReport,
-    artificial_envs,
-    load_records,
-    real_envs,
-    run_benchmark,
-)
+from .benchmark import BenchmarkSpec, SweepReport, run_benchmark
+from .benchmark_settings import SETTINGS, Setting
 from .config import EvaluationConfig
 from .controller import TrackingEvaluation, evaluate_tracking
+from .environments import EnvSpec, artificial_envs, real_envs
 from .metrics import MethodSummary, cost_increase, failure_flags, monte_carlo_metrics, run_metrics, summarise
+from .records import load_records
 from .simulate import Execution, ExecutionMode, execute, execution_mode, monte_carlo
 from .verdict import Verdict, VerdictConfig, judge, judge_plan
 

@@ -33,13 +33,15 @@ from typing import Any
 import numpy as np
 
 from ..io.atomic import atomic_write_text
-from .benchmark import EnvSpec, Job, JobResult, _base_record, _scene, error_record, load_records, run_job
+from .environments import EnvSpec
+from .jobs import Job, JobResult, base_record, error_record, job_scene, run_job
+from .records import load_records
 from .verdict import VERDICT_PARTS
 
 __all__ = ["commonroad_envs", "run_commonroad_job", "commonroad_summary", "write_commonroad_summary",
            "summary_markdown", "SUMMARY_COLUMNS", "refusal_reason"]
 
-#: setting name of the sweep (a :data:`~density_planner.evaluation.benchmark.SETTINGS` entry)
+#: setting name of the sweep (a :data:`~density_planner.evaluation.benchmark_settings.SETTINGS` entry)
 SETTING = "commonroad"
 
 
@@ -63,21 +65,23 @@ def refusal_reason(exc: BaseException) -> str:
 def _refused_record(job: Job, variant: str, reason: str) -> dict[str, Any]:
     from ..config import to_dict
 
-    rec = _base_record(job, variant)
+    rec = base_record(job, variant)
     rec.update(status="refused", failed=True, failure_reason="refused", message=reason, verdict=None,
                config=to_dict(job.run_config))
     return rec
 
 
 def run_commonroad_job(job: Job) -> JobResult:
-    """:func:`~density_planner.evaluation.benchmark.run_job` for one scenario and planner, with the scenario's
+    """:func:`~density_planner.evaluation.jobs.run_job` for one scenario and planner, with the scenario's
     refusal as a record and the verdict of the executed trajectory in every record (a module-level function:
     picklable for joblib and Dask workers)."""
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
 
-    try:  # the scene and its planning problem; a refusal is a record, not an error
-        scene = _scene(job)
-        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning)
+    try:  # the scene and its planning problem (the run's system); a refusal is a record, not an error
+        scene = job_scene(job)
+        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+                                   system=run_system(job.run_config, job.env.kind))
     except (ValueError, OSError, ImportError) as exc:
         return JobResult([_refused_record(job, v, refusal_reason(exc)) for v in job.variants])
     except Exception:  # noqa: BLE001 - a bug: recorded with its traceback, the sweep goes on

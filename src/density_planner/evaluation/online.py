@@ -168,6 +168,10 @@ class _Active:
     x_ref_np: np.ndarray | None = None  # float64 copies for the torch-free controller
     u_ref_np: np.ndarray | None = None
 
+    def step_at(self, t: float, dt: float) -> int:
+        """Index of the integration step (of ``dt`` [s]) of the absolute time ``t`` [s] in ``x_ref`` / ``u_ref``."""
+        return int(round((t - self.t0) / dt))
+
 
 @dataclass
 class DriveResult:
@@ -519,7 +523,7 @@ def drive(
             result = None
             if prob is not None:
                 warm = None
-                offset = int(round((t - active.t0) / dt))
+                offset = active.step_at(t, dt)
                 if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
                     gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
                                                          - system.positions(x_hat).to(dtype)))
@@ -559,7 +563,7 @@ def drive(
             if result is not None and result.reference is not None:
                 active = activate(result.reference, t, result.params, "plan")
             else:
-                offset = int(round((t - active.t0) / dt))
+                offset = active.step_at(t, dt)
                 ended = offset + period_steps * per_plan > active.x_ref.shape[0]
                 p_prev = math.nan
                 if not ended:
@@ -590,7 +594,7 @@ def drive(
                 progress(t, rec)
             snapshot(t, grid_t, system.positions(x).detach().cpu().numpy())
         # -- track the active reference for one planning step (per_plan integration steps, one state)
-        offset = int(round((t - active.t0) / dt))
+        offset = active.step_at(t, dt)
         if offset + per_plan > active.x_ref.shape[0]:  # the reference ended (long fallback): brake from here
             x_hat = system.measure(x[None])[0]
             active, p_b = brake(prediction.window(t, horizon), x_hat, t)

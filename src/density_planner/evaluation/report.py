@@ -14,22 +14,11 @@ from pathlib import Path
 from typing import Any
 
 from ..io.atomic import atomic_write_text
-from .benchmark import SETTINGS, scan_records
+from .benchmark_settings import SETTINGS, VARIANTS, planner_variants
 from .metrics import summarise
+from .records import scan_records
 
-__all__ = ["PLANNER_LABELS", "method_label", "summary_rows", "write_tables", "summary_markdown", "CSV_COLUMNS"]
-
-#: short names of the planners in tables and figures (the paper's)
-PLANNER_LABELS = {
-    "density": "DP",
-    "mpc": "M0",
-    "tube_mpc_0.3": "M1",
-    "tube_mpc_0.5": "M2",
-    "tube_mpc_1.0": "M3",
-    "oracle": "O",
-    "search": "Search",
-    "sampling": "Sampling",
-}
+__all__ = ["planner_label", "method_label", "summary_rows", "write_tables", "summary_markdown", "CSV_COLUMNS"]
 
 #: columns of ``summary.csv``
 CSV_COLUMNS = (
@@ -40,9 +29,17 @@ CSV_COLUMNS = (
 )
 
 
+def planner_label(planner: str) -> str:
+    """The planner's short name in tables and figures: its registration's label (the paper's ``DP``, ``M0``, ``O``,
+    ...), or its name when it is not registered."""
+    from ..planners.registry import planner_info
+
+    return planner_info(planner, default=True).label
+
+
 def method_label(planner: str, variant: str) -> str:
     """``DP``, ``DP-b`` (biased measurement), ``M2``, ``O``, ..."""
-    base = PLANNER_LABELS.get(planner, planner)
+    base = planner_label(planner)
     return f"{base}-b" if variant == "biased" else base
 
 
@@ -50,7 +47,7 @@ def _order(s) -> tuple:
     settings = list(SETTINGS)
     setting = SETTINGS.get(s.setting)
     planners = list(setting.planners) if setting else []
-    variants = ["nominal", "unbiased", "biased"]
+    variants = list(VARIANTS)
     return (settings.index(s.setting) if s.setting in settings else len(settings), s.setting,
             planners.index(s.planner) if s.planner in planners else len(planners), s.planner,
             variants.index(s.variant) if s.variant in variants else len(variants), s.variant)
@@ -107,9 +104,8 @@ def missing_runs(out: str | Path, records: Sequence[Mapping[str, Any]], bad) -> 
             n_envs = len(sweep["envs"])
         except (OSError, ValueError, KeyError, TypeError):
             continue
-        single = SETTINGS[setting].single_variant if setting in SETTINGS else ()
         for planner in planners:
-            for variant in (variants[:1] if planner in single else variants):
+            for variant in planner_variants(planner, variants):
                 k = (setting, planner, variant)
                 missing[k] = max(missing.get(k, 0), n_envs - have.get(k, 0))
     return {k: v for k, v in missing.items() if v > 0}
@@ -177,7 +173,7 @@ def summary_markdown(rows: Sequence[Mapping[str, Any]], records: Sequence[Mappin
                 c = r.get("risk_check")
                 if r.get("setting") == setting and isinstance(c, Mapping) and c.get("passed") is not None:
                     by_planner.setdefault(r["planner"], []).append(bool(c["passed"]))
-            parts = [f"{PLANNER_LABELS.get(k, k)}: {sum(v)} of {len(v)} ({100 * sum(v) / len(v):.0f} %)"
+            parts = [f"{planner_label(k)}: {sum(v)} of {len(v)} ({100 * sum(v) / len(v):.0f} %)"
                      for k, v in by_planner.items()]
             out.write("Risk check (`--validate-risk`: reported collision probability within 3 standard errors of "
                       f"{checks[0].get('n_monte_carlo')} Monte-Carlo closed loops at every time step): "

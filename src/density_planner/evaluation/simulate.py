@@ -1,6 +1,7 @@
 """Execute a plan from a true initial state: the closed loop that the benchmark scores.
 
-Three ways a planner's output is executed (:class:`ExecutionMode`), as in the paper's comparison (§V):
+Three ways a planner's output is executed (:class:`~density_planner.planners.registry.ExecutionMode`, declared by
+the planner's registration), as in the paper's comparison (§V):
 
 * ``TRACK`` (density, search and sampling planners): the plan is a reference trajectory computed offline from the
   initial *distribution*; the tracking controller follows it in closed loop from the true state, seeing the
@@ -21,7 +22,6 @@ in that step (10 at the default 0.01-s integration step), measured one state at 
 
 from __future__ import annotations
 
-import enum
 import logging
 import time
 from dataclasses import dataclass
@@ -35,6 +35,7 @@ from ..control.reference import Reference
 from ..density.liouville import LiouvilleConfig, simulate_closed_loop
 from ..planners.base import Planner, PlanResult
 from ..planners.problem import PlanningProblem
+from ..planners.registry import ExecutionMode
 from ..systems.base import System
 from .config import EvaluationConfig
 
@@ -51,33 +52,16 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-class ExecutionMode(str, enum.Enum):
-    """How a planner's output is executed (see the module docstring)."""
-
-    #: the planned reference is tracked by the controller in closed loop
-    TRACK = "track"
-    #: the planner runs step by step from the measured state (MPC)
-    RECEDING = "receding"
-    #: the planner plans from the true state; its inputs are applied open loop (oracle)
-    OPEN_LOOP = "open_loop"
-
-
 def execution_mode(planner: Planner) -> ExecutionMode:
-    """The execution mode of ``planner``: an ``execution_mode`` attribute if it has one, else MPC planners run
-    ``RECEDING``, the oracle ``OPEN_LOOP`` and every other planner (a reference planner) ``TRACK``."""
+    """The execution mode of ``planner``: its ``execution_mode`` attribute (set by
+    :func:`~density_planner.planners.registry.make_planner` from the registration) if it has one, else the
+    registration of its name, else ``TRACK`` (an unregistered reference planner)."""
     mode = getattr(planner, "execution_mode", None)
     if mode is not None:
         return ExecutionMode(mode)
-    try:
-        from ..planners.mpc import MPCPlanner
-        from ..planners.oracle import OraclePlanner
-    except ImportError:  # pragma: no cover - the baselines are part of the package
-        return ExecutionMode.TRACK
-    if isinstance(planner, MPCPlanner):
-        return ExecutionMode.RECEDING
-    if isinstance(planner, OraclePlanner):
-        return ExecutionMode.OPEN_LOOP
-    return ExecutionMode.TRACK
+    from ..planners.registry import planner_info
+
+    return planner_info(getattr(planner, "name", ""), default=True).execution
 
 
 @dataclass

@@ -165,8 +165,8 @@ def judge(
     evaluation: Any = None,
 ) -> Verdict:
     """The verdict on ``states (T, nx)`` (state ``k`` at ``k dt`` [s] after the scene start) driven by ``inputs
-    (T - 1, nu)`` (``None``: not checked) in ``scene``, for ``system`` (its state names locate ``px``, ``py``,
-    ``theta``, ``v``; its bounds define ``within_model``).
+    (T - 1, nu)`` (``None``: not checked) in ``scene``, for ``system`` (its position, heading and speed indices locate
+    them; its bounds define ``within_model``).
 
     ``evaluation`` (an :class:`~density_planner.evaluation.config.EvaluationConfig`, default one) supplies the goal
     tolerance and the occupancy threshold of scenes without road data (see the module docstring).
@@ -183,9 +183,12 @@ def judge(
         raise ValueError(f"inputs must have shape (T - 1, {system.nu}), got {u.shape}")
     if not (isinstance(dt, (int, float)) and dt > 0):
         raise ValueError(f"dt must be a positive time step [s], got {dt!r}")
-    idx = {n: system.state_names.index(n) for n in ("px", "py", "theta", "v") if n in system.state_names}
-    if "px" not in idx or "py" not in idx:
-        raise ValueError(f"the verdict needs a system with px and py states, got {system.state_names}")
+    # positions, heading and speed are the system's facts (a system without heading: an axis-aligned body)
+    idx = {"px": system.position_indices[0], "py": system.position_indices[1]}
+    if system.heading_index is not None:
+        idx["theta"] = system.heading_index
+    if system.speed_index is not None:
+        idx["v"] = system.speed_index
     xy = np.nan_to_num(x[:, [idx["px"], idx["py"]]], nan=0.0, posinf=0.0, neginf=0.0)  # non-finite: fails below
     theta = np.nan_to_num(x[:, idx["theta"]]) if "theta" in idx else np.zeros(len(x))
     v = x[:, idx["v"]] if "v" in idx else None

@@ -35,6 +35,7 @@ __all__ = [
     "save_weights",
     "load_weights",
     "check_state_dict",
+    "hash_state",
     "save_training_state",
     "load_training_state",
 ]
@@ -232,3 +233,14 @@ def load_training_state(path: str | Path) -> dict[str, Any]:
     if not isinstance(state, dict):
         raise CheckpointError(f"training checkpoint {path} does not hold a dictionary")
     return state
+
+
+def hash_state(h: Any, module: nn.Module, *, dtype: torch.dtype | None = None) -> None:
+    """Feed the state of ``module`` (its ``state_dict``: parameters and buffers, by sorted name) to the hashlib
+    object ``h``; tensors are hashed as their raw bytes, converted to ``dtype`` first when given. The one digest of
+    weights: controller fingerprints (:func:`density_planner.density.network.controller_fingerprint`) and the
+    benchmarks' component digests use it."""
+    for name, value in sorted(module.state_dict().items()):
+        h.update(name.encode())
+        v = value.detach() if dtype is None else value.detach().to(dtype)
+        h.update(v.cpu().contiguous().numpy().tobytes())

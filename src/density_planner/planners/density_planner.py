@@ -391,7 +391,8 @@ class DensityPlanner(Planner):
         )
 
 
-@register_planner("density", "two-stage gradient density planner (paper §IV-D)")
+@register_planner("density", "two-stage gradient density planner (paper §IV-D)", section="density_planner",
+                  label="DP", colour="tab:orange")
 def _make_density_planner(ctx: PlannerContext) -> DensityPlanner:
     return DensityPlanner(
         ctx.predictor(),

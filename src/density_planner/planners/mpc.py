@@ -728,24 +728,27 @@ def _mpc_factory(ctx: PlannerContext, config: MPCConfig, name: str) -> MPCPlanne
                       evaluation_cost=ctx.config.density_planner.cost, dtype=ctx.dtype, device=ctx.device)
 
 
-@register_planner("mpc", "standard MPC M0 (CasADi/IPOPT, 1-s horizon, collision term P_occ^2; extra 'mpc')")
+@register_planner("mpc", "standard MPC M0 (CasADi/IPOPT, 1-s horizon, collision term P_occ^2; extra 'mpc')",
+                  section="mpc", execution="receding", plans_from_true_state=True, label="M0", colour="tab:blue")
 def _make_mpc(ctx: PlannerContext) -> MPCPlanner:
     return _mpc_factory(ctx, replace(ctx.config.mpc, tube_radius=0.0), "mpc")
 
 
-@register_planner("tube_mpc", "tube MPC with the radius of [tube_mpc] tube_radius (extra 'mpc')")
+@register_planner("tube_mpc", "tube MPC with the radius of [tube_mpc] tube_radius (extra 'mpc')", section="tube_mpc",
+                  execution="receding", plans_from_true_state=True)
 def _make_tube_mpc(ctx: PlannerContext) -> MPCPlanner:
     cfg = ctx.config.tube_mpc
     return _mpc_factory(ctx, cfg, tube_mpc_name(cfg.tube_radius))
 
 
-def _register_tube(radius: float, label: str) -> None:
+def _register_tube(radius: float, label: str, colour: str) -> None:
     name = tube_mpc_name(radius)
 
-    @register_planner(name, f"tube MPC {label} (radius {radius:g} m, [tube_mpc] settings; extra 'mpc')")
+    @register_planner(name, f"tube MPC {label} (radius {radius:g} m, [tube_mpc] settings; extra 'mpc')",
+                      section="tube_mpc", execution="receding", plans_from_true_state=True, label=label, colour=colour)
     def _make(ctx: PlannerContext) -> MPCPlanner:
         return _mpc_factory(ctx, replace(ctx.config.tube_mpc, tube_radius=radius), name)
 
 
-for _r, _label in zip(TUBE_RADII, ("M1", "M2", "M3")):
-    _register_tube(_r, _label)
+for _r, _label, _colour in zip(TUBE_RADII, ("M1", "M2", "M3"), ("tab:cyan", "tab:purple", "tab:brown")):
+    _register_tube(_r, _label, _colour)

@@ -29,8 +29,6 @@ __all__ = ["OnlineDensityPlanner"]
 class OnlineDensityPlanner(Planner):
     """Receding-horizon density planning (see the module docstring)."""
 
-    execution_mode = "receding"
-
     def __init__(self, inner: DensityPlanner, ctx: PlannerContext, prediction: str, name: str):
         self.inner = inner
         self.ctx = ctx
@@ -79,7 +77,12 @@ def _factory(prediction: str, name: str):
     return make
 
 
-register_planner("density_online", "density planner online: replans every online.period from the measurement "
-                 "with the observed-only prediction ([online])")(_factory("observed", "density_online"))
-register_planner("density_online_oracle", "density planner online with the oracle prediction (the recorded "
-                 "future, known in advance)")(_factory("oracle", "density_online_oracle"))
+# the first plan is made offline from the initial distribution (plan), the replans online from the measurement
+for _name, _prediction, _help in (
+    ("density_online", "observed", "density planner online: replans every online.period from the measurement with "
+     "the observed-only prediction ([online])"),
+    ("density_online_oracle", "oracle", "density planner online with the oracle prediction (the recorded future, "
+     "known in advance)"),
+):
+    register_planner(_name, _help, section="online", reads=("density_planner",),
+                     execution="receding")(_factory(_prediction, _name))

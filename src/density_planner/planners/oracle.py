@@ -315,7 +315,8 @@ class OraclePlanner(Planner):
         )
 
 
-@register_planner("oracle", "oracle O: full-horizon NLP from the true start, 10 restarts (CasADi/IPOPT; extra 'mpc')")
+@register_planner("oracle", "oracle O: full-horizon NLP from the true start, 10 restarts (CasADi/IPOPT; extra 'mpc')",
+                  section="oracle", execution="open_loop", plans_from_true_state=True, label="O", colour="tab:green")
 def _make_oracle(ctx: PlannerContext) -> OraclePlanner:
     return OraclePlanner(ctx.config.oracle, evaluation_cost=ctx.config.density_planner.cost, dtype=ctx.dtype,
                          device=ctx.device)

@@ -1,80 +1,97 @@
 """Planner registry: names usable with ``density-planner plan --planner NAME`` and in benchmark sweeps.
 
-A planner is registered with a factory ``factory(context) -> Planner``; the :class:`PlannerContext` carries the
-system, the tracking controller, a lazily built density predictor, the run configuration (one section per
-planner) and device/progress settings. Adding a planner means writing its class and one ``register_planner``
-call in its module.
+A planner is registered once, with everything the rest of the package needs to know about it::
+
+    @register_planner("my_planner", "one line for --help", section="my_planner", label="MP", colour="tab:pink")
+    def _make(ctx: PlannerContext) -> MyPlanner:
+        return MyPlanner(ctx.predictor(), ctx.config.my_planner)
+
+The :class:`PlannerInfo` holds the factory ``factory(context) -> Planner``, the help line, the run-configuration
+section its settings live in (seeded per run by the benchmarks and part of their configuration hash), its
+:class:`ExecutionMode` (how the evaluation executes it), whether it plans from the true state (the benchmarks then
+plan once per measurement variant, and its records do not depend on the tracking controller and the density
+predictor) and its label and colour in tables and figures. The CLI, the benchmarks, the reports and the figures all
+read it (:func:`planner_info`); nothing else lists planners. The :class:`PlannerContext` carries the system, the
+tracking controller, a lazily built density predictor, the run configuration and device/progress settings.
 """
 
 from __future__ import annotations
 
+import enum
 import importlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
-import torch
-
-from ..control.base import TrackingController
-from ..density.base import DensityPredictor
-from ..systems.base import System
 from .base import Planner
+from .context import PlannerContext
 
-__all__ = ["PlannerContext", "register_planner", "make_planner", "planner_names", "planner_help"]
-
-
-@dataclass
-class PlannerContext:
-    """What planner factories receive.
-
-    Attributes:
-        system: dynamics.
-        controller: tracking controller (used by the density planner's predictions and closed-loop runs).
-        config: the run configuration (:class:`density_planner.settings.RunConfig`); each planner reads its section.
-        predictor_factory: builds the density predictor of the density planner on first use.
-        exact_factory: builds the exact Liouville predictor (for the final re-check of learned predictions).
-        device, dtype: tensor placement.
-        progress: show progress bars.
-    """
-
-    system: System
-    controller: TrackingController
-    config: Any
-    predictor_factory: Callable[[], DensityPredictor] | None = None
-    exact_factory: Callable[[], DensityPredictor] | None = None
-    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-    dtype: torch.dtype = torch.float32
-    progress: bool = False
-    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
-
-    def predictor(self) -> DensityPredictor:
-        if "predictor" not in self._cache:
-            if self.predictor_factory is None:
-                raise ValueError("this planner needs a density predictor, but none was configured")
-            self._cache["predictor"] = self.predictor_factory()
-        return self._cache["predictor"]
-
-    def exact(self) -> DensityPredictor | None:
-        if self.exact_factory is None:
-            return None
-        if "exact" not in self._cache:
-            self._cache["exact"] = self.exact_factory()
-        return self._cache["exact"]
+__all__ = ["PlannerContext", "ExecutionMode", "PlannerInfo", "register_planner", "planner_info", "make_planner",
+           "planner_names", "planner_help"]
 
 
-_REGISTRY: dict[str, tuple[Callable[[PlannerContext], Planner], str]] = {}
+class ExecutionMode(str, enum.Enum):
+    """How the evaluation executes a planner's output (:mod:`density_planner.evaluation.simulate`)."""
+
+    #: the planned reference (from the initial distribution) is tracked by the controller in closed loop
+    TRACK = "track"
+    #: the planner runs step by step from the measured state: ``plan_from(problem, true_state)`` (MPC, online)
+    RECEDING = "receding"
+    #: the planner plans from the true state and its inputs are applied open loop: ``plan_from`` (oracle)
+    OPEN_LOOP = "open_loop"
+
+
+@dataclass(frozen=True)
+class PlannerInfo:
+    """A planner's registration (see the module docstring)."""
+
+    #: registry name (``--planner NAME``, record file names)
+    name: str
+    #: ``factory(context) -> Planner``
+    factory: Callable[[PlannerContext], Planner]
+    #: one line for ``--help``
+    help: str
+    #: the :class:`~density_planner.settings.RunConfig` section (attribute) its settings live in, or ``None``
+    section: str | None = None
+    #: further sections its results depend on (part of the benchmarks' configuration hash)
+    reads: tuple[str, ...] = ()
+    #: how the evaluation executes it
+    execution: ExecutionMode = ExecutionMode.TRACK
+    #: it plans from the true initial state (MPC, oracle): one plan per measurement variant, and its results do not
+    #: depend on the tracking controller and the density predictor
+    plans_from_true_state: bool = False
+    #: short name in tables and figures (the paper's: DP, M0, O, ...)
+    label: str = ""
+    #: matplotlib colour in figures (``None``: one picked from the name)
+    colour: str | None = None
+
+
+_REGISTRY: dict[str, PlannerInfo] = {}
 
 #: modules whose import registers planners (optional extras are imported lazily by their factories)
 _PLANNER_MODULES = ("density_planner", "mpc", "oracle", "search", "sampling", "online")
 
 
-def register_planner(name: str, help: str) -> Callable[[Callable[[PlannerContext], Planner]], Callable]:
-    """Decorator registering ``factory(context) -> Planner`` under ``name``."""
+def register_planner(
+    name: str,
+    help: str,
+    *,
+    section: str | None = None,
+    reads: tuple[str, ...] = (),
+    execution: ExecutionMode | str = ExecutionMode.TRACK,
+    plans_from_true_state: bool = False,
+    label: str | None = None,
+    colour: str | None = None,
+) -> Callable[[Callable[[PlannerContext], Planner]], Callable[[PlannerContext], Planner]]:
+    """Decorator registering ``factory(context) -> Planner`` under ``name`` with its :class:`PlannerInfo` fields
+    (``label`` defaults to ``name``)."""
+    mode = ExecutionMode(execution)
 
     def deco(factory: Callable[[PlannerContext], Planner]) -> Callable[[PlannerContext], Planner]:
-        if name in _REGISTRY and _REGISTRY[name][0] is not factory:
+        if name in _REGISTRY and _REGISTRY[name].factory is not factory:
             raise ValueError(f"planner {name!r} registered twice")
-        _REGISTRY[name] = (factory, help)
+        _REGISTRY[name] = PlannerInfo(name, factory, help, section=section, reads=tuple(reads), execution=mode,
+                                      plans_from_true_state=plans_from_true_state, label=label or name,
+                                      colour=colour)
         return factory
 
     return deco
@@ -93,12 +110,28 @@ def planner_names() -> list[str]:
 
 def planner_help() -> dict[str, str]:
     _load_all()
-    return {name: help for name, (_, help) in _REGISTRY.items()}
+    return {name: info.help for name, info in _REGISTRY.items()}
+
+
+def planner_info(name: str, *, default: bool = False) -> PlannerInfo:
+    """The registration of planner ``name``. Unknown names raise ``ValueError`` listing the valid ones, or, with
+    ``default=True`` (records of planners no longer registered), give a bare :class:`PlannerInfo` (label = name,
+    tracked execution)."""
+    _load_all()
+    if name not in _REGISTRY:
+        if default:
+            return PlannerInfo(name, _unregistered, "", label=name)
+        raise ValueError(f"unknown planner {name!r}; valid choices: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def _unregistered(context: PlannerContext) -> Planner:  # pragma: no cover - never called
+    raise ValueError("this planner is not registered")
 
 
 def make_planner(name: str, context: PlannerContext) -> Planner:
-    """The planner ``name`` built from ``context``."""
-    _load_all()
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown planner {name!r}; valid choices: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name][0](context)
+    """The planner ``name`` built from ``context``; its ``execution_mode`` is the registration's."""
+    info = planner_info(name)
+    planner = info.factory(context)
+    planner.execution_mode = info.execution  # type: ignore[attr-defined]
+    return planner

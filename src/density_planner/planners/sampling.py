@@ -135,7 +135,8 @@ class SamplingPlanner(TreePlanner):
                 "history": history}
 
 
-@register_planner("sampling", "sampling-based optimiser: RRT-like tree of random 1-s segments (ablation)")
+@register_planner("sampling", "sampling-based optimiser: RRT-like tree of random 1-s segments (ablation)",
+                  section="sampling", label="Sampling", colour="tab:olive")
 def _make_sampling(ctx: PlannerContext) -> SamplingPlanner:
     return SamplingPlanner(ctx.predictor(), ctx.config.sampling, evaluation_cost=ctx.config.density_planner.cost,
                            dtype=ctx.dtype, device=ctx.device)

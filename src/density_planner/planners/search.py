@@ -99,7 +99,8 @@ class SearchPlanner(TreePlanner):
         return {"expansions": expansions, "queued": queued, "history": popped}
 
 
-@register_planner("search", "search-based optimiser: best-first over 5x5 inputs per 1-s segment (ablation)")
+@register_planner("search", "search-based optimiser: best-first over 5x5 inputs per 1-s segment (ablation)",
+                  section="search", label="Search", colour="tab:red")
 def _make_search(ctx: PlannerContext) -> SearchPlanner:
     return SearchPlanner(ctx.predictor(), ctx.config.search, evaluation_cost=ctx.config.density_planner.cost,
                          dtype=ctx.dtype, device=ctx.device)

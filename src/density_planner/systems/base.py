@@ -147,6 +147,23 @@ class System(ABC):
             lo[i], hi[i] = -math.inf, math.inf
         return tuple(lo), tuple(hi)
 
+    # ------------------------------------------------------ symbolic (NLP) form
+    @property
+    def nominal_indices(self) -> tuple[int, ...]:
+        """The states an NLP baseline (MPC, oracle) models: all but :attr:`hidden_states`, in state order."""
+        return tuple(i for i in range(self.nx) if i not in self.hidden_states)
+
+    def nominal_index(self, i: int | None) -> int | None:
+        """Position of state ``i`` in the nominal state vector of :meth:`f_symbolic` (``None`` passes through)."""
+        return None if i is None else self.nominal_indices.index(i)
+
+    def f_symbolic(self, x, u, ops):
+        """``x'`` of the nominal states (:attr:`nominal_indices`; hidden states at 0) for symbolic vectors ``x`` and
+        ``u`` of a modelling library: ``ops`` is its module (CasADi: ``casadi``, with ``cos``, ``sin``, ``tan``,
+        ``vertcat``). NLP baselines need it; a system without it cannot be planned by them."""
+        raise NotImplementedError(f"{type(self).__name__} has no symbolic dynamics (f_symbolic): the NLP baselines "
+                                  "(MPC, oracle) cannot model it")
+
     @property
     def nx(self) -> int:
         """State dimension."""
@@ -212,8 +229,9 @@ class System(ABC):
 
         Generic version with a loop over the K steps; systems override it with a loop-free form where one exists.
         """
-        xs = [x0]
-        x = x0
+        batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-2])
+        x = x0.expand(*batch, x0.shape[-1])
+        xs = [x]
         for k in range(u.shape[-2]):
             x = x + dt * self.f(x, u[..., k, :])
             xs.append(x)

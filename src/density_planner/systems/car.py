@@ -268,6 +268,10 @@ class KinematicCar(ControlAffineSystem):
         # d(v cos th)/d px + d(v sin th)/d py + 0 + 0 + 0 = 0
         return torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
 
+    def f_symbolic(self, x, u, ops):
+        """Nominal car ``[v cos(theta), v sin(theta), omega, a]`` of ``x = (p_x, p_y, theta, v)`` (no bias)."""
+        return ops.vertcat(x[3] * ops.cos(x[2]), x[3] * ops.sin(x[2]), u[0], u[1])
+
     # ------------------------------------------------------------- measurement
     def measure(self, x: Tensor) -> Tensor:
         """Biased measurement ``[p_x, p_y, theta + theta_bias, v, 0]`` (paper §V)."""

@@ -65,5 +65,11 @@ class LinearSystem(ControlAffineSystem):
     def input_matrix(self, x: Tensor) -> Tensor:
         return self._b.to(dtype=x.dtype, device=x.device)
 
+    def f_symbolic(self, x, u, ops):
+        """``A x + B u`` for symbolic vectors (every state is nominal)."""
+        a, b = self._a.tolist(), self._b.tolist()
+        return ops.vertcat(*[sum(a[i][j] * x[j] for j in range(self.nx) if a[i][j])
+                             + sum(b[i][j] * u[j] for j in range(self.nu) if b[i][j]) for i in range(self.nx)])
+
     def drift_divergence(self, x: Tensor) -> Tensor:
         return torch.full(x.shape[:-1], float(torch.trace(self._a)), dtype=x.dtype, device=x.device)

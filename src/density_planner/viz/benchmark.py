@@ -16,7 +16,8 @@ import numpy as np
 from .occupancy import show_occupancy
 from .style import plt, save_figure
 
-__all__ = ["BAR_METRICS", "plot_metric_bars", "plot_summary", "plot_env_trajectories", "write_figures"]
+__all__ = ["BAR_METRICS", "planner_colour", "plot_metric_bars", "plot_summary", "plot_env_trajectories",
+           "write_figures"]
 
 #: metric -> (title, axis label, scale, log axis)
 BAR_METRICS: dict[str, tuple[str, str, float, bool]] = {
@@ -28,17 +29,17 @@ BAR_METRICS: dict[str, tuple[str, str, float, bool]] = {
     "online_time": ("Online time per 0.1-s step", "time [ms]", 1e3, True),
 }
 
-_BASE_COLOURS = {
-    "density": "tab:orange", "mpc": "tab:blue", "tube_mpc_0.3": "tab:cyan", "tube_mpc_0.5": "tab:purple",
-    "tube_mpc_1.0": "tab:brown", "oracle": "tab:green", "search": "tab:red", "sampling": "tab:olive",
-}
+#: colours of planners whose registration names none (picked from the name)
 _EXTRA_COLOURS = ("tab:pink", "tab:gray", "gold", "navy")
 
 
-def _colour(planner: str) -> str:
-    if planner in _BASE_COLOURS:
-        return _BASE_COLOURS[planner]
-    return _EXTRA_COLOURS[sum(map(ord, planner)) % len(_EXTRA_COLOURS)]
+def planner_colour(planner: str) -> str:
+    """The planner's colour in figures: its registration's, else one of :data:`_EXTRA_COLOURS` picked from the
+    name."""
+    from ..planners.registry import planner_info
+
+    colour = planner_info(planner, default=True).colour
+    return colour or _EXTRA_COLOURS[sum(map(ord, planner)) % len(_EXTRA_COLOURS)]
 
 
 def _short(v: float) -> str:
@@ -67,7 +68,7 @@ def _bars(ax, rows: Sequence[Mapping[str, Any]], metric: str, *, annotate: bool 
         biased = r.get("variant") == "biased"
         h = heights[i]
         drawn = np.isfinite(h) and not (log and vals[i] <= 0)
-        ax.bar(x[i], h if drawn else 0, color=_colour(r["planner"]), alpha=0.55 if biased else 0.95,
+        ax.bar(x[i], h if drawn else 0, color=planner_colour(r["planner"]), alpha=0.55 if biased else 0.95,
                hatch="//" if biased else None, edgecolor="black", linewidth=0.5)
         if annotate:
             text = "n/a" if not finite[i] else (f"{vals[i]:.0f}" if metric == "failure_rate" else _short(vals[i]))
@@ -146,9 +147,9 @@ def plot_env_trajectories(
     for label, ref in (references or {}).items():
         ax.plot(ref[:, 0], ref[:, 1], ls=":", lw=1.0, color="black", alpha=0.7, label=label, zorder=3)
     for label, (planner, biased, states) in trajectories.items():
-        ax.plot(states[:, 0], states[:, 1], ls="--" if biased else "-", lw=1.4, color=_colour(planner), label=label,
-                zorder=4)
-        ax.plot(states[-1, 0], states[-1, 1], "o", ms=3, color=_colour(planner), zorder=5)
+        ax.plot(states[:, 0], states[:, 1], ls="--" if biased else "-", lw=1.4, color=planner_colour(planner),
+                label=label, zorder=4)
+        ax.plot(states[-1, 0], states[-1, 1], "o", ms=3, color=planner_colour(planner), zorder=5)
     if start is not None:
         ax.plot(float(start[0]), float(start[1]), "o", color="tab:green", ms=7, mec="white", label="start", zorder=6)
     if goal is not None:
@@ -167,7 +168,7 @@ def write_figures(out: str | Path, rows: Sequence[Mapping[str, Any]], records: S
                   plot_envs: int = 3) -> list[Path]:
     """All figures of a benchmark directory into ``DIR/figures``: per setting the six bar charts and the overview,
     and the trajectories of the first ``plot_envs`` environments."""
-    from ..evaluation.benchmark import load_scene_map
+    from ..evaluation.records import load_scene_map
     from ..evaluation.report import method_label
 
     out = Path(out)
