@@ -83,7 +83,7 @@ def test_plan_random_scene_with_ks(tmp_path):
 
 @pytest.mark.slow
 def test_plan_commonroad_with_ks_writes_ks_solution(tmp_path):
-    from density_planner.evaluation.benchmark import shipped_commonroad_dir
+    from density_planner.evaluation.environments import shipped_commonroad_dir
 
     out = tmp_path / "p"
     rc = main(["plan", "--system", "ks", "--env", "commonroad", "--file",
