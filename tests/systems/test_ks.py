@@ -193,3 +193,22 @@ def test_controller_tangents_equal_autodiff():
     u2, du2 = super(KSTrackingController, controller).raw_with_tangents(x0, x_ref, u_ref, tangents)
     torch.testing.assert_close(u, u2, atol=1e-14, rtol=0)
     torch.testing.assert_close(du, du2, atol=1e-12, rtol=0)
+
+
+def test_scaled_adam_is_adam_in_scaled_coordinates():
+    """``BatchedAdam(scale=s)`` on ``p`` takes the steps of plain Adam on ``q = p / s`` (the KS steering rate's
+    ``input_step_scale``): same iterates up to the ``eps`` term."""
+    from density_planner.planners.optim import BatchedAdam
+
+    g = torch.Generator().manual_seed(0)
+    s = torch.tensor([[0.1], [1.0]], dtype=torch.float64)
+    p = torch.randn(3, 2, 4, generator=g, dtype=torch.float64) * s
+    q = p / s
+    a = BatchedAdam(p, lr=0.01, update_clip=0.02, low=-0.3 * torch.ones(2, 1), high=torch.ones(2, 1) * 3, scale=s)
+    b = BatchedAdam(q, lr=0.01, update_clip=0.02, low=-0.3 / s, high=3 / s, eps=1e-9)
+    for _ in range(20):
+        grad_p = torch.randn(3, 2, 4, generator=g, dtype=torch.float64)
+        a.step(grad_p)
+        b.step(grad_p * s)
+    torch.testing.assert_close(p, q * s, atol=1e-7, rtol=0)
+    assert bool((p[:, 0].abs() <= 0.3 + 1e-12).all())

@@ -190,8 +190,9 @@ class KinematicSingleTrack(ControlAffineSystem):
     speed_index = V
     acceleration_input = ACC
     turn_rate_input = None
-    #: CommonRoad vehicle model of the states (``solution.xml`` writes them as ``KSState``)
-    commonroad_model = "KS"
+    #: scale of the density planner's step sizes per input (``init_std``, ``lr`` and ``update_clip`` are set for
+    #: the car's inputs of +-3; the steering-rate box is a tenth of that)
+    input_step_scale = (0.1, 1.0)
 
     def __init__(self, config: KSConfig | None = None):
         self.config = config or KSConfig()
