@@ -7,7 +7,7 @@ samples, MPC limited to ``--mpc-steps`` closed-loop steps, oracle 2 restarts of 
 Monte-Carlo samples. ``--full`` uses the paper's configurations instead (tens of minutes per environment).
 
 Every run writes the same records whatever the worker count (see ``tests/evaluation``), so the comparison
-measures only the executor. The MPC's 0.1-s CPU-time limit per step makes its per-step work shrink on a loaded
+measures only the executor. M0's 0.1-s CPU-time limit per step makes its per-step work shrink on a loaded
 machine; the oracle and density planner do fixed work. Expect at most ``min(workers, free cores)`` speed-up.
 
     python benchmarks/bench_sweep.py [--envs 2] [--workers 1,2] [--planners LIST] [--full] [--keep DIR]

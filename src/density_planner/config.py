@@ -16,18 +16,19 @@ Library functions receive these objects (or explicit arguments); only the CLI pa
 from __future__ import annotations
 
 import dataclasses
+import sys
 import types
 import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal, TypeVar, Union, get_args, get_origin
+from typing import Any, Literal, TypeVar, Union, cast, get_args, get_origin
 
 from .errors import ConfigError
 
-try:  # Python >= 3.11
+if sys.version_info >= (3, 11):
     import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 
 T = TypeVar("T")
 
@@ -152,7 +153,7 @@ def update(cfg: T, data: Mapping[str, Any], *, where: str | None = None) -> T:
         else:
             changes[name] = _coerce(tp, value, f"{where}.{name}")
     try:
-        return dataclasses.replace(cfg, **changes)
+        return dataclasses.replace(cast(Any, cfg), **changes)  # a dataclass instance: _fields(cls) read its fields
     except ConfigError:
         raise
     except (ValueError, TypeError) as exc:

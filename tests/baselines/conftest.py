@@ -1,7 +1,13 @@
 """Baseline tests run torch single-threaded: their predictor calls are many small batches, for which extra
-OpenMP threads on a shared machine cost more than they give."""
+OpenMP threads on a shared machine cost more than they give.
+
+No baseline test may solve with IPOPT's CPU-time cap: how many iterations fit in a CPU-time budget depends on the
+machine and its load, so a capped run is not reproducible. The guard below fails any test that builds an NLP with
+a finite ``max_cpu_time`` (tests set ``max_cpu_time = math.inf`` and rely on the deterministic ``max_iter``)."""
 
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
@@ -13,3 +19,25 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(autouse=True)
+def _no_cpu_time_cap(monkeypatch):
+    try:
+        from density_planner.planners import _nlp, mpc, oracle
+    except ImportError:  # pragma: no cover - the modules import without casadi
+        yield
+        return
+    original = _nlp.ipopt_options
+    capped: list[float] = []
+
+    def recording(*, max_iter, max_cpu_time=math.inf, **kwargs):
+        if max_cpu_time != math.inf:
+            capped.append(max_cpu_time)  # recorded, not raised: the planners turn exceptions into a status
+        return original(max_iter=max_iter, max_cpu_time=max_cpu_time, **kwargs)
+
+    for module in (mpc, oracle):
+        monkeypatch.setattr(module, "ipopt_options", recording)
+    yield
+    assert not capped, (f"a test solved with IPOPT's CPU-time cap ({capped[0]} s): results would depend on the "
+                        "machine's load; set max_cpu_time=math.inf and limit max_iter")

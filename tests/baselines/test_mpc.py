@@ -26,8 +26,8 @@ def _problem(scene: Scene, risk: RiskConfig | None = None) -> PlanningProblem:
 
 def _cfg(**kwargs) -> MPCConfig:
     """MPC settings with a deterministic iteration limit only: IPOPT's CPU-time cap (0.1 s per step, the paper's
-    setting) makes the iterates depend on the machine's load, so the tests never use it."""
-    return MPCConfig(**{"max_cpu_time": None, **kwargs})
+    setting) makes the iterates depend on the machine's load, so the tests never use it (conftest.py checks)."""
+    return MPCConfig(**{"max_cpu_time": math.inf, **kwargs})
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +134,7 @@ def test_nlp_collision_term_matches_the_grid(radius, method):
     windows, their memory layout, the slice times and the tube sums are right."""
     scene = _field_scene()
     problem = _problem(scene)
-    cfg = MPCConfig(tube_radius=radius, tube_method=method, max_iter=30, max_cpu_time=None)
+    cfg = MPCConfig(tube_radius=radius, tube_method=method, max_iter=30, max_cpu_time=math.inf)
     mpc = MPCPlanner(cfg)
     mpc.reset(problem)
     state = np.array([0.3, -4.0, 1.2, 4.0])
@@ -162,7 +162,7 @@ def test_precomputed_and_offset_tubes_give_the_same_step():
     problem = _problem(scene, RiskConfig(body=False))
     out = {}
     for method in ("precomputed", "offsets"):
-        mpc = MPCPlanner(MPCConfig(tube_radius=0.3, tube_method=method, max_iter=100, max_cpu_time=None))
+        mpc = MPCPlanner(MPCConfig(tube_radius=0.3, tube_method=method, max_iter=100, max_cpu_time=math.inf))
         mpc.reset(problem)
         out[method] = mpc.solve(np.array([0.3, -4.0, 1.2, 4.0]), 3)
     a, b = out["precomputed"], out["offsets"]
@@ -219,7 +219,25 @@ def test_large_maps_use_the_same_windows():
 
 
 @pytest.mark.parametrize("kwargs", [{"horizon": 0}, {"stage_dt": 0.0}, {"tube_radius": -0.1}, {"max_iter": 0},
-                                    {"max_cpu_time": 0.0}, {"hessian": "bfgs"}, {"tube_method": "fft"}])
+                                    {"max_cpu_time": 0.0}, {"max_cpu_time": None}, {"hessian": "bfgs"},
+                                    {"tube_method": "fft"}])
 def test_bad_config(kwargs):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
         MPCConfig(**kwargs)
+
+
+def test_cpu_time_cap_defaults():
+    """M0 keeps the paper's real-time budget (0.1 s per step); the tube MPCs stop on their 10 iterations only; an
+    infinite cap is not passed to IPOPT, and ``inf`` is how TOML (``--set mpc.max_cpu_time=inf``) turns it off."""
+    from density_planner.config import apply_overrides, dumps_toml
+    from density_planner.planners._nlp import ipopt_options
+    from density_planner.planners.mpc import TubeMPCConfig
+    from density_planner.settings import RunConfig
+
+    assert MPCConfig().max_cpu_time == 0.1 and MPCConfig().max_iter == 300
+    assert TubeMPCConfig().max_cpu_time == math.inf and TubeMPCConfig().max_iter == 10
+    assert "max_cpu_time" not in ipopt_options(max_iter=10, max_cpu_time=math.inf)["ipopt"]
+    assert ipopt_options(max_iter=10, max_cpu_time=0.1)["ipopt"]["max_cpu_time"] == 0.1
+    cfg = apply_overrides(RunConfig(), ["mpc.max_cpu_time=inf"])
+    assert cfg.mpc.max_cpu_time == math.inf
+    assert "max_cpu_time = inf" in dumps_toml(cfg)

@@ -70,7 +70,7 @@ def test_oracle_cost_at_most_mpc(block_runs):
     """Same scene, same (exactly known) start: the oracle's J_MPC over the 10-s horizon is at most M0's."""
     scene, problem, oracle, res = block_runs
     # full 10 s, like the oracle; an iteration limit only (a CPU-time cap would depend on the machine's load)
-    mpc = MPCPlanner(MPCConfig(goal_stop_distance=0.0, max_cpu_time=None)).plan(problem)
+    mpc = MPCPlanner(MPCConfig(goal_stop_distance=0.0, max_cpu_time=math.inf)).plan(problem)
     assert mpc.status == PlanStatus.SUCCESS
     assert mpc.states.shape == res.states.shape == (101, 5)
     assert res.extras["objective"]["total"] <= mpc.extras["objective"]["total"]

@@ -88,8 +88,8 @@ def test_cli_plans_with_a_baseline(tmp_path, capsys):
     from density_planner.cli import main
 
     out = tmp_path / "mpc"
-    rc = main(["plan", "--env", "random", "--seed", "1", "--planner", "mpc", "--set", "mpc.n_steps=5", "-q",
-               "--no-gif", "--out", str(out)])
+    rc = main(["plan", "--env", "random", "--seed", "1", "--planner", "mpc", "--set", "mpc.n_steps=5",
+               "--set", "mpc.max_cpu_time=inf", "-q", "--no-gif", "--out", str(out)])
     data = json.loads((out / "plan.json").read_text())
     # 5 steps (0.5 s) cannot reach the goal: the verdict fails (exit 3), the planner itself succeeded
     assert rc == 3 and data["status"] == "failed" and not data["verdict"]["goal_reached"]

@@ -34,7 +34,7 @@ def _states(n: int, dtype=torch.float64, seed: int = 0):
 
 
 def test_parameter_count_of_paper_architecture():
-    # original.md §3: two MLPs 4-128-128-48 and 4-128-128-24 with 43,592 parameters (raw angle inputs)
+    # docs/spec.md §3: two MLPs 4-128-128-48 and 4-128-128-24 with 43,592 parameters (raw angle inputs)
     ctrl = C3MController(C3MArchitecture(angle_encoding="raw"))
     assert sum(p.numel() for p in ctrl.parameters()) == 43_592
 

@@ -179,3 +179,65 @@ def test_log_density_never_nan_for_extreme_divergence():
                             config=LiouvilleConfig("euler", 0.01))
     assert torch.isfinite(out.log_rho).all()
     torch.testing.assert_close(out.log_rho[:, -1], torch.full((3,), 2000.0, dtype=torch.float64))
+
+
+
+#: initial-error scale (fraction of the initial-error box) per controller: the C3M feedback has higher gains, so
+#: smaller errors keep its inputs off the bounds
+_GRADCHECK_ERROR = {"analytic": 0.3, "c3m": 0.05}
+
+
+def _gradcheck_controller(kind: str):
+    if kind == "analytic":
+        return CarTrackingController().double()
+    from density_planner.control.c3m import load_c3m_controller
+
+    return load_c3m_controller().double()  # the shipped C3M weights (tanh networks: smooth)
+
+
+@pytest.fixture
+def one_thread():
+    """gradcheck makes hundreds of tiny calls: extra OpenMP threads on a shared machine make them 20x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("controller_kind", ["analytic", "c3m"])
+@pytest.mark.parametrize("divergence", ["structured", "autodiff"])
+def test_gradcheck_of_exact_liouville(controller_kind, divergence, one_thread):
+    """``torch.autograd.gradcheck`` (float64 central differences against the analytical Jacobian) of the predicted
+    states and log-densities (every 0.2 s) w.r.t. the reference parameters and the initial states: 2 samples,
+    2 segments of 0.5 s (RK4 at 0.1 s), initial errors small enough that no input reaches its bound (the clip's
+    kink). The autodiff divergence differentiates a Jacobian trace (second derivatives of the closed loop), ~50x
+    slower per call: checked in gradcheck's fast mode (a random projection of the Jacobian)."""
+    from density_planner.control.reference import PiecewiseConstantInputs
+
+    g = torch.Generator().manual_seed(11)
+    car = KinematicCar()
+    controller = _gradcheck_controller(controller_kind)
+    par = PiecewiseConstantInputs(n_segments=2, segment_duration=0.5)
+    start = torch.tensor([0.0, -28.0, 1.5, 3.0, 0.0], dtype=torch.float64)
+    params = (0.3 * torch.randn(2, 2, generator=g, dtype=torch.float64)).requires_grad_(True)
+    hw = _GRADCHECK_ERROR[controller_kind] * torch.tensor(car.config.initial_error_max, dtype=torch.float64)
+    x0 = (start + (2 * torch.rand(2, 5, generator=g, dtype=torch.float64) - 1) * hw).requires_grad_(True)
+    log_rho0 = torch.randn(2, generator=g, dtype=torch.float64)
+    cfg = LiouvilleConfig("rk4", 0.1, divergence=divergence)
+
+    def predict(p, x):
+        out = propagate_density(car, controller, x, make_reference(car, start, p, par), log_rho0=log_rho0,
+                                config=cfg)
+        return out.x[:, ::2], out.log_rho[:, ::2]
+
+    with torch.no_grad():
+        x, log_rho = predict(params, x0)
+        ref = make_reference(car, start, params, par)
+        u = controller(car.measure(x[:, :-1].reshape(-1, 5)), ref.x_plan[:-1:2].repeat(2, 1),
+                       ref.u_plan[::2].repeat(2, 1))
+    assert x.shape == (2, 6, 5) and log_rho.shape == (2, 6)
+    # an informative case: the densities change along the run; every input stays off its bound (3)
+    assert float((log_rho[:, -1] - log_rho0).abs().min()) > 1.0
+    assert float(u.abs().max()) < 2.0
+    fast = divergence == "autodiff"
+    assert torch.autograd.gradcheck(predict, (params, x0), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=fast)

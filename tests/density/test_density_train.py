@@ -82,15 +82,30 @@ def test_resume_continues_exactly(small_data, tmp_path):
         train_density(small_config("pointwise", epochs=4, lr=1e-2), train, val, tmp_path / "part")
 
 
-def test_early_stopping_and_time_limit(small_data):
+def test_early_stopping_and_time_limit(small_data, monkeypatch):
     train, val = load_density_data(small_data, "train"), load_density_data(small_data, "val")
     # a vanishing learning rate leaves the validation loss where it is: no improvement for `patience` epochs
     stuck = train_density(small_config("trajectory", epochs=30, lr=1e-30, lr_final=1e-30, patience=2), train, val)
     assert stuck.stopped == "early_stopping"
     assert stuck.epochs_run == stuck.best_epoch + 3
     assert stuck.best_val_loss == min(stuck.history["val_loss"])
-    limited = train_density(small_config("trajectory", epochs=30, time_limit_s=1e-3), train, val)
-    assert limited.stopped == "time_limit" and limited.epochs_run == 1
+    # the time limit on a fake clock that advances 1 s per reading (no wall time in tests): training stops after
+    # the first epoch whose recorded time reaches 2.5 s
+    import types
+
+    import density_planner.density.train as train_module
+
+    clock = [0.0]
+
+    def tick() -> float:
+        clock[0] += 1.0
+        return clock[0]
+
+    monkeypatch.setattr(train_module, "time", types.SimpleNamespace(perf_counter=tick))
+    limited = train_density(small_config("trajectory", epochs=30, time_limit_s=2.5), train, val)
+    walls = limited.history["wall_time_s"]
+    assert limited.stopped == "time_limit" and limited.epochs_run == len(walls) < 30
+    assert walls[-1] >= 2.5 and all(w < 2.5 for w in walls[:-1])
 
 
 def test_config_validation():

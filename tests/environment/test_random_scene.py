@@ -1,4 +1,4 @@
-"""Random artificial scenes (original.md §8): determinism, parameter ranges, profile, motion, start/goal
+"""Random artificial scenes (docs/spec.md §8): determinism, parameter ranges, profile, motion, start/goal
 rules."""
 
 from __future__ import annotations

@@ -7,6 +7,7 @@ worker.
 
 from __future__ import annotations
 
+import math
 import os
 
 from density_planner.config import update
@@ -25,8 +26,8 @@ def tiny_run_config(**sections) -> RunConfig:
     data = {
         "density_planner": dict(TINY_DP),
         "evaluation": {"mc_samples_tracked": 8, "mc_samples_receding": 0},
-        "mpc": {"max_cpu_time": None, "max_iter": 5},
-        "tube_mpc": {"max_cpu_time": None, "max_iter": 3},
+        "mpc": {"max_cpu_time": math.inf, "max_iter": 5},
+        "tube_mpc": {"max_cpu_time": math.inf, "max_iter": 3},
         "oracle": {"restarts": 1, "max_iter": 20},
     }
     for k, v in sections.items():

@@ -147,7 +147,7 @@ def test_mpc_execution_uses_plan_from():
     from density_planner.planners.mpc import MPCConfig, MPCPlanner
 
     problem, _, _ = _setup()
-    mpc = MPCPlanner(MPCConfig(max_iter=5, max_cpu_time=None, n_steps=20))
+    mpc = MPCPlanner(MPCConfig(max_iter=5, max_cpu_time=math.inf, n_steps=20))
     run = execute(mpc, problem, problem.reference_start(torch.float64))
     assert run.states.shape == (21, 5)
     assert run.planned_inputs.shape == (20, 2) and torch.equal(run.planned_inputs, run.applied_inputs)

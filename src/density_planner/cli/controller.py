@@ -183,6 +183,7 @@ def run_train(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------------- validate
 def run_validate(args: argparse.Namespace) -> int:
     from ..control.analytic import CarTrackingController
+    from ..control.base import TrackingController
     from ..control.c3m import load_c3m_model
     from ..control.c3m_training import contraction_diagnostics
     from ..control.registry import DEFAULT_CONTROLLER, model_set
@@ -200,7 +201,7 @@ def run_validate(args: argparse.Namespace) -> int:
     car = mset.car
     if spec == "analytic":
         name = "analytic"
-        controllers = {"analytic": CarTrackingController(car=car)}
+        controllers: dict[str, TrackingController] = {"analytic": CarTrackingController(car=car)}
         report["contraction"] = None
         report["contraction_note"] = "the analytic controller has no contraction metric"
     else:

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from ..control.reference import make_reference
     from ..control.registry import load_controller, model_set_for_scene
     from ..density.distributions import paper_gaussian_mixture
-    from ..density.liouville import LiouvilleConfig, propagate_density
+    from ..density.liouville import IntegratorName, LiouvilleConfig, propagate_density
     from ..io.atomic import atomic_save_npz
     from ..memory import check_memory
     from ..systems.registry import SystemConfig
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--start contains NaN or infinite values")
     start = torch.tensor(car.state_from_pose(*args.start), dtype=dtype, device=device)
 
-    integrator = args.integrator or "rk4"
+    integrator: IntegratorName = args.integrator or "rk4"
     dt = args.dt if args.dt is not None else (0.1 if integrator == "rk4" else 0.01)
     config = LiouvilleConfig(integrator=integrator, dt=dt)
 

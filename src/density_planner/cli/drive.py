@@ -150,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         animate_run(scene, result, out / "run.gif")
         written.append("run.gif")
     v = result.verdict
+    assert v is not None  # drive() judges every run
     n_fb = summary["n_fallbacks"]
     med = summary["replan_wall_time_median"]
     print(f"{args.planner} online ({result.prediction} prediction) on {scene.name}: {v.summary()}; "

@@ -95,6 +95,8 @@ class CarTrackingController(TrackingController):
 class LinearFeedbackController(TrackingController):
     """``u = u_ref - K (x_hat - x_ref)`` with a constant gain ``K (nu, nx)``; unbounded unless bounds are given."""
 
+    K: Tensor  # buffer
+
     def __init__(
         self,
         K: Sequence[Sequence[float]],

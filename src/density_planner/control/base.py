@@ -86,7 +86,7 @@ class SmoothSaturation:
     def speed_dependent(self) -> bool:
         return math.isfinite(self.lateral_accel_max)
 
-    def _limits(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, ...]:
+    def _limits(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
         """Knee and ceiling bounds ``(*batch, nu)`` and their derivatives w.r.t. the speed (turn channel)."""
         def vec(values):
             return torch.as_tensor(values, dtype=u.dtype, device=u.device)
@@ -123,6 +123,7 @@ class SmoothSaturation:
         s, ds, dsk, dsc = soft_clip(u, k_lo, k_hi, c_lo, c_hi)
         out = ds * du
         if dk is not None:
+            assert dc is not None  # both turn-rate slopes exist together (_limits)
             i = self.turn_index
             # bounds of the turn channel: +-k(v), +-c(v); above the knee d s / d v = dsk k' + dsc c', below the
             # mirrored bounds move with -k', -c'
@@ -146,6 +147,10 @@ def _turn_limit_and_slope(v: Tensor, omega_max: float, a_lat: float) -> tuple[Te
 
 class TrackingController(nn.Module):
     """Base class: implement :meth:`raw` (the unclipped control law); clipping and tangents are handled here."""
+
+    # buffers (registered in __init__)
+    input_min: Tensor
+    input_max: Tensor
 
     def __init__(self, input_min: Sequence[float], input_max: Sequence[float],
                  saturation: SmoothSaturation | None = None):
@@ -176,7 +181,7 @@ class TrackingController(nn.Module):
         u = None
         dus = []
         for d in dx_hat.unbind(0):
-            u, du = torch.func.jvp(fn, (x_hat,), (d.expand_as(x_hat),))
+            u, du = torch.func.jvp(fn, (x_hat,), (d.expand_as(x_hat),))[:2]
             dus.append(du)
         if u is None:
             u = fn(x_hat)

@@ -1,7 +1,7 @@
 """Learned contraction controller (C3M: Sun, Jha, Fan, "Learning Certified Control using Contraction Metric",
 CoRL 2020) for the kinematic car.
 
-Controller (architecture of the paper's controller, ``original.md`` §3)::
+Controller (architecture of the paper's controller, ``docs/spec.md`` §3)::
 
     e = x_hat[:4] - x_ref[:4]                        tracking error of the *measured* state [m, m, rad, m/s]
     z = (theta_hat, v_hat, theta_ref, v_ref)         scheduling variables (normalised to about [-1, 1])
@@ -81,7 +81,7 @@ class C3MArchitecture:
     metric_n_hidden: int = 2
     #: lower bound of the metric, ``W >= w_lb I`` [dimensionless]
     w_lb: float = 0.1
-    #: range of theta [rad] mapped to [-1, 1] at the network inputs (the state box of ``original.md`` §1)
+    #: range of theta [rad] mapped to [-1, 1] at the network inputs (the state box of ``docs/spec.md`` §1)
     theta_range: tuple[float, float] = (-math.pi + 0.2, 3 * math.pi - 0.2)
     #: range of v [m/s] mapped to [-1, 1] at the network inputs
     v_range: tuple[float, float] = (0.0, 10.0)
@@ -154,6 +154,7 @@ class TanhMLP(nn.Module):
         last = len(self.layers) - 1
         y, d = z, dz
         for i, lin in enumerate(self.layers):
+            assert isinstance(lin, nn.Linear)
             w = lin.weight
             y = F.linear(y, w, lin.bias)
             d = torch.matmul(d, w.t())
@@ -346,8 +347,8 @@ class ContractionMetric(nn.Module):
         shape = (2, *([1] * (z.ndim - 1)))
         d_theta = torch.tensor([1.0, 0.0], dtype=z.dtype, device=z.device).reshape(shape)
         d_v = torch.tensor([0.0, 1.0], dtype=z.dtype, device=z.device).reshape(shape)
-        dz = self._features.tangents(x[..., THETA], x[..., V], d_theta, d_v)
-        dz = torch.stack(torch.broadcast_tensors(*dz), dim=-1)
+        dzs = self._features.tangents(x[..., THETA], x[..., V], d_theta, d_v)
+        dz = torch.stack(torch.broadcast_tensors(*dzs), dim=-1)
         out, dout = self.net.forward_with_tangents(z, dz)
         dout = dout.expand(2, *out.shape)
         el = self._assemble(self.l_pp.to(z), out)

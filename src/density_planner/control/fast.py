@@ -98,6 +98,8 @@ class NumpyC3M:
             if u_first is None:
                 u_first = u
             xn = xn + dt * np.array([xn[3] * math.cos(xn[2]), xn[3] * math.sin(xn[2]), u[0], u[1], 0.0])
+        if u_first is None:
+            raise ValueError("x_refs must hold at least one step")
         return xn, u_first
 
     def __call__(self, x_hat: np.ndarray, x_ref: np.ndarray, u_ref: np.ndarray) -> np.ndarray:

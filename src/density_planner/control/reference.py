@@ -2,7 +2,7 @@
 
 Parameters ``p`` have shape ``(*batch, nu, n_segments)``: for the car ``(B, 2, 10)``, ten values of ``omega``
 and ten of ``a``, each held for one second. They define ``u_ref`` on the fine grid (0.01 s) and, by explicit
-Euler integration of the nominal model from a start state, ``x_ref`` (``original.md`` §2). Both are also
+Euler integration of the nominal model from a start state, ``x_ref`` (``docs/spec.md`` §2). Both are also
 available on the coarser planning grid (0.1 s). Everything is batched over the leading dimensions and
 differentiable w.r.t. ``p`` and the start state.
 """

@@ -1,4 +1,4 @@
-"""Seeded sampling of references, initial errors and tracking states in the boxes of ``original.md`` §1.
+"""Seeded sampling of references, initial errors and tracking states in the boxes of ``docs/spec.md`` §1.
 
 * :func:`sample_feasible_references`: random piecewise-constant reference inputs ``clamp(2 N(0, 1), -3, 3)`` from
   start states uniform in the reference-start box, keeping only references that stay in the state box (all
@@ -37,7 +37,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
-def _as_float64(values: Sequence[float], name: str) -> Tensor:
+def _as_float64(values: Sequence[float] | Tensor, name: str) -> Tensor:
     t = torch.as_tensor(values, dtype=torch.float64)
     if t.ndim != 1 or not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} must be a finite 1-D sequence of numbers, got {values!r}")
@@ -214,7 +214,7 @@ def sample_tracking_states(
     device: torch.device | str = "cpu",
     min_speed: float = 0.0,
 ) -> TrackingSamples:
-    """Samples for the contraction conditions (``original.md`` §1 boxes).
+    """Samples for the contraction conditions (``docs/spec.md`` §1 boxes).
 
     ``x_ref`` uniform in the state box X_MIN/X_MAX (positions included, bias 0), the error ``e`` uniform in
     ``[-error_box, error_box]`` (default XE: +-(2 m, 2 m, 1 rad, 1 m/s, pi/8 rad), whose last entry is the heading

@@ -1,6 +1,6 @@
 """The planner's cost ``J = alpha_G J_G + alpha_I J_I + alpha_B J_B + alpha_C J_C`` (paper Eq. (3)).
 
-:class:`CostConfig` holds the weights and factors (defaults from ``original.md`` §9); :func:`build_cost` makes the
+:class:`CostConfig` holds the weights and factors (defaults from ``docs/spec.md`` §9); :func:`build_cost` makes the
 four terms for a scene; :class:`WeightedCost` evaluates the total and the per-term breakdown, optionally with a
 per-candidate mask of active terms (the staged weights of the planner's first stage).
 """
@@ -27,7 +27,7 @@ TERM_NAMES = ("goal", "input", "bounds", "collision")
 
 @dataclass(frozen=True)
 class CostWeights:
-    """Weights ``alpha`` of the cost terms (``original.md`` §9)."""
+    """Weights ``alpha`` of the cost terms (``docs/spec.md`` §9)."""
 
     #: alpha_G, goal distance [1/m^2]
     goal: float = 1e-2
@@ -56,7 +56,7 @@ class CostConfig:
     #: step of the desired-position trick, in cells (paper's beta; the original used 100 cells = 10 m per unit
     #: of per-cell gradient)
     beta: float = 100.0
-    #: wider stencils [cells] used where the occupancy gradient vanishes inside an obstacle (``original.md`` §8)
+    #: wider stencils [cells] used where the occupancy gradient vanishes inside an obstacle (``docs/spec.md`` §8)
     plateau_scales: tuple[int, ...] = (5, 15, 25, 35, 45)
     #: J_G is multiplied by this while J_G >= goal_close_threshold during optimisation (original: 10; 1 = paper)
     goal_far_factor: float = 10.0
@@ -121,6 +121,7 @@ class WeightedCost:
                 v = inputs.x.new_zeros(inputs.x.shape[:-3]).index_put((mask,), term(inputs.select(mask)))
             values[name] = v
             total = total + self.weights[name] * v
+        assert isinstance(total, Tensor), "a cost needs at least one term"
         return CostBreakdown(total=total, terms=values)
 
 

@@ -166,7 +166,7 @@ class GoalRegionCost(CostTerm):
                 width = (hi - lo) % (2 * math.pi) if hi < lo else hi - lo
                 half = 0.5 * width - min(0.1 * margin, 0.125 * width)
                 ori = None if width >= 2 * math.pi - 1e-9 else (lo + 0.5 * width, half)  # centre, half-width
-            self._alts.append((edges, tuple(float(v) for v in alt.time_interval),
+            self._alts.append((edges, (float(alt.time_interval[0]), float(alt.time_interval[1])),
                                None if vel is None else (float(vel[0]), float(vel[1])), ori))
 
     def times(self, slices: Tensor) -> Tensor:

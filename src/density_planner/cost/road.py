@@ -131,6 +131,7 @@ class RoadBarrierCost(CostTerm):
         centre = self._centre(x)
         rows = [torch.stack([c, s], -1), torch.stack([-s, c], -1), centre]  # R^T per pose and the centre
         if scale is not None:
+            assert shift is not None  # scale and shift come together
             rows[0], rows[1], rows[2] = rows[0] * scale, rows[1] * scale, torch.addcmul(shift, centre, scale)
         o = self.outline.to(x)
         o = torch.cat([o, o.new_ones(o.shape[0], 1)], dim=1)  # (P, 3)

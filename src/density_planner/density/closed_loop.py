@@ -84,7 +84,7 @@ class ClosedLoop:
         div = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
         fx = None
         for i in range(self.system.nx):
-            fx, d = torch.func.jvp(fn, (x,), (eye[i].expand_as(x),))
+            fx, d = torch.func.jvp(fn, (x,), (eye[i].expand_as(x),))[:2]
             div = div + d[..., i]
         assert fx is not None
         return fx, div

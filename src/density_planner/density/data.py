@@ -68,7 +68,7 @@ MANIFEST = "manifest.json"
 
 @dataclass(frozen=True)
 class DensityDataConfig:
-    """What :func:`generate_density_data` produces (defaults: the paper's sampling, ``original.md`` §5)."""
+    """What :func:`generate_density_data` produces (defaults: the paper's sampling, ``docs/spec.md`` §5)."""
 
     #: total number of random references (training + validation)
     references: int = 32768
@@ -90,7 +90,7 @@ class DensityDataConfig:
     #: reference parameters are ``clamp(param_scale N(0, 1))`` to the input bounds
     param_scale: float = 2.0
     #: lower corner of the reference-start box ``(p_x, p_y, theta, v, bias)``; ``None``: the car's box of
-    #: ``original.md`` §5 ([-12, 12] x [-30, 10] m, theta in [0, 2 pi], v in [1, 8] m/s, bias 0). The default
+    #: ``docs/spec.md`` §5 ([-12, 12] x [-30, 10] m, theta in [0, 2 pi], v in [1, 8] m/s, bias 0). The default
     #: widens heading and speed to the starts the planner meets (random scenes start with theta in
     #: [-2.1, -0.5] rad and v up to 9 m/s; the controller is not 2 pi-periodic in theta).
     start_low: tuple[float, float, float, float, float] | None = (-12.0, -30.0, 0.0, 1.0, 0.0)
@@ -333,7 +333,7 @@ def generate_density_data(
                 f"{out} holds density data of another configuration (config_key {previous.get('config_key')} "
                 f"vs {key}); use a new --out directory or the same settings to resume"
             )
-    shards = [
+    shards: list[dict[str, Any]] = [
         {"index": i, "file": _shard_path(out, i).name, "split": config.shard_split(i),
          "references": config.shard_references(i)}
         for i in range(config.n_shards)
@@ -372,7 +372,7 @@ def generate_density_data(
             if on_shard is not None:
                 on_shard(outcome.value)
         else:
-            errors.append(f"shard {todo[outcome.index]}: {outcome.error.strip().splitlines()[-1]}")
+            errors.append(f"shard {todo[outcome.index]}: {(outcome.error or 'failed').strip().splitlines()[-1]}")
             logger.error("shard %d failed:\n%s", todo[outcome.index], outcome.error)
     wall = time.perf_counter() - t0
     n_train = sum(s["references"] for s in shards if s["split"] == "train")

@@ -318,7 +318,7 @@ def paper_gaussian_mixture(
     mean_std: float = 0.3,
     variance_scale: float = 5.0,
 ) -> GaussianMixture:
-    """The paper's default initial distribution (``original.md`` §7) around ``center``.
+    """The paper's default initial distribution (``docs/spec.md`` §7) around ``center``.
 
     ``n_components`` Gaussians with weights ``U(0, 1)`` (normalised), means ``center + mean_std N(0, I)`` and
     diagonal variances ``variance_scale U(0, 1)``, truncated to the box ``center +- half_width`` (the XE0 box of

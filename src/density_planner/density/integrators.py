@@ -33,7 +33,8 @@ class FixedStepIntegrator:
     #: weights b_i
     b: tuple[float, ...]
 
-    def step(self, func: VectorField, y: State, x_ref: Sequence[Tensor], u_ref: Sequence[Tensor], dt: float) -> State:
+    def step(self, func: VectorField, y: State, x_ref: Sequence[Tensor] | Tensor, u_ref: Sequence[Tensor] | Tensor,
+             dt: float) -> State:
         """One step from ``y``; ``x_ref[i]``, ``u_ref[i]`` are the reference values at stage ``i``."""
         ks: list[State] = []
         for i in range(len(self.stages)):

@@ -160,6 +160,13 @@ class DensityNetArchitecture:
 class DensityNetwork(nn.Module):
     """Network with its input/output normalisation (see the module docstring)."""
 
+    # buffers (registered in __init__; stored in the state_dict)
+    in_mean: Tensor
+    in_std: Tensor
+    base_weight: Tensor
+    base_bias: Tensor
+    out_scale: Tensor
+
     def __init__(self, architecture: DensityNetArchitecture):
         super().__init__()
         a = self.architecture = architecture

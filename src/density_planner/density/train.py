@@ -359,8 +359,8 @@ def train_density(
     va = normalised_targets(model, val)
     t_norm = time.perf_counter() - t0
     model = model.to(device)
-    tr = tuple(x.to(device) for x in tr)
-    va = tuple(x.to(device) for x in va)
+    tr = (tr[0].to(device), tr[1].to(device), tr[2].to(device))
+    va = (va[0].to(device), va[1].to(device), va[2].to(device))
     trainer = _Trainer(model, config, tr, va)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     gen = torch.Generator().manual_seed(config.seed)

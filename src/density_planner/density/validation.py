@@ -24,12 +24,13 @@ from torch import Tensor
 
 from ..control.reference import Reference
 from .base import DensityPredictor
+from .liouville import IntegratorName
 
 __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
 #: edges of the reference start-speed bands of the accuracy reports [m/s]
 SPEED_BANDS = (0.0, 5.0, 10.0, 20.0, 30.0, 41.0)
-#: the paper's stored validation numbers of its density network (``original.md`` §6)
+#: the paper's stored validation numbers of its density network (``docs/spec.md`` §6)
 PAPER_ERROR_MSE = 0.0182
 PAPER_LOG_DENSITY_RMSE = 9.3
 
@@ -185,8 +186,8 @@ def liouville_accuracy(
     n_references: int = 100,
     samples: int = 20,
     seed: int = 0,
-    schemes: Sequence[tuple[str, float]] = (("rk4", 0.1), ("rk4", 0.05), ("euler", 0.01)),
-    reference_scheme: tuple[str, float] = ("rk4", 0.005),
+    schemes: Sequence[tuple[IntegratorName, float]] = (("rk4", 0.1), ("rk4", 0.05), ("euler", 0.01)),
+    reference_scheme: tuple[IntegratorName, float] = ("rk4", 0.005),
     dtype: torch.dtype = torch.float32,
     chunk: int = 25,
 ) -> dict:

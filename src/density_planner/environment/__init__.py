@@ -1,6 +1,6 @@
 """Environments: occupancy grids ``P_occ(x, y, t)`` and the scenes built from three sources.
 
-* :func:`random_scene` — random artificial street scenes (the paper's code, ``original.md`` §8);
+* :func:`random_scene` — random artificial street scenes (the paper's code, ``docs/spec.md`` §8);
 * :func:`load_ind_scene` — recorded traffic in the inD CSV format;
 * :func:`load_commonroad_scene` — CommonRoad XML scenarios (needs the ``commonroad`` extra).
 

@@ -41,7 +41,7 @@ class Stream:
     def integers(self, lo: int, hi: int, size: int) -> np.ndarray:
         """``size`` uniform integers in ``[lo, hi]`` inclusive."""
         n = hi - lo + 1
-        return lo + np.minimum((self._unit(size) * n).astype(np.int64), n - 1)
+        return lo + np.minimum((np.asarray(self._unit(size)) * n).astype(np.int64), n - 1)
 
     def on_grid(self, lo: float, hi: float, step: float) -> float:
         """Uniform value of ``lo + i * step`` within ``[lo, hi]``, rounded to 10 decimals."""

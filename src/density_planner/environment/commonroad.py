@@ -200,6 +200,8 @@ class CommonRoadSceneConfig:
 def _require() -> tuple[Any, Any]:
     try:
         import shapely
+        import shapely.affinity  # noqa: F401  (submodules the importers use)
+        import shapely.ops  # noqa: F401
         from commonroad.common.file_reader import CommonRoadFileReader
     except ImportError as exc:
         raise OptionalDependencyError("commonroad-io", "commonroad", "reading CommonRoad scenarios") from exc
@@ -390,7 +392,7 @@ def _interval(value: Any) -> tuple[float, float] | None:
 
 
 def _set_based_track(obs: Any, kind: str, dt: float, t_end: float, shapely: Any, fp: FootprintConfig
-                     ) -> ObstacleTrack | None:
+                     ) -> ObstacleTrack:
     """Set-based prediction -> track of world-frame occupancies, one per scenario time step it covers,
     continued past its last set at the initial velocity (module docstring, step 6)."""
     occ_dict = getattr(obs.prediction, "occupancies", None) or {}
@@ -430,8 +432,9 @@ def _set_based_track(obs: Any, kind: str, dt: float, t_end: float, shapely: Any,
         predicted.append(True)
         std.append(e)
     cents = np.array([[g.centroid.x, g.centroid.y, th0] for g in geoms])
-    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, np.array(times), cents, predicted=predicted,
-                         position_std=std, occupancies=np.array(geoms, dtype=object))
+    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, np.array(times), cents,
+                         predicted=np.array(predicted), position_std=np.array(std),
+                         occupancies=np.array(geoms, dtype=object))
 
 
 # ---------------------------------------------------------------------------------------------- rasterise
@@ -501,7 +504,8 @@ def _static_track(obs: Any, shapely: Any) -> ObstacleTrack | None:
     outline, length, width = _shape_outline(obs.obstacle_shape, shapely)
     kind = str(getattr(obs.obstacle_type, "value", obs.obstacle_type))
     t0 = float(getattr(st, "time_step", 0) or 0)
-    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, [t0], [[pos[0], pos[1], th]], shape=outline,
+    return ObstacleTrack(int(obs.obstacle_id), kind, length, width, np.array([t0]), np.array([[pos[0], pos[1], th]]),
+                         shape=outline,
                          static=True)
 
 
@@ -687,9 +691,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
     exact geometry in ``scene.road`` and the suggested planning horizon in ``scene.meta["horizon"]`` [s].
     """
     cfg = config or CommonRoadSceneConfig()
-    _, shapely = _require()
-    import shapely.affinity  # noqa: F401, F811  (submodules used below)
-    import shapely.ops  # noqa: F401
+    _, shapely = _require()  # with its submodules affinity and ops (used below)
 
     path = Path(path)
     scenario, problem_set = read_commonroad(path)
@@ -719,7 +721,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             f"{where}: the file has no planning problem (no start and goal); add one, or sample a start and "
             "goal on its road with --set commonroad.sample_start_goal=true"
         )
-    start: tuple[float, ...] | None = None
+    start: tuple[float, float, float, float] | None = None
     frame_offset = (0.0, 0.0)
     t_start = 0.0
     goal: GoalRegion | None = None
@@ -738,7 +740,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 f"velocity, got position {pos.tolist()}, orientation {th}, velocity {v}; fix the file"
             )
         if cfg.recenter_above > 0 and float(np.abs(pos).max()) > cfg.recenter_above:
-            frame_offset = tuple(float(1000.0 * round(c / 1000.0)) for c in pos)
+            frame_offset = (float(1000.0 * round(pos[0] / 1000.0)), float(1000.0 * round(pos[1] / 1000.0)))
             scenario.translate_rotate(-np.asarray(frame_offset), 0.0)
             problem_set.translate_rotate(-np.asarray(frame_offset), 0.0)
             drivable, road_notes = drivable_area(scenario, cfg, where=where)
@@ -756,7 +758,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             alts = goal.alternatives or (goal,)
             if all(a.velocity is not None and not (a.velocity[0] <= v_max + 1e-9 and a.velocity[1] >= v_min - 1e-9)
                    for a in alts):
-                bands = ", ".join(f"[{a.velocity[0]:.2f}, {a.velocity[1]:.2f}]" for a in alts)
+                bands = ", ".join(f"[{a.velocity[0]:.2f}, {a.velocity[1]:.2f}]" for a in alts
+                                  if a.velocity is not None)
                 raise DataError(
                     f"{where}: the goal's velocity interval {bands} m/s lies outside the {model} model's domain "
                     f"({v_min:g} <= v <= {v_max:g} m/s, its state bounds); no plan can reach it"
@@ -782,7 +785,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
     # -- map region and cell size
     lx0, ly0, lx1, ly1 = drivable.bounds
     if cfg.area:
-        area = tuple(float(v) for v in cfg.area)
+        a0, a1, a2, a3 = (float(v) for v in cfg.area)  # four numbers (CommonRoadSceneConfig checks)
+        area = (a0, a1, a2, a3)
         region_rule = "configured area"
     elif start is not None and not cfg.sample_start_goal:
         span = (n_slices - 1) * cfg.dt  # the grid's duration (>= the horizon: today's planners plan min_duration)
@@ -864,7 +868,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
     for tr in user_tracks:
         info.append({"id": tr.obstacle_id, "type": tr.kind, "class": ROAD_USER_CLASSES[obstacle_class_id(tr.kind)],
                      "length": tr.length, "width": tr.width, "t_last_recorded_s": tr.t_last_recorded,
-                     "predicted_after_s": tr.t_last_recorded if tr.predicted.any() else None})
+                     "predicted_after_s": tr.t_last_recorded if np.any(np.asarray(tr.predicted)) else None})
     if n_pred:
         note("%d road users end before the grid (t = %.1f s) and are predicted past their last recorded state "
              "(constant velocity and heading, position std +%g m/s along, +%g m/s across)", n_pred, t_grid_end,
@@ -874,9 +878,9 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         for o in scenario.static_obstacles:
             if int(o.obstacle_id) in excluded:
                 continue
-            tr = _static_track(o, shapely)
-            if tr is not None:
-                statics.append(tr)
+            st = _static_track(o, shapely)
+            if st is not None:
+                statics.append(st)
     tracks_true.extend(statics)
 
     # -- traffic lights
@@ -1046,8 +1050,8 @@ def _red_light_tracks(scenario: Any, times: np.ndarray, start: tuple[float, ...]
             if ts.size == 1:
                 ts = np.array([ts[0], ts[0] + 1e-6])
             tid = -(int(ll.lanelet_id) * 1000 + len(out))  # negative: not a scenario obstacle id
-            out.append(ObstacleTrack(tid, "red_light", cfg.stop_line_depth, width, [ts[0], ts[-1]],
-                                     [[centre[0], centre[1], heading]] * 2))
+            out.append(ObstacleTrack(tid, "red_light", cfg.stop_line_depth, width, np.array([ts[0], ts[-1]]),
+                                     np.array([[centre[0], centre[1], heading]] * 2)))
     if skipped:
         note("red lights of lanelets %s are not applied: the start is at their stop line", skipped)
     if out:

@@ -224,7 +224,7 @@ def extrapolate_tracks(tracks: RoadUserTracks, times: np.ndarray) -> RoadUserTra
     n, t = present.shape
     if n == 0 or t == 0:
         return tracks
-    has = present.any(axis=1)
+    has = np.any(present, axis=1)
     last = np.where(has, t - 1 - np.argmax(present[:, ::-1], axis=1), -1)  # (N,)
     k = np.arange(t)[None, :]
     fill = has[:, None] & (k > last[:, None])

@@ -74,7 +74,7 @@ class OccupancyGrid:
     cell_size: float
     dt: float = 0.1
     t0: float = 0.0
-    _cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         probs = self.probs
@@ -342,7 +342,8 @@ class OccupancyGrid:
             raise DataError(f"{source}: not an occupancy grid file (missing array(s) {missing})")
         try:
             probs = np.asarray(arrays["probs"], dtype=np.float32)
-            origin = tuple(float(v) for v in np.asarray(arrays["origin"], dtype=np.float64).reshape(-1))
+            ox, oy = (float(v) for v in np.asarray(arrays["origin"], dtype=np.float64).reshape(-1))
+            origin = (ox, oy)
             t0 = float(arrays["t0"]) if "t0" in arrays else 0.0
             return cls(torch.from_numpy(probs), origin, float(arrays["cell_size"]), float(arrays["dt"]), t0)
         except (ValueError, TypeError) as exc:

@@ -506,7 +506,8 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
     predicted = users.predicted_for is not None and bool((users.predicted_for > 0).any())
     # map area
     if cfg.area:
-        area = tuple(float(v) for v in cfg.area)
+        a0, a1, a2, a3 = (float(v) for v in cfg.area)  # four numbers (IndSceneConfig checks)
+        area = (a0, a1, a2, a3)
     else:
         if not present.any():
             raise DataError(
@@ -559,7 +560,7 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         "frame_rate": rate,
         "window_s": [cfg.start_time, t_end],
         "recording_end_s": rec_end,
-        "road_users_predicted": int((users.predicted_for > 0).any(axis=1).sum()) if predicted else 0,
+        "road_users_predicted": int(np.any(np.asarray(users.predicted_for) > 0, axis=1).sum()) if predicted else 0,
         "prediction": "constant velocity and heading past the last recorded frame; position std grows by "
         f"{cfg.footprint.prediction_std_rate_along:g} m/s along, {cfg.footprint.prediction_std_rate_across:g} "
         "m/s across the heading",

@@ -99,15 +99,18 @@ class Lane:
     @functools.cached_property
     def centerline(self) -> Any:
         """The centre line as a shapely ``LineString``."""
+        assert self.center is not None  # set by __post_init__
         return _shapely().LineString(self.center)
 
     @property
     def length(self) -> float:
         """Length of the centre line [m]."""
+        assert self.center is not None  # set by __post_init__
         return float(np.linalg.norm(np.diff(self.center, axis=0), axis=1).sum())
 
     def heading_at(self, s: np.ndarray) -> np.ndarray:
         """Heading [rad] of the centre line at arc lengths ``s`` [m] (of the segment containing each)."""
+        assert self.center is not None  # set by __post_init__
         seg = np.diff(self.center, axis=0)
         cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
         idx = np.clip(np.searchsorted(cum, np.asarray(s, dtype=np.float64), side="right") - 1, 0, len(seg) - 1)

@@ -111,7 +111,7 @@ class Prediction(ABC):
     def window(self, t: float, horizon: float) -> OccupancyGrid:
         """Occupancy ``(n, NX, NY)`` over ``[t, t + horizon]`` [s, absolute], slice 0 at ``t``."""
 
-    def scene_at(self, t: float, horizon: float, start: tuple[float, ...] | None = None) -> Scene:
+    def scene_at(self, t: float, horizon: float, start: tuple[float, float, float, float] | None = None) -> Scene:
         """The scene a planner starting at ``t`` reads: the window grid, ``t_start = t`` and ``start`` (default:
         the scene's)."""
         grid = self.window(t, horizon)
@@ -193,7 +193,7 @@ class ObservedPrediction(Prediction):
             if tr.occupancies is not None or tr.kind == "red_light":
                 self._fixed.append(tr)
                 continue
-            rec = ~tr.predicted
+            rec = ~np.asarray(tr.predicted, dtype=bool)
             speeds = None if tr.speeds is None else tr.speeds[rec]
             self._users.append((tr, tr.times[rec], tr.poses[rec], speeds, obstacle_class_id(tr.kind)))
         self._static: torch.Tensor | None = None
@@ -222,7 +222,8 @@ class ObservedPrediction(Prediction):
             z = np.zeros(0)
             return _Observation(z, z, z, z, z, z, z, z, np.zeros(0, np.int64), np.zeros(0, np.int64))
         a = np.asarray(rows, dtype=np.float64)
-        return _Observation(*(a[:, i] for i in range(8)), a[:, 8].astype(np.int64), a[:, 9].astype(np.int64))
+        return _Observation(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5], a[:, 6], a[:, 7],
+                            a[:, 8].astype(np.int64), a[:, 9].astype(np.int64))
 
     def tracks(self, t: float, times: np.ndarray) -> RoadUserTracks:
         """Road users predicted at ``times (T,)`` from the observations at ``t`` (``predicted_for = tau``)."""
@@ -250,6 +251,7 @@ class ObservedPrediction(Prediction):
             from .commonroad import CommonRoadSceneConfig, static_map
 
             grid, road = self.scene.grid, self.scene.road
+            assert road is not None  # a road prediction needs the scene's road
             statics = [tr.polygons_at(np.array([road.t_start]))[0] for tr in road.obstacles if tr.static]
             _, nx, ny = grid.shape
             offroad = bool((self.scene.meta.get("config") or {}).get("offroad_occupied", True))  # as imported

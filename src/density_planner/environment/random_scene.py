@@ -1,4 +1,4 @@
-"""Random artificial scenes, as in the paper's code (``original.md`` §8): a street with random boxes.
+"""Random artificial scenes, as in the paper's code (``docs/spec.md`` §8): a street with random boxes.
 
 A scene is a 24 m x 40 m street (x in [-12, 12], y in [-30, 10] m, 0.1-m cells, 241 x 401 cells) over 10 s
 (101 slices of 0.1 s) with
@@ -55,7 +55,7 @@ __all__ = ["RandomSceneConfig", "BoxObstacle", "random_scene", "random_obstacles
 
 @dataclass(frozen=True)
 class RandomSceneConfig:
-    """Every number of the random artificial scenes (``original.md`` §8). Lengths in m unless stated."""
+    """Every number of the random artificial scenes (``docs/spec.md`` §8). Lengths in m unless stated."""
 
     #: x extent of the map [m]: first and last cell centre
     x_range: tuple[float, float] = (-12.0, 12.0)
@@ -119,7 +119,7 @@ class RandomSceneConfig:
     goal_max_occupancy: float = 0.1
     #: start/goal pairs drawn before giving up
     max_attempts: int = 1000
-    #: box the positions must stay in, (xmin, xmax, ymin, ymax) (X_MIN_MP / X_MAX_MP of ``original.md`` §1)
+    #: box the positions must stay in, (xmin, xmax, ymin, ymax) (X_MIN_MP / X_MAX_MP of ``docs/spec.md`` §1)
     planning_box: tuple[float, float, float, float] = (-9.9, 9.9, -29.9, 9.9)
 
     def __post_init__(self) -> None:
@@ -315,7 +315,7 @@ def _point_max(window: np.ndarray, cx: float, cy: float, half: int) -> float:
 
 def _draw_start_goal(
     rng: Stream, probs: np.ndarray, cfg: RandomSceneConfig, seed: int
-) -> tuple[tuple[float, ...], tuple[float, float], int]:
+) -> tuple[tuple[float, float, float, float], tuple[float, float], int]:
     x0, y0, cell = cfg.x_range[0], cfg.y_range[0], cfg.cell_size
     half = int(round(cfg.check_half_width / cell))
     k_look = min(int(round(cfg.lookahead_time / cfg.dt)), probs.shape[0] - 1)
@@ -364,7 +364,7 @@ def random_scene(seed: int, config: RandomSceneConfig | None = None) -> Scene:
         n_slices=cfg.n_slices,
     )
     if seed < cfg.fixed_start_seeds:
-        start, goal, attempts = tuple(cfg.fixed_start), tuple(cfg.fixed_goal), 0
+        start, goal, attempts = cfg.fixed_start, cfg.fixed_goal, 0
     else:
         start, goal, attempts = _draw_start_goal(rng, probs, cfg, seed)
     grid = OccupancyGrid(torch.from_numpy(probs), (cfg.x_range[0], cfg.y_range[0]), cfg.cell_size, cfg.dt)

@@ -278,6 +278,7 @@ class ObstacleTrack:
     @property
     def t_last_recorded(self) -> float:
         """Time [s] of the last recorded (not predicted) state."""
+        assert self.predicted is not None  # set by __post_init__
         rec = np.flatnonzero(~self.predicted)
         return float(self.times[rec[-1]] if rec.size else self.times[0])
 
@@ -334,8 +335,8 @@ class ObstacleTrack:
             "width": self.width,
             "times": self.times.tolist(),
             "poses": self.poses.tolist(),
-            "predicted": self.predicted.astype(int).tolist(),
-            "position_std": self.position_std.tolist(),
+            "predicted": np.asarray(self.predicted).astype(int).tolist(),  # set by __post_init__
+            "position_std": np.asarray(self.position_std).tolist(),
             "shape": None if self.shape is None else self.shape.wkt,
             "static": self.static,
             "occupancies": None if self.occupancies is None else [g.wkt for g in self.occupancies],
@@ -413,7 +414,7 @@ class RoadScene:
     def vehicle_polygons(self, poses: np.ndarray) -> np.ndarray:
         """``(N,)`` shapely rectangles of the ego vehicle (``vehicle_length x vehicle_width``) centred at the
         ``(N, 3)`` poses ``x, y, heading``."""
-        track = ObstacleTrack(-1, "ego", self.vehicle_length, self.vehicle_width, [0.0], [[0.0, 0.0, 0.0]])
+        track = ObstacleTrack(-1, "ego", self.vehicle_length, self.vehicle_width, np.zeros(1), np.zeros((1, 3)))
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
         v = track.outline

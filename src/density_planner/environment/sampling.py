@@ -1,6 +1,6 @@
 """Start/goal sampler for recorded scenes (inD, CommonRoad without a planning problem).
 
-The rules mirror the artificial scenes (``original.md`` §8), on free cells of an arbitrary map:
+The rules mirror the artificial scenes (``docs/spec.md`` §8), on free cells of an arbitrary map:
 
 * the start is the centre of a cell inside the planning box whose +-``check_half_width`` square has
   max P_occ <= ``start_max_occupancy`` at t = 0;

@@ -163,7 +163,7 @@ def validate_scene(scene: Scene, *, start_threshold: float = START_OCCUPIED_THRE
     bx0, bx1, by0, by1 = scene.planning_box
     if bx1 < xmin or bx0 > xmax or by1 < ymin or by0 > ymax:
         raise ValueError(f"scene {scene.name!r}: planning box {scene.planning_box} does not overlap the map")
-    k0 = grid.slice_index(scene.t_start).to(grid.device)
+    k0 = grid.slice_index(grid.t0 if scene.t_start is None else scene.t_start).to(grid.device)
     p0 = float(grid.lookup(torch.tensor([sx, sy], dtype=torch.float64, device=grid.device), k0))
     if p0 > start_threshold:
         raise ValueError(

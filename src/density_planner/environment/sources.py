@@ -137,6 +137,7 @@ def _ind(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     changes: dict[str, Any] = {} if request.seed is None else {"seed": request.seed}
     if request.start_time is not None:
         changes["start_time"] = request.start_time
+    assert request.data_dir is not None and request.recording is not None  # required by the registration
     return load_ind_scene(request.data_dir, request.recording, update(run_config.ind, changes))
 
 
@@ -149,6 +150,7 @@ def _commonroad(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     changes: dict[str, Any] = {} if request.seed is None else {"seed": request.seed}
     if request.sample_start_goal is not None:
         changes["sample_start_goal"] = request.sample_start_goal
+    assert request.file is not None  # required by the registration
     return load_commonroad_scene(request.file, update(run_config.commonroad, changes), system=system)
 
 
@@ -157,4 +159,5 @@ def _commonroad(request: SceneRequest, run_config: Any, system: Any) -> Scene:
 def _file(request: SceneRequest, run_config: Any, system: Any) -> Scene:
     from .scene import load_scene
 
+    assert request.file is not None  # required by the registration
     return load_scene(request.file)

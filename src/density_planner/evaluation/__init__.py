@@ -3,6 +3,8 @@
 * :mod:`.controller`: closed-loop tracking accuracy of tracking controllers on random references;
 * :mod:`.simulate`: execute a plan from a true initial state (tracked reference, receding-horizon MPC, or the
   oracle's open-loop inputs), with online step times;
+* :mod:`.receding`: the receding-horizon closed loop (the plant) around a planner that solves one step at a time
+  (the MPC baselines);
 * :mod:`.metrics`: per-run scores (J_G, J_I, J_B, J_C, collision probability, Monte-Carlo collision frequency,
   failure flags) and their aggregation (failure rate, CRI/GCI/ICI against the best valid method, time means over
   valid runs);

@@ -3,7 +3,7 @@
 Settings (:data:`SETTINGS`):
 
 * ``ablation``: the density planner's gradient optimisation against the search- and sampling-based optimisers
-  (``original.md`` §11) on random artificial scenes. The *planned* references are compared (no closed loop:
+  (``docs/spec.md`` §11) on random artificial scenes. The *planned* references are compared (no closed loop:
   metrics of the reference from the mean start; the Monte-Carlo figures track it from sampled initial states);
   failure = no solution within ``evaluation.plan_time_limit`` (5 min).
 * ``artificial``: density planner, MPC M0, tube MPC M1-M3 and the oracle on random artificial scenes, each
@@ -41,6 +41,7 @@ import json
 import logging
 import time
 from collections.abc import Iterator
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -192,8 +193,8 @@ def config_hash(spec: BenchmarkSpec, planner: str | None = None) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def make_jobs(spec: BenchmarkSpec, done: set[tuple[str, str, str]] = frozenset(),
-              maps_done: set[str] = frozenset()) -> list[Job]:
+def make_jobs(spec: BenchmarkSpec, done: AbstractSet[tuple[str, str, str]] = frozenset(),
+              maps_done: AbstractSet[str] = frozenset()) -> list[Job]:
     """Jobs for every run of ``spec`` not in ``done`` (keys ``(env, planner, variant)``); environment-major."""
     hashes = {p: config_hash(spec, p) for p in spec.planners}
     jobs: list[Job] = []

@@ -126,8 +126,8 @@ class CalibrationResult:
                 raise ValueError("calibration results with different bin edges cannot be pooled")
         empty = np.zeros(0)
         return cls(empty, empty, empty, sum(r.n for r in results), edges,
-                   sum(r.bin_count for r in results), sum(r.bin_predicted for r in results),
-                   sum(r.bin_hits for r in results), {"plans": len(results)})
+                   np.sum([r.bin_count for r in results], axis=0), np.sum([r.bin_predicted for r in results], axis=0),
+                   np.sum([r.bin_hits for r in results], axis=0), {"plans": len(results)})
 
 
 def road_user_hits(road: Any, poses: np.ndarray, times: np.ndarray, *, include_predicted: bool = False

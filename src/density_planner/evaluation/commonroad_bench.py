@@ -104,12 +104,12 @@ SUMMARY_COLUMNS = ("planner", "scenarios", "refused", "planned", "errors", "succ
                    "planning_time_median", "planning_time_mean")
 
 
-def _median(values: Sequence[float]) -> float:
+def _median(values: Sequence[float | None]) -> float:
     v = [x for x in values if x is not None and math.isfinite(x)]
     return float(np.median(v)) if v else math.nan
 
 
-def _mean(values: Sequence[float]) -> float:
+def _mean(values: Sequence[float | None]) -> float:
     v = [x for x in values if x is not None and math.isfinite(x)]
     return float(np.mean(v)) if v else math.nan
 

@@ -1,6 +1,6 @@
 """Settings of the closed-loop evaluation and the benchmarks (the ``[evaluation]`` section of a run configuration).
 
-Defaults follow the paper (§V) and its code (``original.md`` §12-13): failure when the collision cost
+Defaults follow the paper (§V) and its code (``docs/spec.md`` §12-13): failure when the collision cost
 ``J_C > 10``, the final distance to the goal exceeds 4.5 m, the bounds cost of the evaluation box exceeds
 ``1e-4`` or the planner returned no solution; density-planner references executed with explicit Euler at 0.01 s.
 """

@@ -109,7 +109,7 @@ def planner_run_config(run_config: Any, planner: str, variant: str | None, seed:
     measurement variant set."""
     section = planner_info(planner, default=True).section
     cfg = getattr(run_config, section, None) if section else None
-    if cfg is None or not dataclasses.is_dataclass(cfg):
+    if section is None or cfg is None or not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
         return run_config
     names = {f.name for f in dataclasses.fields(cfg)}
     changes: dict[str, Any] = {}

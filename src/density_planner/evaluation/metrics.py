@@ -1,4 +1,4 @@
-"""Scores of one executed run and their aggregation over environments (paper §V, ``original.md`` §13).
+"""Scores of one executed run and their aggregation over environments (paper §V, ``docs/spec.md`` §13).
 
 Per run (:func:`run_metrics`), on the executed trajectory ``x(t_k)`` (0.1-s grid, weight one):
 
@@ -83,7 +83,8 @@ def evaluation_box(scene: Scene, state_min: Sequence[float], state_max: Sequence
 
 def _slices(scene: Scene, n: int, plan_dt: float, device: torch.device | str = "cpu") -> Tensor:
     """Slices of the ``n`` planning times ``scene.t_start + k plan_dt`` (absolute; the grid's one conversion)."""
-    return scene.grid.slices_for(scene.t_start, plan_dt, n).to(device)
+    t_start = scene.grid.t0 if scene.t_start is None else scene.t_start  # set by Scene.__post_init__
+    return scene.grid.slices_for(t_start, plan_dt, n).to(device)
 
 
 @torch.no_grad()
@@ -250,8 +251,8 @@ def cost_increase(records: Sequence[Mapping[str, Any]], metric: str) -> dict[tup
     sums: dict[tuple[str, str, str], float] = defaultdict(float)
     counts: dict[tuple[str, str, str], int] = defaultdict(int)
     for group in by_env.values():
-        valid = [(r, _metric(r, metric)) for r in group if not r.get("failed", True)]
-        valid = [(r, v) for r, v in valid if v is not None and math.isfinite(v)]
+        scored = [(r, _metric(r, metric)) for r in group if not r.get("failed", True)]
+        valid = [(r, v) for r, v in scored if v is not None and math.isfinite(v)]
         if not valid:
             continue
         best = min(v for _, v in valid)

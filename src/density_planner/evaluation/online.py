@@ -37,7 +37,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -54,6 +54,9 @@ from ..risk.collision import RiskConfig
 from ..systems.base import System
 from .config import EvaluationConfig
 from .verdict import Verdict, VerdictConfig, judge
+
+if TYPE_CHECKING:
+    from ..planners.density_planner import DensityPlanner
 
 __all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "shift_parameters", "braking_parameters",
            "warm_replan", "recentred"]
@@ -295,7 +298,7 @@ def braking_parameters(system: System, v0: float, segment_duration: float, n_seg
     return out
 
 
-def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
+def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
                 seed: int = 0, lr: float = 0.0, update_clip: float = 0.0) -> tuple[PlanResult, bool]:
     """A replan of the density planner: stage 2 (``epochs`` iterations, ``samples`` initial samples) from the
     warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``. Returns the result and whether
@@ -308,8 +311,9 @@ def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None,
                           update_clip=float(update_clip or cfg.update_clip))
     fast.progress = False
     if getattr(fast.predictor, "fallback", None) is not None:  # online: refuse rather than minutes of exact Liouville
-        fast.predictor = copy.copy(fast.predictor)
-        fast.predictor.fallback = None
+        predictor: Any = copy.copy(fast.predictor)
+        predictor.fallback = None
+        fast.predictor = predictor
     t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(int(seed))
     timings: dict[str, float] = {}
@@ -336,6 +340,7 @@ def warm_replan(planner: Planner, problem: PlanningProblem, warm: Tensor | None,
 def _run_length(scene: Scene, config: OnlineConfig, horizon: float) -> float:
     road = scene.road
     if road is not None:
+        assert scene.t_start is not None  # set by Scene.__post_init__
         return min(road.goal.time_interval[1] - scene.t_start, config.max_duration)
     return min(config.duration or horizon, config.max_duration)
 
@@ -470,6 +475,7 @@ def drive(
                           "position": np.asarray(pos[:2], dtype=float), "occupancy": sub[0].numpy(),
                           "swept": sub.amax(dim=0).numpy(), "extent": tuple(float(e) for e in extent)})
     t_start = scene.t_start
+    assert t_start is not None  # set by Scene.__post_init__
     # -- the first (offline) plan from the initial distribution
     if initial_plan is None:
         t0 = time.perf_counter()
@@ -538,7 +544,8 @@ def drive(
                 t1 = time.perf_counter()
                 try:
                     if warm_capable:
-                        result, rec.warm_start = warm_replan(planner, prob, warm, epochs=config.replan_epochs,
+                        dp = cast("DensityPlanner", planner)  # it has initialise, refine and evaluate
+                        result, rec.warm_start = warm_replan(dp, prob, warm, epochs=config.replan_epochs,
                                                              samples=config.replan_samples, seed=i_replan,
                                                              lr=config.replan_lr,
                                                              update_clip=config.replan_update_clip)
@@ -603,6 +610,7 @@ def drive(
             offset = 0
         u_first = None
         if fast is not None:  # torch-free closed loop (control/fast.py)
+            assert active.x_ref_np is not None and active.u_ref_np is not None  # set with fast (activate)
             xn, u_np = fast.track(x.detach().cpu().double().numpy(), active.x_ref_np[offset:offset + per_plan],
                                   active.u_ref_np[offset:offset + per_plan], dt, ctrl_times)
             u_first = torch.from_numpy(u_np)
@@ -617,6 +625,7 @@ def drive(
                     if u_first is None:
                         u_first = u[0]
                     x = x + dt * system.f(x[None], u)[0]
+        assert u_first is not None  # per_plan >= 1 steps ran
         inputs.append(u_first.detach().cpu().numpy().astype(np.float64))
         step_times.append(float(sum(ctrl_times[-per_plan:])) + step_extra)
         states.append(x.detach().cpu().numpy().astype(np.float64))

@@ -128,6 +128,7 @@ def scan_records(out: str | Path, setting: str | None = None) -> tuple[list[dict
                 bad.append(BadRecord(p, problem, d.name, env, planner, variant))
                 log.warning("ignoring %s: %s", p, problem)
                 continue
+            assert r is not None  # no problem: the record was read
             records.append(r)
     return _sorted_records(records), bad
 

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from ..control.base import TrackingController
-from ..density.liouville import LiouvilleConfig
+from ..density.liouville import IntegratorName, LiouvilleConfig
 from ..planners.base import PlanResult
 from ..planners.problem import PlanningProblem
 from .config import EvaluationConfig
@@ -129,7 +129,7 @@ def simulate_closed_loops(
     seed: int = 0,
     config: EvaluationConfig | None = None,
     chunk: int = 2_000,
-    integrator: str = "rk4",
+    integrator: IntegratorName = "rk4",
 ) -> Iterator[Tensor]:
     """Closed loops of ``plan.reference`` from ``n`` initial states drawn from ``problem.initial_distribution``
     (seeded), yielded on the CPU in chunks ``(<= chunk, T, nx)`` at the planning times.
@@ -172,6 +172,7 @@ def monte_carlo_risk(
     total = torch.zeros(t, dtype=torch.float64)
     total_sq = torch.zeros(t, dtype=torch.float64)
     for x in simulate_closed_loops(problem, plan, controller, n=n, seed=seed, config=config, chunk=chunk):
+        assert slices is not None  # a trajectory to simulate means a reference (t > 0)
         occ = model.occupancy(x.to(torch.float64), slices[: x.shape[1]])  # (chunk, T)
         total += occ.sum(0)
         total_sq += occ.pow(2).sum(0)

@@ -9,7 +9,8 @@ the planner's registration), as in the paper's comparison (§V):
   ``theta_bias`` component is the bias; 0 for the unbiased variant). Explicit Euler at 0.01 s by default
   (the paper's code), the controller evaluated at every step. Many initial states run in one batched call.
 * ``RECEDING`` (MPC M0-M3): ``planner.plan_from(problem, true_state)`` runs the MPC step by step from the
-  true state (the planner's configuration says whether it sees the biased heading).
+  true state in the closed loop of :mod:`.receding` (the planner's configuration says whether it sees the
+  biased heading).
 * ``OPEN_LOOP`` (oracle): ``planner.plan_from(problem, true_state)`` plans from the true state (it knows it) and
   its inputs are applied open loop; the plant is the nominal model, so the planned trajectory is the executed
   one.

@@ -105,7 +105,7 @@ class Verdict:
         return self.status if self.ok else "failed: " + "; ".join(self.reasons)
 
 
-def _json_float(v: float) -> float | None:
+def _json_float(v: float | np.floating) -> float | None:
     v = float(v)
     return v if math.isfinite(v) else None
 
@@ -147,7 +147,7 @@ def _footprint_size(scene: Any, config: VerdictConfig, system: Any = None) -> tu
     if road is not None and getattr(road, "vehicle_length", None) and getattr(road, "vehicle_width", None):
         return float(road.vehicle_length), float(road.vehicle_width)
     fp = getattr(system, "footprint", None)
-    if fp is not None and getattr(fp, "length", 0) and getattr(fp, "width", 0):
+    if fp is not None and getattr(fp, "length", None) and getattr(fp, "width", None):
         return float(fp.length), float(fp.width)
     return config.vehicle_length, config.vehicle_width
 
@@ -211,8 +211,8 @@ def judge(
         basis = "occupancy"
         goal, collision, on_road = _judge_occupancy(scene, xy, t_rel, boxes, evaluation, details, reasons)
     within = _judge_model(system, x, u, idx, config, details, reasons, dt)
-    ok_parts = [goal and finite, collision and finite, on_road and finite, within and finite]
-    return Verdict(*ok_parts, p_coll_max=float(p_coll_max), reasons=tuple(reasons), basis=basis, details=details)
+    return Verdict(goal and finite, collision and finite, on_road and finite, within and finite,
+                   p_coll_max=float(p_coll_max), reasons=tuple(reasons), basis=basis, details=details)
 
 
 def _as_array(name: str, value: Any, ndim: int) -> np.ndarray:
@@ -349,7 +349,7 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
     problems = []
     names = list(system.state_names)
     for j in np.flatnonzero(bad_x.any(axis=0)):
-        k = _first(bad_x[:, j])
+        k = int(np.argmax(bad_x[:, j]))  # the first violation (the column has one)
         problems.append(f"{names[j]} = {x[k, j]:.6g} at t = {k * dt:.1f} s outside [{lo[j]:.4g}, {hi[j]:.4g}]")
     if u is not None and u.size:
         # inputs the vehicle can receive: the actuator box (wider than the reference box where the controller
@@ -360,7 +360,7 @@ def _judge_model(system: Any, x: np.ndarray, u: np.ndarray | None, idx: dict, co
         bad_u = (u < ulo - utol) | (u > uhi + utol)
         unames = list(system.input_names)
         for j in np.flatnonzero(bad_u.any(axis=0)):
-            k = _first(bad_u[:, j])
+            k = int(np.argmax(bad_u[:, j]))
             problems.append(f"input {unames[j]} = {u[k, j]:.4g} at t = {k * dt:.1f} s outside [{ulo[j]:.4g}, "
                             f"{uhi[j]:.4g}]")
     details["model_violations"] = problems

@@ -53,7 +53,8 @@ def _header(fh, source: str) -> tuple[tuple[int, ...], np.dtype]:
     elif version == (2, 0):
         shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
     else:
-        shape, _, dtype = np.lib.format._read_array_header(fh, version)  # 3.0: utf-8 header
+        # 3.0 (utf-8 header): numpy's reader of it is private, hence not in its type stubs
+        shape, _, dtype = getattr(np.lib.format, "_read_array_header")(fh, version)  # noqa: B009 - not in the stubs
     if dtype.hasobject:
         raise DataError(f"{source}: holds an object array (a pickle); only numeric arrays are read")
     return tuple(int(d) for d in shape), dtype

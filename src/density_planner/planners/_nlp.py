@@ -23,6 +23,7 @@ from ..errors import OptionalDependencyError
 
 __all__ = [
     "SUCCESS_STATUSES",
+    "check_ipopt_limits",
     "import_casadi",
     "casadi_available",
     "car_step_function",
@@ -53,6 +54,15 @@ def casadi_available() -> bool:
     return True
 
 
+def check_ipopt_limits(max_iter: int, max_cpu_time: float) -> None:
+    """:class:`ValueError` unless ``max_iter`` is a positive integer and ``max_cpu_time`` a number > 0 (``inf``:
+    no cap; ``--set mpc.max_cpu_time=inf`` on the command line, since TOML has no ``None``)."""
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    if isinstance(max_cpu_time, bool) or not isinstance(max_cpu_time, (int, float)) or not max_cpu_time > 0:
+        raise ValueError(f"max_cpu_time must be a number > 0 in seconds (inf: no cap), got {max_cpu_time!r}")
+
+
 def car_step_function(ca: Any, dt: float, substeps: int, name: str = "car_step") -> Any:
     """CasADi function ``F(x (4,), u (2,)) -> x (4,)``: ``substeps`` explicit-Euler steps of ``dt / substeps`` [s]
     of the nominal kinematic car ``[v cos(theta), v sin(theta), omega, a]`` with the input held constant
@@ -69,14 +79,17 @@ def car_step_function(ca: Any, dt: float, substeps: int, name: str = "car_step")
 def ipopt_options(
     *,
     max_iter: int,
-    max_cpu_time: float | None,
+    max_cpu_time: float = math.inf,
     hessian: str = "exact",
     tol: float | None = None,
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """``nlpsol`` options for a quiet IPOPT (``print_level 0``, no banner) with the given limits."""
+    """``nlpsol`` options for a quiet IPOPT (``print_level 0``, no banner) with the given limits.
+
+    ``max_iter`` is deterministic; ``max_cpu_time`` [s] (``inf``: no cap) makes the returned iterate depend on the
+    machine's speed and load, since IPOPT stops after however many iterations fit in that time."""
     ipopt: dict[str, Any] = {"print_level": 0, "sb": "yes", "max_iter": int(max_iter)}
-    if max_cpu_time is not None:
+    if math.isfinite(max_cpu_time):
         ipopt["max_cpu_time"] = float(max_cpu_time)
     if hessian != "exact":
         ipopt["hessian_approximation"] = hessian
@@ -122,9 +135,9 @@ class BufferedNLP:
         self.res = {n: np.zeros(solver.nnz_out(i)) for i, n in enumerate(solver.name_out())}
         self._buf, self._eval = solver.buffer()
         for name, arr in self.args.items():
-            self._buf.set_arg(solver.index_in(name), memoryview(arr))
+            self._buf.set_arg(solver.index_in(name), arr.data)  # the array's own buffer (a memoryview)
         for name, arr in self.res.items():
-            self._buf.set_res(solver.index_out(name), memoryview(arr))
+            self._buf.set_res(solver.index_out(name), arr.data)
 
     def solve(self) -> SolveInfo:
         """Run IPOPT on the current arguments; never raises (CasADi errors become ``status="Exception"``)."""

@@ -16,7 +16,7 @@ from torch import Tensor
 from ..control.reference import Reference
 from ..cost.composite import CostConfig, build_cost
 from ..cost.terms import CostInputs
-from ..density.base import DensityTrajectory, sample_weights
+from ..density.base import DensityTrajectory, WeightMode, sample_weights
 from ..risk.collision import CollisionReport
 from .problem import PlanningProblem
 
@@ -30,7 +30,7 @@ def evaluate_samples(
     traj: DensityTrajectory,
     *,
     cost_config: CostConfig,
-    weighting: str = "density",
+    weighting: WeightMode = "density",
     log_q0: Tensor | None = None,
 ) -> tuple[dict[str, float], CollisionReport]:
     """Evaluation-form cost and collision probability of a predicted sample cloud (reference batch of one).

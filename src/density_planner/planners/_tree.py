@@ -1,4 +1,4 @@
-"""Shared core of the ablation baselines (paper §V "Trajectory optimization", ``original.md`` §11): search over
+"""Shared core of the ablation baselines (paper §V "Trajectory optimization", ``docs/spec.md`` §11): search over
 partial sequences of the reference parameters, every node scored with density predictions.
 
 A *node* is a prefix of ``d`` of the ``S`` one-second segments of the reference parameters (``p[:, :d]``). To score
@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TreeConfig:
-    """Settings shared by the search- and sampling-based optimisers (``original.md`` §11)."""
+    """Settings shared by the search- and sampling-based optimisers (``docs/spec.md`` §11)."""
 
     #: initial samples propagated for every node
     n_samples: int = 500
@@ -317,7 +317,7 @@ class TreePlanner(Planner):
             else:
                 status, message = PlanStatus.FAILED, "search space exhausted: no acceptable full-length plan"
             if node is None:
-                worst = max(ctx.rejections, key=ctx.rejections.get)
+                worst = max(ctx.rejections, key=ctx.rejections.__getitem__)
                 message += (f"; no candidate was accepted ({ctx.nodes_scored} scored, most often rejected by the "
                             f"'{worst}' rule)")
             if node is not None and solution is None:

@@ -18,7 +18,7 @@ trajectories only (:meth:`~density_planner.density.base.DensityPredictor.predict
 the divergence, ~1.4x faster); the plan's log-densities are predicted in full for the report.
 
 Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
-bounds after every step. Defaults are the paper's constants (``original.md`` §10).
+bounds after every step. Defaults are the paper's constants (``docs/spec.md`` §10).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
+from ..risk.collision import CollisionReport
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
@@ -51,7 +52,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DensityPlannerConfig:
-    """Settings of the two-stage density planner (defaults: ``original.md`` §10)."""
+    """Settings of the two-stage density planner (defaults: ``docs/spec.md`` §10)."""
 
     #: M, candidate parameter sets optimised in stage 1
     n_candidates: int = 100
@@ -175,8 +176,8 @@ class DensityPlanner(Planner):
     # ----------------------------------------------------------------- helpers
     def _bounds(self, problem: PlanningProblem) -> tuple[Tensor, Tensor]:
         lo, hi = problem.system.input_bounds
-        kw = {"dtype": self.dtype, "device": self.device}
-        return torch.tensor(lo, **kw)[:, None], torch.tensor(hi, **kw)[:, None]
+        return (torch.tensor(lo, dtype=self.dtype, device=self.device)[:, None],
+                torch.tensor(hi, dtype=self.dtype, device=self.device)[:, None])
 
     def _step_scale(self, problem: PlanningProblem) -> Tensor | None:
         """Per-input scale ``(nu, 1)`` of ``init_std``, ``lr`` and ``update_clip`` (the system's
@@ -308,7 +309,7 @@ class DensityPlanner(Planner):
         opt = BatchedAdam(p, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high,
                           scale=self._step_scale(problem))
         history: dict[str, list[float]] = {}
-        best = (math.inf, None, None, None)
+        best: tuple[float, Tensor | None, Reference | None, DensityTrajectory | None] = (math.inf, None, None, None)
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
@@ -330,7 +331,7 @@ class DensityPlanner(Planner):
 
     # -------------------------------------------------------------------- plan
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
-                 slices: Tensor) -> tuple[dict[str, float], object]:
+                 slices: Tensor) -> tuple[dict[str, float], CollisionReport]:
         """Reported cost (no goal-far factor) and collision probability of a predicted sample cloud."""
         report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device,
                                  system=problem.system, risk=problem.risk)
@@ -342,8 +343,9 @@ class DensityPlanner(Planner):
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
         for predictor in (self.predictor, self.exact_check):  # a learned predictor only serves its own horizon
-            if hasattr(predictor, "check_parameterization"):
-                predictor.check_parameterization(problem.parameterization)
+            check = getattr(predictor, "check_parameterization", None)
+            if check is not None:
+                check(problem.parameterization)
         t_start = time.perf_counter()
         gen = torch.Generator().manual_seed(self.config.seed)
         params1, hist1, it1 = self.initialise(problem, gen)

@@ -13,7 +13,7 @@ D(c_j(x_k) + d, t_{h+k})``: the bilinear interpolation of the body occupancy ``D
 vehicle; the sum over the discs is a smooth stand-in for their maximum), at the predicted position (M0,
 ``D_0 = {0}``) or summed over the 0.1-m lattice offsets inside the tube disc (tube MPC, 29 / 81 / 317 offsets for
 r = 0.3 / 0.5 / 1 m, as the paper's code). This is the paper's ``J_MPC`` (Eq. (11)) with its weights ``alpha``
-(``original.md`` §9, §12).
+(``docs/spec.md`` §9, §12).
 The stage-0 collision term depends on the measurement only and is left out of the NLP. ``w_G(h) = alpha_G`` (the
 paper) or ``alpha_G (h / N)^2`` (``goal_weight_growth``, the paper's code).
 
@@ -31,10 +31,15 @@ leave the windows. Cells of a window outside the map read 1 ("outside the map is
 Each step warm-starts IPOPT from the previous solution shifted by one stage (the first step: zero inputs and
 the constant-input rollout). The solve is limited by ``max_iter`` and ``max_cpu_time``; when IPOPT stops
 without converging, the first input of its last iterate is applied (as the paper's code) and the step is
-recorded as failed.
+recorded as failed. The iteration limit is deterministic; the CPU-time cap is not (how many iterations fit in
+0.1 s depends on the machine and its load). M0 keeps the paper's cap of 0.1 s per step by default (its real-time
+budget, which it reaches on 20-40 % of the steps near obstacles); the tube MPCs stop after the paper code's
+10 iterations and have no cap by default, so their runs are reproducible; tests set ``max_cpu_time = inf``.
 
-The closed loop (:meth:`MPCPlanner.plan_from`) applies the first input to the true state with the nominal Euler
-model, measures the state (heading biased by ``theta_bias`` when ``biased_measurement``), and stops early within
+The planner solves one step from a given state (:meth:`MPCPlanner.solve`). The closed loop around it is the
+plant, in :mod:`density_planner.evaluation.receding` (:meth:`MPCPlanner.plan_from` and :meth:`MPCPlanner.plan` run
+it): the first input is applied to the true state with the nominal Euler model, the next state is measured
+(heading biased by ``theta_bias`` when ``biased_measurement``), and the run stops early within
 ``goal_stop_distance`` of the goal. Step times count the whole step (window extraction, parameter update,
 solve, warm-start shift), not only IPOPT.
 """
@@ -46,7 +51,7 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -57,11 +62,14 @@ from ..cost.composite import CostConfig
 from ..environment.grid import OccupancyGrid
 from ..risk.collision import CollisionModel
 from ..systems.car import THETA, KinematicCar, V
-from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
+from ._nlp import BufferedNLP, SolveInfo, car_step_function, check_ipopt_limits, import_casadi, ipopt_options
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .problem import PlanningProblem
 from .registry import PlannerContext, register_planner
+
+if TYPE_CHECKING:
+    from ..evaluation.receding import ClosedLoopRun
 
 __all__ = [
     "MPCWeights",
@@ -102,7 +110,7 @@ class MPCWeights:
 
 @dataclass(frozen=True)
 class MPCConfig:
-    """Settings of the MPC baselines (defaults: M0 of ``original.md`` §12; tube variants set ``tube_radius``
+    """Settings of the MPC baselines (defaults: M0 of ``docs/spec.md`` §12; tube variants set ``tube_radius``
     and ``max_iter = 10``)."""
 
     #: H, prediction stages
@@ -111,10 +119,11 @@ class MPCConfig:
     stage_dt: float = 0.1
     #: explicit-Euler sub-steps per stage (0.01 s each by default)
     substeps: int = 10
-    #: IPOPT iteration limit per step (original: 300 for M0, 10 for the tube variants)
+    #: IPOPT iteration limit per step (original: 300 for M0, 10 for the tube variants); deterministic
     max_iter: int = 300
-    #: IPOPT CPU-time limit per step [s] (None: no limit)
-    max_cpu_time: float | None = 0.1
+    #: IPOPT CPU-time cap per step [s] (inf: none). M0's 0.1 s is the paper's real-time budget; it makes a run
+    #: depend on the machine's load, so tests and reproducible studies set inf and rely on ``max_iter``
+    max_cpu_time: float = 0.1
     #: IPOPT Hessian: "exact" or "limited-memory" (L-BFGS)
     hessian: Literal["exact", "limited-memory"] = "exact"
     #: weights of J_MPC
@@ -142,7 +151,8 @@ class MPCConfig:
     window_margin: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("horizon", "substeps", "max_iter"):
+        check_ipopt_limits(self.max_iter, self.max_cpu_time)
+        for name in ("horizon", "substeps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
@@ -156,8 +166,6 @@ class MPCConfig:
             v = getattr(self, name)
             if not math.isfinite(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
-            raise ValueError(f"max_cpu_time must be > 0 or None, got {self.max_cpu_time!r}")
         check_choice("hessian", self.hessian, ("exact", "limited-memory"))
         check_choice("tube_method", self.tube_method, ("auto", "offsets", "precomputed"))
 
@@ -170,11 +178,15 @@ def tube_mpc_name(radius: float) -> str:
 
 @dataclass(frozen=True)
 class TubeMPCConfig(MPCConfig):
-    """Settings of the tube MPC (M1-M3): :class:`MPCConfig` with the paper code's 10 IPOPT iterations per step.
-    The registered planners ``tube_mpc_0.3/0.5/1.0`` replace ``tube_radius``; ``tube_mpc`` uses it."""
+    """Settings of the tube MPC (M1-M3): :class:`MPCConfig` with the paper code's 10 IPOPT iterations per step and
+    no CPU-time cap (the iteration limit binds first: 10 iterations take 15-60 ms, so the paper's 0.1-s cap only
+    made runs depend on the machine's load). The registered planners ``tube_mpc_0.3/0.5/1.0`` replace
+    ``tube_radius``; ``tube_mpc`` uses it."""
 
     #: IPOPT iteration limit per step (original: 10 for the tube variants)
     max_iter: int = 10
+    #: IPOPT CPU-time cap per step [s] (inf: none, the default; the paper's code had 0.1 s)
+    max_cpu_time: float = math.inf
     #: tube radius r [m] of the planner "tube_mpc"
     tube_radius: float = 0.5
 
@@ -264,8 +276,8 @@ class MPCStep:
 class _Limits:
     """Car bounds used by the NLP (from the system's configuration)."""
 
-    u_min: tuple[float, float]
-    u_max: tuple[float, float]
+    u_min: tuple[float, ...]
+    u_max: tuple[float, ...]
     theta: tuple[float, float]
     v: tuple[float, float]
 
@@ -386,7 +398,8 @@ class _Binding:
 class MPCPlanner(Planner):
     """Standard MPC (``tube_radius = 0``, M0) or tube MPC (M1-M3); see the module docstring.
 
-    Use :meth:`plan` / :meth:`plan_from` for a closed-loop run, or :meth:`reset` then :meth:`solve` step by step.
+    :meth:`reset` then :meth:`solve` step by step; :meth:`plan` / :meth:`plan_from` run the closed loop of
+    :func:`density_planner.evaluation.receding.run_receding` around them.
     """
 
     name = "mpc"
@@ -429,6 +442,8 @@ class MPCPlanner(Planner):
         self._disc_cache: tuple[OccupancyGrid, np.ndarray] | None = None
         #: wall time of the last tube disc-sum precomputation [s] (0 when cached or not needed)
         self.precompute_time = 0.0
+        #: NLP construction and precomputation times of the last reset (a construction counts once)
+        self._reset_times = (0.0, 0.0)
 
     # ------------------------------------------------------------------ set-up
     def _limits(self, system: KinematicCar) -> _Limits:
@@ -469,6 +484,7 @@ class MPCPlanner(Planner):
         if not isinstance(system, KinematicCar):
             raise ValueError(f"the MPC baselines need the KinematicCar system, got {type(system).__name__}")
         self.system = system
+        builds = self.n_builds
         collision = problem.collision()
         grid: OccupancyGrid = collision.body_grid  # occupancy seen by a body disc (the point's P_occ for a point)
         prog = self._program_for(grid.cell_size, self._limits(system), collision.cover.offsets)
@@ -510,6 +526,7 @@ class MPCPlanner(Planner):
         )
         prog.nlp.args["lam_x0"][:] = 0.0
         prog.nlp.args["lam_g0"][:] = 0.0
+        self._reset_times = (self.build_time if self.n_builds > builds else 0.0, self.precompute_time)
 
     # ------------------------------------------------------------------ one step
     def _fill_windows(self, prog: _MPCProgram, b: _Binding, pos: np.ndarray, step: int) -> None:
@@ -545,7 +562,7 @@ class MPCPlanner(Planner):
         b, prog, cfg = self._bound, self._program, self.config
         x0 = np.asarray(state.detach().cpu() if isinstance(state, Tensor) else state, dtype=float).reshape(-1)[:4]
         if x0.shape != (4,) or not np.all(np.isfinite(x0)):
-            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {state!r}")
+            raise ValueError(f"state must hold 4 finite numbers [p_x, p_y, theta, v], got {x0!r}")
         args = prog.nlp.args
         p = args["p"]
         p[0:4] = x0
@@ -586,14 +603,12 @@ class MPCPlanner(Planner):
         )
 
     # -------------------------------------------------------------- closed loop
-    def _measure(self, x: Tensor) -> np.ndarray:
-        xs = self.system.measure(x) if self.config.biased_measurement else x
-        return xs[:4].detach().cpu().numpy().astype(float)
-
-    def _plant(self, x: Tensor, u: np.ndarray) -> Tensor:
-        cfg = self.config
-        uu = torch.as_tensor(u, dtype=x.dtype).expand(cfg.substeps, 2)
-        return self.system.rollout(x, uu, cfg.stage_dt / cfg.substeps)[-1]
+    @property
+    def n_steps(self) -> int:
+        """Closed-loop steps of the problem bound by :meth:`reset` (``n_steps``, or the horizon / ``stage_dt``)."""
+        if self._bound is None:
+            raise ValueError("call reset(problem) before reading n_steps")
+        return self._bound.n_steps
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
         """Closed-loop run from the problem's reference start (mean of the initial law, no bias)."""
@@ -601,41 +616,26 @@ class MPCPlanner(Planner):
 
     def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
         """Closed-loop run from the true initial state ``true_state (nx,)`` (its bias enters the measurement
-        when ``biased_measurement``). Never raises: failures are reported in the result's status."""
-        t_start = time.perf_counter()
-        steps: list[MPCStep] = []
-        states: list[Tensor] = []
-        inputs: list[Tensor] = []
-        try:
-            builds = self.n_builds
-            self.reset(problem)
-            t_build = self.build_time if self.n_builds > builds else 0.0
-            t_pre = self.precompute_time
-            x = torch.as_tensor(true_state, dtype=torch.float64).detach().cpu().reshape(-1).clone()
-            if x.shape != (problem.system.nx,):
-                raise ValueError(f"true_state must have {problem.system.nx} entries, got shape {tuple(x.shape)}")
-            goal = torch.tensor(problem.goal, dtype=torch.float64)
-            states.append(x)
-            stop = self.config.goal_stop_distance
-            for h in range(self._bound.n_steps):
-                st = self.solve(self._measure(x), h)
-                steps.append(st)
-                x = self._plant(x, st.input)
-                states.append(x)
-                inputs.append(torch.as_tensor(st.input, dtype=torch.float64))
-                if not bool(torch.isfinite(x).all()):
-                    raise FloatingPointError(f"the state became non-finite at step {h}")
-                if stop > 0 and float(torch.linalg.norm(problem.system.positions(x) - goal)) < stop:
-                    break
-        except Exception as exc:  # noqa: BLE001 - a benchmark never crashes on one planner
-            log.warning("%s failed: %s", self.name, exc)
-            return self._result(problem, PlanStatus.ERROR, states, inputs, steps, t_start, 0.0, 0.0,
-                                f"{type(exc).__name__}: {exc}")
-        return self._result(problem, PlanStatus.SUCCESS, states, inputs, steps, t_start, t_build, t_pre, "")
+        when ``biased_measurement``), simulated by :func:`density_planner.evaluation.receding.run_receding` (the
+        plant loop; this planner solves one step at a time). Never raises: failures are reported in the result's
+        status."""
+        from ..evaluation.receding import run_receding  # evaluation drives the planner (imported on use)
+
+        return run_receding(self, problem, true_state)
+
+    def closed_loop_result(self, problem: PlanningProblem, run: ClosedLoopRun) -> PlanResult:
+        """The result of a closed-loop run of :func:`~density_planner.evaluation.receding.run_receding`: executed
+        states, per-step records in ``extras``, evaluation-form cost and ``J_MPC``; ``ERROR`` if it stopped on an
+        exception (the states so far are kept)."""
+        if run.error:
+            return self._result(problem, PlanStatus.ERROR, run.states, run.inputs, run.steps, run.t_start, 0.0, 0.0,
+                                run.error)
+        t_build, t_pre = self._reset_times
+        return self._result(problem, PlanStatus.SUCCESS, run.states, run.inputs, run.steps, run.t_start, t_build,
+                            t_pre, "")
 
     def _result(self, problem: PlanningProblem, status: PlanStatus, states: list[Tensor], inputs: list[Tensor],
-                steps: list[MPCStep], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
-        kw = {"dtype": self.dtype, "device": self.device}
+                steps: list[Any], t_start: float, t_build: float, t_pre: float, message: str) -> PlanResult:
         counts = Counter(s.status for s in steps)
         n_fail = sum(1 for s in steps if not s.success)
         step_times = [s.step_time for s in steps]
@@ -661,8 +661,8 @@ class MPCPlanner(Planner):
         result = PlanResult(planner=self.name, status=status, message=message, extras=extras,
                             iterations={"steps": len(steps), "ipopt": sum(s.iterations for s in steps)})
         if len(states) >= 2:
-            x = torch.stack(states).to(**kw)
-            u = torch.stack(inputs).to(**kw)
+            x = torch.stack(states).to(dtype=self.dtype, device=self.device)
+            u = torch.stack(inputs).to(dtype=self.dtype, device=self.device)
             result.states = x
             try:
                 result.cost, result.collision = evaluate_trajectory(problem, x, u, cost_config=self.evaluation_cost)
@@ -673,7 +673,7 @@ class MPCPlanner(Planner):
             except Exception as exc:  # noqa: BLE001
                 result.message += f" (evaluation failed: {exc})"
         elif states:
-            result.states = torch.stack(states).to(**kw)
+            result.states = torch.stack(states).to(dtype=self.dtype, device=self.device)
         online = float(sum(step_times))
         result.timings = {"nlp_build": t_build, "tube_precompute": t_pre, "online": online,
                           "total": time.perf_counter() - t_start}

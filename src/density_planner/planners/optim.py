@@ -2,7 +2,7 @@
 
 Used by the gradient planners: every candidate parameter set ``params[m]`` is optimised independently (its own
 step counter and moments), the *update* (not the gradient) is clipped to ``+-update_clip`` per entry (the paper's
-"gradient clipping", ``original.md`` §10), and the parameters are projected onto ``[low, high]`` after every
+"gradient clipping", ``docs/spec.md`` §10), and the parameters are projected onto ``[low, high]`` after every
 step (the original intended this but never applied it).
 """
 

@@ -17,7 +17,7 @@ every function evaluation. With a body, the interpolated grid is the body's disc
 (:class:`~density_planner.risk.collision.CollisionModel`) and ``P_occ(p_k, t_k)`` becomes the sum of its values at
 the disc centres of ``x_k`` (a smooth stand-in for their maximum).
 
-Restarts (``original.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
+Restarts (``docs/spec.md`` §12): a zero initial guess, then ``restarts - 1`` random guesses
 ``p = clip(0.5 N(0, 1), -3, 3)`` (seeded), each with the states of its rollout as the state guess. Every returned
 iterate (converged or stopped by ``max_iter``: IPOPT returns its last iterate) is re-simulated open loop and scored
 with the same ``J_MPC`` (:func:`~density_planner.planners.mpc.mpc_objective`); the best one whose re-simulation
@@ -42,7 +42,7 @@ from ..checks import check_choice, check_seed
 from ..control.reference import make_reference
 from ..cost.composite import CostConfig
 from ..systems.car import BIAS, THETA, KinematicCar, V
-from ._nlp import BufferedNLP, SolveInfo, car_step_function, import_casadi, ipopt_options
+from ._nlp import BufferedNLP, SolveInfo, car_step_function, check_ipopt_limits, import_casadi, ipopt_options
 from ._report import evaluate_trajectory
 from .base import Planner, PlanResult, PlanStatus
 from .mpc import MPCWeights, mpc_objective
@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class OracleConfig:
-    """Settings of the oracle (``original.md`` §12)."""
+    """Settings of the oracle (``docs/spec.md`` §12)."""
 
     #: number of IPOPT solves: a zero initial guess, then random guesses
     restarts: int = 10
@@ -64,25 +64,23 @@ class OracleConfig:
     init_std: float = 0.5
     #: seed of the random initial guesses
     seed: int = 0
-    #: IPOPT iteration limit per restart
+    #: IPOPT iteration limit per restart (deterministic)
     max_iter: int = 5000
-    #: IPOPT CPU-time limit per restart [s] (None: no limit, as the paper)
-    max_cpu_time: float | None = None
+    #: IPOPT CPU-time cap per restart [s] (inf: none, as the paper; a finite cap makes the result depend on the
+    #: machine's load)
+    max_cpu_time: float = math.inf
     #: IPOPT Hessian: "exact" or "limited-memory"
     hessian: Literal["exact", "limited-memory"] = "exact"
     #: weights of J_MPC (the paper: the planner's alphas)
     weights: MPCWeights = field(default_factory=MPCWeights)
 
     def __post_init__(self) -> None:
-        for name in ("restarts", "max_iter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if isinstance(self.restarts, bool) or not isinstance(self.restarts, int) or self.restarts < 1:
+            raise ValueError(f"restarts must be a positive integer, got {self.restarts!r}")
+        check_ipopt_limits(self.max_iter, self.max_cpu_time)
         check_seed("seed", self.seed)
         if not math.isfinite(self.init_std) or self.init_std < 0:
             raise ValueError(f"init_std must be a finite number >= 0, got {self.init_std!r}")
-        if self.max_cpu_time is not None and (not math.isfinite(self.max_cpu_time) or self.max_cpu_time <= 0):
-            raise ValueError(f"max_cpu_time must be > 0 or None, got {self.max_cpu_time!r}")
         check_choice("hessian", self.hessian, ("exact", "limited-memory"))
 
 
@@ -93,7 +91,8 @@ class _OracleProgram:
         par = problem.parameterization
         collision = problem.collision()
         grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
-        car: KinematicCar = problem.system  # type: ignore[assignment]
+        car = problem.system
+        assert isinstance(car, KinematicCar), "checked by OraclePlanner._plan"
         self.grid = grid
         self.n_seg = par.n_segments
         self.N = par.n_plan - 1  # stages of plan_dt
@@ -190,6 +189,7 @@ class OraclePlanner(Planner):
         self._program_key: tuple | None = None
 
     def _program_for(self, problem: PlanningProblem) -> tuple[_OracleProgram, float]:
+        assert isinstance(problem.system, KinematicCar), "checked by OraclePlanner._plan"
         key = (problem.scene.grid, problem.t_start, problem.parameterization, problem.system.config, problem.risk)
         if self._program is None or self._program_key is None or any(
             a is not b and a != b for a, b in zip(self._program_key, key)
@@ -242,7 +242,7 @@ class OraclePlanner(Planner):
         args["p"][4:6] = problem.goal
         stride = par.plan_stride
         restarts: list[dict[str, Any]] = []
-        best: tuple[float, int] | None = None
+        best: tuple[int, float] | None = None
         t_solve = 0.0
         for r, p0 in enumerate(self._guesses(problem)):
             ref0 = make_reference(system, start, p0, par)
@@ -286,8 +286,8 @@ class OraclePlanner(Planner):
         i_best = max(i for i, e in enumerate(restarts) if e.get("best"))
         params = restarts[i_best]["params"]
         feasible = best[0] == 0
-        kw = {"dtype": self.dtype, "device": self.device}
-        ref = make_reference(system, start.to(**kw), params.to(**kw), par)
+        ref = make_reference(system, start.to(dtype=self.dtype, device=self.device),
+                             params.to(dtype=self.dtype, device=self.device), par)
         cost, coll = evaluate_trajectory(problem, ref.x_plan, ref.u_plan, cost_config=self.evaluation_cost)
         extras["best_restart"] = i_best
         extras["best_converged"] = bool(restarts[i_best]["success"])
@@ -303,7 +303,7 @@ class OraclePlanner(Planner):
         return PlanResult(
             planner=self.name,
             status=PlanStatus.SUCCESS if feasible else PlanStatus.FAILED,
-            params=params.to(**kw),
+            params=params.to(dtype=self.dtype, device=self.device),
             reference=ref,
             states=ref.x_plan,
             cost=cost,

@@ -88,7 +88,7 @@ class PlanningConfig:
         if self.horizon is not None:
             return float(self.horizon)
         suggested = None if scene is None else scene.meta.get("horizon", getattr(scene, "horizon", None))
-        if suggested is None:
+        if scene is None or suggested is None or scene.t_start is None:  # (Scene.__post_init__ sets t_start)
             return DEFAULT_HORIZON
         try:
             suggested = float(suggested)
@@ -154,7 +154,7 @@ class PlanningProblem:
                 f"initial_distribution has dimension {self.initial_distribution.dim}, the system state has "
                 f"{self.system.nx}"
             )
-        self.scene.grid.check_span(self.scene.t_start, self.parameterization.horizon)
+        self.scene.grid.check_span(self.t_start, self.parameterization.horizon)
 
     @classmethod
     def from_scene(
@@ -182,6 +182,7 @@ class PlanningProblem:
     @property
     def t_start(self) -> float:
         """Absolute time [s] of the plan's start on the occupancy grid's clock (``scene.t_start``)."""
+        assert self.scene.t_start is not None  # set by Scene.__post_init__
         return self.scene.t_start
 
     def slices(self, n: int | None = None, device: torch.device | str = "cpu", *, dt: float | None = None) -> Tensor:

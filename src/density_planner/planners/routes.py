@@ -232,6 +232,12 @@ def _add_reach_sinks(graph: LaneGraph, g: Any, starts: list[int], start_xy, reac
             frontier.append((nxt, covered + graph[nxt].length))
 
 
+def _center(lane: Any) -> np.ndarray:
+    """The centre polyline of a lane (always set once the lane is built)."""
+    assert lane.center is not None
+    return lane.center
+
+
 def _resample(line: np.ndarray, fractions: np.ndarray) -> np.ndarray:
     """Points of the polyline ``line (K, 2)`` at arc-length ``fractions`` in [0, 1]."""
     seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
@@ -265,7 +271,7 @@ def route_path(
             sections[-1].append(lane_id)
         else:
             sections.append([lane_id])
-    pieces = []
+    pieces: list[np.ndarray] = []
     for j, section in enumerate(sections):
         first = graph[section[0]]
         length = max(first.length, 1e-6)
@@ -275,7 +281,7 @@ def route_path(
             phi_in = min(phi_in, 1.0)
         n = max(2, int(math.ceil((1.0 - phi_in) * length / spacing)) + 1)
         phi = np.linspace(phi_in, 1.0, n)
-        centres = np.stack([_resample(graph[i].center, phi) for i in section])  # (k, n, 2)
+        centres = np.stack([_resample(_center(graph[i]), phi) for i in section])  # (k, n, 2)
         if len(section) == 1:
             pts = centres[0]
         else:
@@ -292,7 +298,7 @@ def route_path(
     path = path[keep]
     if path.shape[0] < 2:  # degenerate: the start sits at the very end of a lane without successors
         lane = graph[lane_ids[-1]]
-        d = lane.center[-1] - lane.center[-2]
+        d = _center(lane)[-1] - _center(lane)[-2]
         path = np.vstack([path[:1], path[:1] + d / max(np.linalg.norm(d), 1e-9)])
     return path
 
@@ -533,6 +539,7 @@ def _scene_road_cost(scene: Any, device: torch.device | str) -> Callable[[Tensor
     sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
     if sdf is None:
         return None
+    assert road is not None  # it has a drivable area
     barrier = RoadBarrierCost(sdf.to(device), length=road.vehicle_length, width=road.vehicle_width,
                               margin=rc.margin, spacing=rc.footprint_spacing)
     return barrier.per_state
@@ -644,13 +651,13 @@ def route_seed_parameters(
     v = np.concatenate(all_v)[: cfg.max_candidates]
     h = np.concatenate(all_h)[: cfg.max_candidates]
     labels = labels[: cfg.max_candidates]
-    kw = {"dtype": dtype, "device": device}
-    targets, speeds = torch.tensor(xy, **kw), torch.tensor(v, **kw)
+    targets, speeds = torch.tensor(xy, dtype=dtype, device=device), torch.tensor(v, dtype=dtype, device=device)
     if isinstance(road_cost, str):
         if road_cost != "scene":
             raise ValueError(f"road_cost must be a callable, None or 'scene', got {road_cost!r}")
         road_cost = _scene_road_cost(problem.scene, device)
-    params, rms = fit_reference_parameters(system, start.to(**kw), par, targets, speeds, torch.tensor(h, **kw),
+    params, rms = fit_reference_parameters(system, start.to(dtype=dtype, device=device), par, targets, speeds,
+                                           torch.tensor(h, dtype=dtype, device=device),
                                            iterations=cfg.fit_iterations, lr=cfg.fit_lr,
                                            speed_weight=cfg.fit_speed_weight, road_cost=road_cost)
     seeds = RouteSeeds(params, targets, speeds, labels, rms, routes, time.perf_counter() - t0)

@@ -1,4 +1,4 @@
-"""Sampling-based optimiser (ablation baseline, paper §V "Trajectory optimization"; ``original.md`` §11).
+"""Sampling-based optimiser (ablation baseline, paper §V "Trajectory optimization"; ``docs/spec.md`` §11).
 
 An RRT-like tree of partial parameter sequences. Each new candidate is either a new root (a first segment
 ``(omega, a) ~ clip(0.5 N(0, 1), -3, 3)``), with probability ``10 / (n + 10)`` for ``n`` stored nodes, or the
@@ -37,7 +37,7 @@ def _sampling_cost() -> CostConfig:
 
 @dataclass(frozen=True)
 class SamplingConfig(TreeConfig):
-    """Settings of the sampling-based optimiser (defaults: ``original.md`` §11)."""
+    """Settings of the sampling-based optimiser (defaults: ``docs/spec.md`` §11)."""
 
     #: standard deviation of the random segment inputs (clipped to the input bounds)
     init_std: float = 0.5
@@ -66,6 +66,7 @@ class SamplingPlanner(TreePlanner):
     """RRT-like sampling over piecewise-constant reference inputs (see the module docstring)."""
 
     name = "sampling"
+    config: SamplingConfig
 
     def __init__(self, predictor, config: SamplingConfig | None = None, **kwargs: Any):
         super().__init__(predictor, config or SamplingConfig(), **kwargs)

@@ -1,4 +1,4 @@
-"""Search-based optimiser (ablation baseline, paper §V "Trajectory optimization"; ``original.md`` §11).
+"""Search-based optimiser (ablation baseline, paper §V "Trajectory optimization"; ``docs/spec.md`` §11).
 
 Best-first search over the ten one-second segments of the reference parameters: every node fixes the first
 ``d`` segments; its children append one segment with ``(omega, a)`` from a 5 x 5 lattice
@@ -37,7 +37,7 @@ def _search_cost() -> CostConfig:
 
 @dataclass(frozen=True)
 class SearchConfig(TreeConfig):
-    """Settings of the search-based optimiser (defaults: ``original.md`` §11)."""
+    """Settings of the search-based optimiser (defaults: ``docs/spec.md`` §11)."""
 
     #: values of each input channel per segment (rad/s and m/s^2); the children are all pairs
     choices: tuple[float, ...] = (-2.0, -1.0, 0.0, 1.0, 2.0)
@@ -54,6 +54,7 @@ class SearchPlanner(TreePlanner):
     """Best-first search over piecewise-constant reference inputs (see the module docstring)."""
 
     name = "search"
+    config: SearchConfig
 
     def __init__(self, predictor, config: SearchConfig | None = None, **kwargs: Any):
         super().__init__(predictor, config or SearchConfig(), **kwargs)

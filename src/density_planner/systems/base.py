@@ -265,6 +265,6 @@ class ControlAffineSystem(System):
         div = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
         eye = torch.eye(self.nx, dtype=x.dtype, device=x.device)
         for i in range(self.nx):
-            _, d = torch.func.jvp(self.drift, (x,), (eye[i].expand_as(x),))
+            d = torch.func.jvp(self.drift, (x,), (eye[i].expand_as(x),))[1]
             div = div + d[..., i]
         return div

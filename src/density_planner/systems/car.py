@@ -38,7 +38,7 @@ _PI = math.pi
 
 @dataclass(frozen=True)
 class CarConfig:
-    """Boxes of the car model (``original.md`` §1). Units: m, m, rad, m/s, rad; inputs rad/s, m/s^2."""
+    """Boxes of the car model (``docs/spec.md`` §1). Units: m, m, rad, m/s, rad; inputs rad/s, m/s^2."""
 
     #: validity box of the state (controller training, reference validity, evaluation of J_B)
     state_min: tuple[float, float, float, float, float] = (-50.0, -50.0, -_PI + 0.2, 0.0, -_PI / 8)
@@ -124,7 +124,7 @@ class CarConfig:
 
     @classmethod
     def paper(cls) -> CarConfig:
-        """The paper's box (``original.md`` §1): v in [0, 10] m/s, inputs +-3, hard clip, no lateral limit."""
+        """The paper's box (``docs/spec.md`` §1): v in [0, 10] m/s, inputs +-3, hard clip, no lateral limit."""
         return cls()
 
     @classmethod

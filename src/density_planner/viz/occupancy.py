@@ -10,7 +10,7 @@ import numpy as np
 from density_planner.environment.scene import Scene
 from density_planner.io.atomic import _atomic
 
-from .style import OCCUPANCY_CMAP, plt, save_figure
+from .style import OCCUPANCY_CMAP, agg_canvas, plt, save_figure
 
 __all__ = ["plot_occupancy", "animate_occupancy", "show_occupancy"]
 
@@ -175,8 +175,9 @@ def animate_occupancy(
     for k in range(0, grid.n_slices, every):
         im.set_data(shown[k].T)
         text.set_text(f"{label}: t = {times[k]:.1f} s")
-        fig.canvas.draw()
-        rgba = np.asarray(fig.canvas.buffer_rgba())
+        canvas = agg_canvas(fig)
+        canvas.draw()
+        rgba = np.asarray(canvas.buffer_rgba())
         frames.append(
             Image.fromarray(rgba[..., :3].copy()).quantize(palette=palette, dither=Image.Dither.NONE)
         )

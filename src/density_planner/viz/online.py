@@ -12,7 +12,7 @@ from ..environment.scene import Scene
 from ..io.atomic import _atomic
 from .occupancy import show_occupancy
 from .plan import _OUTSIDE_MAP, _draw_goal, _geometry_patches, _region_of_interest, _save_laid_out, _verdict_line
-from .style import frame_map, plt
+from .style import agg_canvas, frame_map, plt
 
 __all__ = ["plot_run", "animate_run"]
 
@@ -76,7 +76,7 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
     from .plan import _crop
 
     (i0, i1, j0, j1), extent, st = _crop(grid, roi, 700)
-    k0 = int(grid.slice_index(scene.t_start, clamp=True))
+    k0 = int(grid.slice_index(grid.t0 if scene.t_start is None else scene.t_start, clamp=True))
     show_occupancy(ax, grid.probs[k0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
     ax.set_facecolor(_OUTSIDE_MAP)
     road = getattr(scene, "road", None)
@@ -128,8 +128,9 @@ def animate_run(scene: Scene, result: Any, path: str | Path, *, fps: int = 4) ->
         ax.clear()
         _panel(ax, scene, result, snap, full_path=False)
         ax.set_title(f"{scene.name}  " + ax.get_title(), fontsize=8)
-        fig.canvas.draw()
-        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+        canvas = agg_canvas(fig)
+        canvas.draw()
+        rgb = np.asarray(canvas.buffer_rgba())[..., :3]
         frames.append(Image.fromarray(rgb).quantize(colors=128, dither=Image.Dither.NONE))
     plt.close(fig)
     if not frames:

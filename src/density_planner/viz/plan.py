@@ -5,13 +5,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from ..environment.scene import Scene
 from ..io.atomic import _atomic
 from .occupancy import _decorate, _extent, show_occupancy
-from .style import DENSITY_CMAP, frame_map, plt, save_figure
+from .style import DENSITY_CMAP, agg_canvas, frame_map, plt, save_figure
 
 __all__ = ["plot_plan", "animate_plan", "plot_costs", "plot_plans"]
 
@@ -97,7 +98,8 @@ def _window(points: np.ndarray, bounds: tuple[float, float, float, float], margi
     return (max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1))
 
 
-def _region_of_interest(scene: Scene, states: np.ndarray, samples_x: np.ndarray | None) -> tuple[float, ...]:
+def _region_of_interest(scene: Scene, states: np.ndarray,
+                        samples_x: np.ndarray | None) -> tuple[float, float, float, float]:
     """What the overview shows: the trajectory, the sample cloud (1-99 % quantiles), start, goal and goal region,
     with a margin, inside the map."""
     pts = [states[:, :2], np.asarray([scene.start[:2], scene.goal])]
@@ -111,16 +113,19 @@ def _region_of_interest(scene: Scene, states: np.ndarray, samples_x: np.ndarray 
     return _window(np.concatenate(pts), _extent(scene), margin=12.0)
 
 
-def _emptiest_corner(points: np.ndarray, window: tuple[float, float, float, float]) -> str:
+Corner = Literal["upper left", "upper right", "lower left", "lower right"]
+
+
+def _emptiest_corner(points: np.ndarray, window: tuple[float, float, float, float]) -> Corner:
     """The legend corner of ``window`` with the fewest ``points`` in its quarter (matplotlib's ``loc="best"``
     tests every artist and costs a third of the figure's drawing time)."""
     x0, x1, y0, y1 = window
     pts = points[np.isfinite(points).all(axis=1)]
     right = pts[:, 0] > 0.5 * (x0 + x1)
     upper = pts[:, 1] > 0.5 * (y0 + y1)
-    counts = {"upper left": int((upper & ~right).sum()), "upper right": int((upper & right).sum()),
+    counts: dict[Corner, int] = {"upper left": int((upper & ~right).sum()), "upper right": int((upper & right).sum()),
               "lower left": int((~upper & ~right).sum()), "lower right": int((~upper & right).sum())}
-    return min(counts, key=counts.get)
+    return min(counts, key=counts.__getitem__)
 
 
 def _verdict_line(verdict, width: int = 150) -> tuple[str, str]:
@@ -182,7 +187,7 @@ def plot_plan(
     grid = scene.grid
     T = states.shape[0]
     if snapshot_times is None:
-        snapshot_times = np.round(np.linspace(0.0, (T - 1) * plan_dt, 6) / plan_dt) * plan_dt
+        snapshot_times = list(np.round(np.linspace(0.0, (T - 1) * plan_dt, 6) / plan_dt) * plan_dt)
     snapshot_times = list(snapshot_times)
     n_snap = len(snapshot_times)
     ncol = max((n_snap + 1) // 2, 1)
@@ -212,7 +217,7 @@ def plot_plan(
         def snapshot_cell(j: int):
             return gs[j // ncol, 1 + j % ncol]
     # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
-    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
     k0 = int(grid.slice_index(t0, clamp=True))
     (i0, i1, j0, j1), extent, st = _crop(grid, roi, 700)
     show_occupancy(ax, grid.probs[k0, i0:i1:st, j0:j1:st], extent, alpha=0.9)
@@ -223,7 +228,7 @@ def plot_plan(
     _draw_obstacle_paths(ax, scene, t_abs)
     _draw_goal(ax, scene)
     sc = None
-    if has_cloud:
+    if samples_x is not None and samples_log_rho is not None:
         for k in range(0, T, 10):
             sc = _cloud(ax, samples_x, samples_log_rho, k, size=2.0)
     ax.plot(states[:, 0], states[:, 1], "-", color="tab:orange", lw=1.8, label=label, zorder=5)
@@ -241,7 +246,7 @@ def plot_plan(
     ks = [min(int(round(ts / plan_dt)), T - 1) for ts in snapshot_times]
     half = 12.0
     for k in ks:
-        if has_cloud and k < samples_x.shape[1]:
+        if samples_x is not None and has_cloud and k < samples_x.shape[1]:
             dev = np.nanquantile(np.abs(samples_x[:, k, :2] - states[k, :2]), 0.98, axis=0)
             half = max(half, float(dev.max()) + 4.0)
     half = min(half, 0.5 * max(x1 - x0, y1 - y0))
@@ -254,7 +259,7 @@ def plot_plan(
         show_occupancy(a, grid.probs[k_slice, i0:i1:st, j0:j1:st], extent)
         _draw_goal(a, scene, label=False)
         a.plot(states[: k + 1, 0], states[: k + 1, 1], "-", color="tab:orange", lw=1.0)
-        if has_cloud and k < samples_x.shape[1]:
+        if samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
             _cloud(a, samples_x, samples_log_rho, k, size=2.0)
         a.plot(states[k, 0], states[k, 1], "o", color="tab:orange", ms=3, zorder=6)
         a.set_xlim(cx - half, cx + half)
@@ -311,7 +316,8 @@ def _gif_palette_image():
     return pal
 
 
-def _crop(grid, window: tuple[float, float, float, float], max_cells: int) -> tuple[np.ndarray, tuple, int]:
+def _crop(grid, window: tuple[float, float, float, float],
+          max_cells: int) -> tuple[tuple[int, int, int, int], tuple[float, float, float, float], int]:
     """Index ranges of the cells inside ``window`` and a display stride so that the longest side has at most
     ``max_cells`` cells: ``(slices (i0, i1, j0, j1), extent, stride)``."""
     x0, x1, y0, y1 = window
@@ -351,7 +357,7 @@ def animate_plan(
     window = _region_of_interest(scene, states, samples_x if has_cloud else None)
     (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
     ks = list(range(0, T, every))
-    t0 = grid.t0 if getattr(scene, "t_start", None) is None else float(scene.t_start)  # on the grid's clock
+    t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
     slices = sorted({int(grid.slice_index(t0 + k * plan_dt, clamp=True)) for k in ks})
     sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
     where = {s: n for n, s in enumerate(slices)}
@@ -369,7 +375,7 @@ def animate_plan(
     (done,) = ax.plot([], [], "-", color="tab:orange", lw=1.8)
     (now,) = ax.plot([], [], "o", color="tab:orange", ms=4, zorder=6)
     cloud = None
-    if has_cloud:
+    if samples_x is not None and samples_log_rho is not None:
         cloud = ax.scatter(samples_x[:, 0, 0], samples_x[:, 0, 1], c=np.zeros(samples_x.shape[0]), s=4.0,
                            cmap=DENSITY_CMAP, vmin=0, vmax=1, linewidths=0, zorder=4)
     overlays = sorted(set(ax.get_children()) - before, key=lambda a: a.get_zorder())
@@ -384,25 +390,26 @@ def animate_plan(
     moving = [img, *overlays, title]
     for a in moving:
         a.set_animated(True)
-    fig.canvas.draw()
+    canvas = agg_canvas(fig)
+    canvas.draw()
     fig.set_layout_engine("none")
-    background = fig.canvas.copy_from_bbox(fig.bbox)
+    background = canvas.copy_from_bbox(fig.bbox)
     palette = _gif_palette_image()
     frames = []
     for k in ks:
         img.set_data(sub[where[int(grid.slice_index(t0 + k * plan_dt, clamp=True))]].T)
         done.set_data(states[: k + 1, 0], states[: k + 1, 1])
         now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
-        if cloud is not None and k < samples_x.shape[1]:
+        if cloud is not None and samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
             rel = _rel_density(samples_log_rho[:, k])
             order = np.argsort(rel)
             cloud.set_offsets(samples_x[order, k, :2])
             cloud.set_array(rel[order])
         title.set_text(f"{scene.name}  t = {k * plan_dt:4.1f} s")
-        fig.canvas.restore_region(background)
+        canvas.restore_region(background)
         for a in moving:
             (ax if a is not title else fig).draw_artist(a)
-        rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3]
+        rgb = np.asarray(canvas.buffer_rgba())[..., :3]
         frames.append(Image.fromarray(rgb).quantize(palette=palette, dither=Image.Dither.NONE))
     plt.close(fig)
 
@@ -421,8 +428,8 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
     fig, axes = plt.subplots(1, max(len(stages), 1), figsize=(5.2 * max(len(stages), 1), 3.8), squeeze=False)
     for ax, stage in zip(axes[0], stages):
         hist = cost_history[stage]
-        for name, values in hist.items():
-            values = np.asarray(values, dtype=float)
+        for name, series in hist.items():
+            values = np.asarray(series, dtype=float)
             if values.size < 2:
                 continue
             style = {"lw": 2.0, "color": "black"} if name == "total" else {"lw": 1.2}

@@ -8,8 +8,9 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 
-__all__ = ["plt", "save_figure", "DENSITY_CMAP", "OCCUPANCY_CMAP"]
+__all__ = ["plt", "save_figure", "agg_canvas", "DENSITY_CMAP", "OCCUPANCY_CMAP"]
 
 DENSITY_CMAP = "viridis"
 OCCUPANCY_CMAP = "Greys"
@@ -24,6 +25,13 @@ plt.rcParams.update(
         "image.origin": "lower",
     }
 )
+
+
+def agg_canvas(fig) -> FigureCanvasAgg:
+    """The figure's canvas, an Agg canvas (the backend selected above): pixels for GIF frames, blitting."""
+    canvas = fig.canvas
+    assert isinstance(canvas, FigureCanvasAgg), f"figures are drawn with Agg, got {type(canvas).__name__}"
+    return canvas
 
 
 def frame_map(ax, x0: float, x1: float, y0: float, y1: float) -> None:
