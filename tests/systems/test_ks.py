@@ -212,3 +212,14 @@ def test_scaled_adam_is_adam_in_scaled_coordinates():
         b.step(grad_p * s)
     torch.testing.assert_close(p, q * s, atol=1e-7, rtol=0)
     assert bool((p[:, 0].abs() <= 0.3 + 1e-12).all())
+
+
+def test_symbolic_dynamics_equal_f():
+    casadi = pytest.importorskip("casadi")
+    ks = KinematicSingleTrack()
+    xs, us = casadi.SX.sym("x", 5), casadi.SX.sym("u", 2)
+    fn = casadi.Function("f", [xs, us], [ks.f_symbolic(xs, us, casadi)])
+    x = torch.tensor([1.0, -2.0, 0.3, 7.0, 2.5], dtype=torch.float64)
+    u = torch.tensor([0.1, -1.0], dtype=torch.float64)
+    got = torch.tensor(fn(x.numpy(), u.numpy()).full().ravel(), dtype=torch.float64)
+    torch.testing.assert_close(got, ks.f(x, u), atol=1e-12, rtol=0)

@@ -260,6 +260,11 @@ class KinematicSingleTrack(ControlAffineSystem):
         # d(v cos psi)/d px + d(v sin psi)/d py + 0 + 0 + d(v tan(delta) / l)/d psi = 0
         return torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
 
+    def f_symbolic(self, x, u, ops):
+        """KS dynamics for symbolic vectors (CasADi: ``ops = casadi``); every state is nominal."""
+        return ops.vertcat(x[V] * ops.cos(x[PSI]), x[V] * ops.sin(x[PSI]), u[STEER_RATE], u[ACC],
+                           x[V] * ops.tan(x[DELTA]) / self.wheelbase)
+
     # ------------------------------------------------------------ references
     def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
         """Loop-free explicit-Euler rollout, identical to the step-by-step loop: ``delta`` and ``v`` are exclusive
