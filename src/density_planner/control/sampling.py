@@ -108,8 +108,8 @@ def sample_feasible_references(
         if not hasattr(cfg, "reference_start_min"):
             raise ValueError(f"{type(system).__name__} defines no reference-start box (config.reference_start_min/"
                              "max); pass start_low and start_high")
-    s_lo = cfg.reference_start_min if start_low is None else start_low
-    s_hi = cfg.reference_start_max if start_high is None else start_high
+    s_lo = start_low if start_low is not None else getattr(cfg, "reference_start_min")  # noqa: B009
+    s_hi = start_high if start_high is not None else getattr(cfg, "reference_start_max")  # noqa: B009
     x_lo = system.state_bounds[0] if state_low is None else state_low
     x_hi = system.state_bounds[1] if state_high is None else state_high
     u_lo = torch.as_tensor(system.input_bounds[0], dtype=torch.float64)[:, None]
