@@ -1,5 +1,6 @@
 """The planning pipeline for any system: the density planner, its reported risk and the verdict, parametrised over
-the kinematic car and a linear double integrator (no heading, no hidden state, a disc body)."""
+the paper's kinematic car, CommonRoad's kinematic single-track model (ks) and a linear double integrator (no
+heading, no hidden state, a disc body)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 from helpers import block_scene, empty_scene
 
 from density_planner.control.analytic import CarTrackingController, LinearFeedbackController
+from density_planner.control.registry import load_controller, model_set
 from density_planner.density.distributions import paper_gaussian_mixture
 from density_planner.density.liouville import ExactLiouville
 from density_planner.evaluation.risk_validation import validate_risk
@@ -37,6 +39,10 @@ def _problem(name: str, scene):
     if name == "car":
         system = KinematicCar()
         return PlanningProblem.from_scene(scene, seed=0, system=system), CarTrackingController()
+    if name == "ks":
+        mset = model_set("ks")
+        system = mset.make_system()
+        return PlanningProblem.from_scene(scene, seed=0, system=system), load_controller(None, models=mset)
     system, controller = _double_integrator()
     sx, sy, heading, speed = scene.start
     start = (sx, sy, speed * math.cos(heading), speed * math.sin(heading))  # the pose as a double-integrator state
@@ -60,7 +66,7 @@ def test_density_planner_reaches_the_goal_around_an_obstacle(name):
     assert verdict.collision_free and verdict.within_model
 
 
-@pytest.mark.parametrize("name", ["car", "double-integrator"])
+@pytest.mark.parametrize("name", ["car", "ks", "double-integrator"])
 def test_reported_risk_agrees_with_monte_carlo(name):
     """The reported P_coll of a plan through the block's edge equals the Monte-Carlo frequency within 4 standard
     errors at every step (the risk owner is system-agnostic: positions and body from the system)."""

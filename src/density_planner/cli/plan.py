@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.verdict import judge_plan
     from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import run_system
+    from ..planners.context import run_model_set, run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         "scene_build_time_s": t_scene,
         "distribution_seed": dist_seed,
         "controller": type(ctx.controller).__name__,
-        "models": getattr(getattr(ctx.controller, "car", None), "domain", None),
+        "models": run_model_set(run_config, args.kind).name,
         "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
         "config": to_dict(run_config),
         "versions": versions(),
@@ -172,7 +172,7 @@ def write_plan_solution(path, scene, result, problem, run_config) -> None:
                    scenario_id=str(meta.get("scenario_id") or scene.name),
                    planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
                    scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
-                   config=run_config.solution, state_names=problem.system.state_names,
+                   config=run_config.solution, state_names=problem.system.state_names, system=problem.system,
                    computation_time=result.timings.get("total"),
                    frame_offset=tuple(meta.get("frame_offset") or (0.0, 0.0)))
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..systems.base import System
 from ..systems.car import ACC, BIAS, OMEGA, CarConfig, KinematicCar, V
 from .reference import PiecewiseConstantInputs, Reference, make_reference
 
@@ -61,11 +62,11 @@ def box_violation_fraction(x: Tensor, low: Sequence[float], high: Sequence[float
 
 
 def sample_feasible_references(
-    system: KinematicCar,
+    system: System,
     n: int,
     generator: torch.Generator,
     *,
-    param_scale: float = 2.0,
+    param_scale: float | Sequence[float] | None = None,
     start_low: Sequence[float] | None = None,
     start_high: Sequence[float] | None = None,
     state_low: Sequence[float] | None = None,
@@ -78,9 +79,11 @@ def sample_feasible_references(
 ) -> Reference:
     """``n`` random references that stay in the state box.
 
-    Parameters are ``clamp(param_scale N(0, 1), input_min, input_max)`` of shape ``(n, nu, n_segments)``; starts
-    are uniform in ``[start_low, start_high]`` (default: the car's reference-start box). A reference is rejected if
-    it leaves ``[state_low, state_high]`` (default: the car's state box X_MIN/X_MAX) on more than
+    Parameters are ``clamp(param_scale N(0, 1), input_min, input_max)`` of shape ``(n, nu, n_segments)``
+    (``param_scale``: one number or one per input; default ``system.config.reference_input_scale`` where the
+    system's configuration has one, else 2, the paper's); starts are uniform in ``[start_low, start_high]``
+    (default: the reference-start box ``system.config.reference_start_min/max``). A reference is rejected if
+    it leaves ``[state_low, state_high]`` (default: the system's state box X_MIN/X_MAX) on more than
     ``max_violation`` of its fine-grid states; only the rejected ones are redrawn, all together, at most
     ``max_attempts`` times.
 
@@ -89,20 +92,28 @@ def sample_feasible_references(
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
-    if not param_scale > 0:
-        raise ValueError(f"param_scale must be > 0, got {param_scale!r}")
+    cfg = getattr(system, "config", None)
+    if param_scale is None:
+        param_scale = getattr(cfg, "reference_input_scale", 2.0)
+    scale = _as_float64([param_scale] * system.nu if isinstance(param_scale, (int, float)) else param_scale,
+                        "param_scale")
+    if scale.numel() != system.nu or not bool((scale > 0).all()):
+        raise ValueError(f"param_scale must be > 0 (one number or one per input), got {param_scale!r}")
     if not 0 <= max_violation < 1:
         raise ValueError(f"max_violation must be in [0, 1), got {max_violation!r}")
     if max_attempts < 1:
         raise ValueError(f"max_attempts must be >= 1, got {max_attempts!r}")
-    cfg = system.config
     par = parameterization or PiecewiseConstantInputs()
-    s_lo = cfg.reference_start_min if start_low is None else start_low
-    s_hi = cfg.reference_start_max if start_high is None else start_high
-    x_lo = cfg.state_min if state_low is None else state_low
-    x_hi = cfg.state_max if state_high is None else state_high
-    u_lo = torch.as_tensor(cfg.input_min, dtype=torch.float64)[:, None]
-    u_hi = torch.as_tensor(cfg.input_max, dtype=torch.float64)[:, None]
+    if start_low is None or start_high is None:
+        if not hasattr(cfg, "reference_start_min"):
+            raise ValueError(f"{type(system).__name__} defines no reference-start box (config.reference_start_min/"
+                             "max); pass start_low and start_high")
+    s_lo = start_low if start_low is not None else getattr(cfg, "reference_start_min")  # noqa: B009
+    s_hi = start_high if start_high is not None else getattr(cfg, "reference_start_max")  # noqa: B009
+    x_lo = system.state_bounds[0] if state_low is None else state_low
+    x_hi = system.state_bounds[1] if state_high is None else state_high
+    u_lo = torch.as_tensor(system.input_bounds[0], dtype=torch.float64)[:, None]
+    u_hi = torch.as_tensor(system.input_bounds[1], dtype=torch.float64)[:, None]
 
     starts = torch.empty(n, system.nx, dtype=torch.float64)
     params = torch.empty(n, system.nu, par.n_segments, dtype=torch.float64)
@@ -111,9 +122,9 @@ def sample_feasible_references(
     for _ in range(max_attempts):
         m = int(todo.numel())
         st = sample_box(m, s_lo, s_hi, generator)
-        p = param_scale * torch.randn(m, system.nu, par.n_segments, generator=generator, dtype=torch.float64)
+        p = scale[:, None] * torch.randn(m, system.nu, par.n_segments, generator=generator, dtype=torch.float64)
         p = torch.maximum(torch.minimum(p, u_hi), u_lo)
-        if math.isfinite(cfg.lateral_accel_max):
+        if isinstance(cfg, CarConfig) and math.isfinite(cfg.lateral_accel_max):
             p[:, OMEGA] = _lateral_limited_turn_rates(cfg, st[:, V], p, par, generator)
         drawn += m
         ref = make_reference(system, st, p, par)
@@ -154,10 +165,11 @@ def sample_initial_errors(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
 ) -> Tensor:
-    """``n`` initial errors ``(n, 5)`` uniform in ``[-box, box]`` (default: XE0 = ``CarConfig().initial_error_max``).
+    """``n`` initial errors ``(n, len(box))`` uniform in ``[-box, box]`` (default: the car's XE0,
+    ``CarConfig().initial_error_max``; other systems pass ``system.initial_error_max``).
 
-    With ``with_bias=False`` the heading-bias component is zero; the other components are the same draws as with
-    the bias, so the two variants are directly comparable for one seed.
+    With ``with_bias=False`` the car's heading-bias component is zero; the other components are the same draws as
+    with the bias, so the two variants are directly comparable for one seed (car boxes only).
     """
     half = _as_float64(CarConfig().initial_error_max if box is None else box, "box")
     if bool((half < 0).any()):

@@ -165,5 +165,5 @@ def build_cost(
     model = CollisionModel(grid, system, risk)
     collision = CollisionCost(model, beta=config.beta, plateau_scales=config.plateau_scales)
     terms, weights = with_road_terms(scene, config, [goal, InputCost(), bounds, collision], config.weights.as_dict(),
-                                     optimisation=optimisation, device=device)
+                                     optimisation=optimisation, device=device, system=system)
     return WeightedCost(terms, weights)

@@ -47,7 +47,8 @@ from .terms import CostInputs, CostTerm
 
 __all__ = ["GoalRegionCost", "polygon_edges", "distance_to_polygons"]
 
-_THETA, _V = 2, 3
+#: state indices of the position, heading and speed when no system names them (the car's layout)
+_CAR_LAYOUT = (0, 1, 2, 3)
 
 
 def polygon_edges(shapes: Any, *, simplify: float = 0.0) -> np.ndarray:
@@ -126,13 +127,16 @@ class GoalRegionCost(CostTerm):
         far_factor, close_threshold: as :class:`~density_planner.cost.terms.GoalCost`.
         simplify: tolerance [m] of the outline simplification (fewer edges, faster).
         margin: shrink the region by up to this much [m] (see the module docstring).
+        layout: state indices ``(x, y, heading, speed)`` (``None``: the system's facts are unknown, the car's
+            layout ``(0, 1, 2, 3)``); :func:`~density_planner.cost.road.with_road_terms` passes the system's.
     """
 
     name = "goal"
 
     def __init__(self, goal: Any, *, t0: float, dt: float, velocity_weight: float = 1.0,
                  orientation_weight: float = 25.0, far_factor: float = 1.0, close_threshold: float = 3.0,
-                 simplify: float = 0.05, margin: float = 0.0):
+                 simplify: float = 0.05, margin: float = 0.0, layout: tuple[int, int, int, int] | None = None):
+        self.layout = tuple(layout) if layout is not None else _CAR_LAYOUT
         if not (math.isfinite(t0) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"GoalRegionCost needs a finite t0 and dt > 0, got {t0}, {dt}")
         for name, v in (("velocity_weight", velocity_weight), ("orientation_weight", orientation_weight)):
@@ -182,13 +186,15 @@ class GoalRegionCost(CostTerm):
         edges, _, vel, ori = self._alts[alt]
         d = x.new_zeros(x.shape[:-1])
         if edges is not None:
-            d = d + distance_to_polygons(x[..., :2], edges.to(x)).pow(2)
+            ix, iy = self.layout[:2]
+            pos = x[..., ix:ix + 2] if iy == ix + 1 else x[..., [ix, iy]]
+            d = d + distance_to_polygons(pos, edges.to(x)).pow(2)
         if vel is not None and self.velocity_weight > 0:
-            v = x[..., _V]
+            v = x[..., self.layout[3]]
             d = d + self.velocity_weight * (torch.relu(vel[0] - v) + torch.relu(v - vel[1])).pow(2)
         if ori is not None and self.orientation_weight > 0:
             centre, half = ori
-            d = d + self.orientation_weight * torch.relu(_wrap(x[..., _THETA] - centre).abs() - half).pow(2)
+            d = d + self.orientation_weight * torch.relu(_wrap(x[..., self.layout[2]] - centre).abs() - half).pow(2)
         return d
 
     def __call__(self, inputs: CostInputs) -> Tensor:

@@ -108,25 +108,27 @@ class RoadBarrierCost(CostTerm):
     name = "road"
 
     def __init__(self, sdf: RoadSDF, *, length: float = 4.5, width: float = 1.8, margin: float = 0.15,
-                 spacing: float = 0.5):
+                 spacing: float = 0.5, layout: tuple[int, int, int] = (0, 1, 2)):
         if not (length > 0 and width > 0):
             raise ValueError(f"vehicle length and width must be > 0, got {length}, {width}")
         self.sdf = sdf
+        #: state indices of the position and the heading (``x, y, heading``; the system's facts)
+        self.layout = tuple(int(i) for i in layout)
         self.margin = float(margin)
         self.outline = torch.as_tensor(vehicle_outline(length, width, spacing))
         #: largest distance of an outline point from the reference point [m]
         self.radius = float(self.outline.norm(dim=1).max()) * (1 + 1e-6)
 
     def outline_points(self, x: Tensor) -> Tensor:
-        """``(..., P, 2)`` outline points [m] of the poses ``x (..., nx)`` (``x, y, theta`` first)."""
+        """``(..., P, 2)`` outline points [m] of the states ``x (..., nx)`` (pose at the indices ``layout``)."""
         return self._outline_first(x).movedim(0, -2)
 
     def _outline_first(self, x: Tensor, scale: Tensor | None = None, shift: Tensor | None = None) -> Tensor:
         """The outline points with the outline axis first, ``(P, ..., 2)``, mapped by ``p * scale + shift`` if
         given: one ``(P, 3) @ (3, 2 n)`` product for all ``n`` poses (homogeneous outline coordinates; several
         times faster than per-pose rotations or elementwise products)."""
-        c, s = torch.cos(x[..., 2]), torch.sin(x[..., 2])
-        centre = x[..., 0:2]
+        c, s = torch.cos(x[..., self.layout[2]]), torch.sin(x[..., self.layout[2]])
+        centre = self._centre(x)
         rows = [torch.stack([c, s], -1), torch.stack([-s, c], -1), centre]  # R^T per pose and the centre
         if scale is not None:
             assert shift is not None  # scale and shift come together
@@ -135,6 +137,10 @@ class RoadBarrierCost(CostTerm):
         o = torch.cat([o, o.new_ones(o.shape[0], 1)], dim=1)  # (P, 3)
         return torch.matmul(o, torch.stack(rows).reshape(3, -1)).reshape(o.shape[0], *x.shape[:-1], 2)
 
+    def _centre(self, x: Tensor) -> Tensor:
+        ix, iy = self.layout[:2]
+        return x[..., ix:ix + 2] if iy == ix + 1 else x[..., [ix, iy]]
+
     def _sdf_outline(self, x: Tensor, offset: float = 0.0) -> Tensor:
         """``sdf + offset`` at the outline points of ``x (..., nx)``: ``(P, ...)``."""
         scale, shift = self.sdf.normaliser(x)
@@ -142,7 +148,7 @@ class RoadBarrierCost(CostTerm):
         # every point is on the lattice when every centre is, by the outline's radius (saves a pass)
         with torch.no_grad():
             reach = self.radius * scale
-            cn = torch.addcmul(shift, x[..., 0:2].detach(), scale).abs()
+            cn = torch.addcmul(shift, self._centre(x).detach(), scale).abs()
             inside = bool((cn <= 1.0 - reach).all()) if cn.numel() else True
         return self.sdf.at_normalised(grid, offset, inside=inside)
 
@@ -178,23 +184,32 @@ def with_road_terms(
     *,
     optimisation: bool = True,
     device: torch.device | str | None = None,
+    system: Any = None,
 ) -> tuple[list[CostTerm], dict[str, float]]:
     """The cost terms for ``scene`` with the road terms switched in where ``scene.road`` is set: the ``"goal"``
     term becomes :class:`~density_planner.cost.goal_region.GoalRegionCost` and :class:`RoadBarrierCost` (weight
     ``config.road.weight``) is added. ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
-    Scenes without a road get ``terms`` and ``weights`` back unchanged."""
+    Scenes without a road get ``terms`` and ``weights`` back unchanged. ``system`` (a
+    :class:`~density_planner.systems.base.System`) says where the position, heading and speed are in the state
+    (``None``: the car's layout)."""
     road = getattr(scene, "road", None)
     rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
     if road is None:
         return terms, weights
     terms, weights = list(terms), dict(weights)
+    layout = None
+    if system is not None:
+        if system.heading_index is None or system.speed_index is None:
+            raise ValueError(f"road scenes need a system with heading and speed; {type(system).__name__} has "
+                             "none")
+        layout = (*system.position_indices, system.heading_index, system.speed_index)
     goal = getattr(road, "goal", None)
     if rc.goal_region and goal is not None:
         region = GoalRegionCost(
             goal, t0=scene.grid.t0, dt=scene.grid.dt,
             velocity_weight=rc.goal_velocity_weight, orientation_weight=rc.goal_orientation_weight,
             far_factor=config.goal_far_factor if optimisation else 1.0, close_threshold=config.goal_close_threshold,
-            margin=rc.goal_margin,
+            margin=rc.goal_margin, layout=layout,
         )
         terms = [region if t.name == "goal" else t for t in terms]
         weights["goal"] = rc.goal_weight
@@ -204,6 +219,7 @@ def with_road_terms(
             if device is not None:
                 sdf = sdf.to(device)
             terms.append(RoadBarrierCost(sdf, length=road.vehicle_length, width=road.vehicle_width,
-                                         margin=rc.margin, spacing=rc.footprint_spacing))
+                                         margin=rc.margin, spacing=rc.footprint_spacing,
+                                         **({} if layout is None else {"layout": layout[:3]})))
             weights["road"] = rc.weight
     return terms, weights

@@ -87,6 +87,7 @@ def load_predictor(
     *,
     liouville: LiouvilleConfig | None = None,
     parameterization=None,
+    models: str | None = None,
 ) -> DensityPredictor:
     """Density predictor ``spec`` for ``system`` tracked by ``controller``.
 
@@ -94,12 +95,13 @@ def load_predictor(
     ``parameterization`` (the plan's :class:`~density_planner.control.reference.PiecewiseConstantInputs`) is
     given, for its horizon; else exact Liouville, with a log message (a warning for a horizon mismatch). A learned
     predictor named explicitly for a horizon it was not trained for is an error (never a silent extrapolation).
-    See the module docstring for the names.
+    See the module docstring for the names. ``models`` names the model set whose shipped weights the names refer to
+    (default: the set of the controller's car domain, else ``"paper"``; other systems pass their set).
     """
     if spec is None:
         try:
             # outside the training domain the default falls back to exact Liouville (logged), never extrapolates
-            learned = load_learned_predictor(DEFAULT_PREDICTOR, controller,
+            learned = load_learned_predictor(DEFAULT_PREDICTOR, controller, models=models,
                                              fallback=ExactLiouville(system, controller, liouville))
         except CheckpointError as exc:
             logger.info("default density predictor %r not usable (%s); using exact Liouville",
@@ -113,7 +115,7 @@ def load_predictor(
     if spec == "exact":
         return ExactLiouville(system, controller, liouville)
     if spec in PREDICTOR_CHOICES:
-        return _fitting(load_learned_predictor(spec, controller), parameterization)
+        return _fitting(load_learned_predictor(spec, controller, models=models), parameterization)
     path = Path(spec)
     if path.suffix in (".pt", ".json") or path.exists() or path.with_name(path.name + ".pt").exists():
         return _fitting(load_learned_predictor(path, controller), parameterization)

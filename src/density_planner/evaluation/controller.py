@@ -1,8 +1,10 @@
 """Closed-loop tracking accuracy of tracking controllers on random feasible references.
 
 For ``n_references`` random references (:func:`~density_planner.control.sampling.sample_feasible_references`)
-one initial error per reference is drawn uniformly in the XE0 box, once with the heading bias (``+-pi/16``) and
-once with the same draws but zero bias. Every controller tracks every reference from the same initial state;
+one initial error per reference is drawn uniformly in the system's XE0 box (``system.initial_error_max``); for a
+system with a measurement bias (the car's heading bias, ``+-pi/16``) once with the bias and once with the same
+draws at the nominal bias (``system.nominal_state``), for other systems once ("unbiased"). Every controller
+tracks every reference from the same initial state;
 the position error ``|p(t) - p_ref(t)|`` is summarised by its median and 95th percentile at the requested times.
 """
 
@@ -21,7 +23,8 @@ from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..control.sampling import sample_feasible_references, sample_initial_errors
 from ..density.liouville import LiouvilleConfig, simulate_closed_loop
-from ..systems.car import PX, PY, KinematicCar
+from ..systems.base import System
+from ..systems.car import KinematicCar
 
 __all__ = ["TrackingEvaluation", "evaluate_tracking", "BIAS_VARIANTS", "TRACKING_INTEGRATION"]
 
@@ -88,7 +91,7 @@ def evaluate_tracking(
     n_references: int = 1000,
     seed: int = 0,
     times: Sequence[float] = (0.0, 1.0, 5.0, 10.0),
-    system: KinematicCar | None = None,
+    system: System | None = None,
     config: LiouvilleConfig | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> TrackingEvaluation:
@@ -99,7 +102,7 @@ def evaluate_tracking(
         n_references: number of references (one initial error each, per bias variant).
         seed: seed of references and initial errors.
         times: summary times [s] (must lie on the output grid of ``config``).
-        system: the car (default ``KinematicCar()``).
+        system: the system (default the car, ``KinematicCar()``).
         config: integration settings (default :data:`TRACKING_INTEGRATION`: Euler, 0.01 s).
     """
     if not controllers:
@@ -108,10 +111,9 @@ def evaluate_tracking(
     config = config or TRACKING_INTEGRATION
     gen = torch.Generator().manual_seed(seed)
     reference = sample_feasible_references(system, n_references, gen, dtype=dtype)
-    e_biased = sample_initial_errors(n_references, gen, with_bias=True, dtype=dtype)
-    e_unbiased = e_biased.clone()
-    e_unbiased[:, -1] = 0.0
-    x0 = {"unbiased": reference.start + e_unbiased, "biased": reference.start + e_biased}
+    e_biased = sample_initial_errors(n_references, gen, box=system.initial_error_max, with_bias=True, dtype=dtype)
+    x0 = {"unbiased": system.nominal_state(reference.start + e_biased), "biased": reference.start + e_biased}
+    variants = BIAS_VARIANTS if system.hidden_states else ("unbiased",)
     xs: dict[str, dict[str, np.ndarray]] = {}
     errs: dict[str, dict[str, np.ndarray]] = {}
     walls: dict[str, float] = {}
@@ -121,7 +123,7 @@ def evaluate_tracking(
         ctrl = ctrl.to(dtype=dtype)
         xs[name], errs[name] = {}, {}
         t0 = time.perf_counter()
-        for variant in BIAS_VARIANTS:
+        for variant in variants:
             with torch.no_grad():
                 t, x = simulate_closed_loop(system, ctrl, x0[variant].unsqueeze(-2), reference, config=config)
             x = x[:, 0]  # one sample per reference: (n, T, 5)
@@ -129,7 +131,7 @@ def evaluate_tracking(
                 t_out = t.cpu().numpy()
                 stride = int(round(float(t[1] - t[0]) / reference.dt))
             x_ref = reference.x[:, ::stride]
-            err = torch.linalg.vector_norm(x[..., [PX, PY]] - x_ref[..., [PX, PY]], dim=-1)
+            err = torch.linalg.vector_norm(system.positions(x) - system.positions(x_ref), dim=-1)
             xs[name][variant] = x.cpu().numpy()
             errs[name][variant] = err.cpu().numpy()
         walls[name] = time.perf_counter() - t0

@@ -6,10 +6,14 @@ handed to the CommonRoad tools (feasibility checker, goal check, cost evaluation
 model, vehicle type and cost function come from :class:`SolutionConfig` (``[solution]`` in the run
 configuration):
 
-* ``KS`` (kinematic single-track, default): position, orientation and velocity from the car state; the steering
-  angle from the yaw rate ``omega`` of the car model, ``delta = atan(l_wb omega / v)`` (wheelbase ``l_wb = a + b`` of
-  the vehicle type), clipped to the vehicle's steering limits, held at its previous value while ``v`` is ~0;
-* ``ST`` (single-track): as ``KS`` plus ``yaw_rate = omega`` and ``slip_angle = 0`` (the car model has no slip);
+* ``KS`` (kinematic single-track, default): position, orientation and velocity from the state (the system's
+  ``position_indices``, ``heading_index``, ``speed_index``); the steering angle from the state where the system has
+  one (a state named ``delta``: the KS system, :mod:`density_planner.systems.ks`, whose states are CommonRoad's KS
+  states), else from the yaw rate ``omega`` of the car model, ``delta = atan(l_wb omega / v)`` (wheelbase
+  ``l_wb = a + b`` of the vehicle type), clipped to the vehicle's steering limits, held at its previous value while
+  ``v`` is ~0;
+* ``ST`` (single-track): as ``KS`` plus ``yaw_rate = omega`` (for a steering-angle state ``v tan(delta) / l_wb``) and
+  ``slip_angle = 0`` (the kinematic models have no slip);
 * ``PM`` (point mass): position and the velocity vector ``v (cos theta, sin theta)``.
 
 The trajectory is resampled (linearly) to the scenario's time step, starting at the planning problem's initial
@@ -82,14 +86,19 @@ def solution_states(
     config: SolutionConfig,
     state_index: dict[str, int],
 ) -> list[Any]:
-    """CommonRoad states of ``config.vehicle_model`` from the car states ``(T, nx)`` (``k dt`` after the initial
-    time step) and their yaw-rate inputs ``(T - 1, nu)`` (``None``: finite differences of the heading)."""
+    """CommonRoad states of ``config.vehicle_model`` from the states ``(T, nx)`` (``k dt`` after the initial time
+    step; ``state_index`` maps ``px, py, theta, v`` and, for a steering-angle state, ``delta`` to their columns) and
+    their yaw-rate inputs ``(T - 1, nu)`` (``None``: finite differences of the heading; unused with ``delta``)."""
     from commonroad.scenario.state import KSState, PMState, STState
 
     x = np.asarray(states, dtype=np.float64)
     px, py, th, v = (x[:, state_index[n]] for n in ("px", "py", "theta", "v"))
     th = th - 2 * math.pi * math.floor((th[0] + math.pi) / (2 * math.pi))
-    if inputs is not None and len(inputs):
+    delta = x[:, state_index["delta"]] if "delta" in state_index else None
+    if delta is not None:
+        wheelbase = _vehicle_parameters(config.vehicle_type)[0]
+        omega = v * np.tan(delta) / wheelbase
+    elif inputs is not None and len(inputs):
         omega = np.asarray(inputs, dtype=np.float64)[:, 0]
         omega = np.concatenate([omega, omega[-1:]])[: len(x)]
     else:
@@ -102,7 +111,10 @@ def solution_states(
         return np.interp(ts, t, a)
 
     px, py, th, v = at(px), at(py), at(th), at(v)
-    omega = np.asarray(omega)[np.minimum(np.searchsorted(t, ts + 1e-9, side="right") - 1, len(x) - 1)]
+    if delta is not None:
+        omega = at(np.asarray(omega))
+    else:
+        omega = np.asarray(omega)[np.minimum(np.searchsorted(t, ts + 1e-9, side="right") - 1, len(x) - 1)]
     out = []
     if config.vehicle_model == "PM":
         for k in range(n_out):
@@ -111,11 +123,14 @@ def solution_states(
         return out
     wheelbase, smin, smax = _vehicle_parameters(config.vehicle_type)
     steer = np.zeros(n_out)
-    prev = 0.0
-    for k in range(n_out):
-        if abs(v[k]) > 1e-3:
-            prev = float(np.clip(math.atan(wheelbase * omega[k] / v[k]), smin, smax))
-        steer[k] = prev
+    if delta is not None:
+        steer = at(delta)
+    else:
+        prev = 0.0
+        for k in range(n_out):
+            if abs(v[k]) > 1e-3:
+                prev = float(np.clip(math.atan(wheelbase * omega[k] / v[k]), smin, smax))
+            steer[k] = prev
     for k in range(n_out):
         common = dict(time_step=initial_time_step + k, position=np.array([px[k], py[k]]),
                       steering_angle=float(steer[k]), velocity=float(v[k]), orientation=float(th[k]))
@@ -140,12 +155,18 @@ def write_solution(
     state_names: tuple[str, ...] = ("px", "py", "theta", "v", "theta_bias"),
     computation_time: float | None = None,
     frame_offset: tuple[float, float] = (0.0, 0.0),
+    system: Any = None,
 ) -> Path:
     """Write ``states (T, nx)`` (``k dt`` after the initial time step, inputs ``(T - 1, nu)`` or ``None``) as the
     solution of planning problem ``planning_problem_id`` of scenario ``scenario_id`` to ``path`` (atomically).
 
     ``frame_offset``: the scene's local frame relative to the file's (the importer moves far UTM coordinates to a
-    local frame, ``scene.meta["frame_offset"]``); positions are written in the FILE's coordinates."""
+    local frame, ``scene.meta["frame_offset"]``); positions are written in the FILE's coordinates.
+
+    ``system`` (a :class:`~density_planner.systems.base.System`, optional) locates position, heading and speed by
+    its facts instead of the names ``px, py, theta, v``; a system with a steering-angle state (``delta``) writes it
+    as the steering angle, and a system built for a CommonRoad vehicle (``system.vehicle.name``) must be written with
+    that ``vehicle_type``."""
     try:
         from commonroad.common.common_scenario import ScenarioID
         from commonroad.common.solution import (
@@ -166,7 +187,13 @@ def write_solution(
         states = states.detach().cpu().numpy()
     if inputs is not None and hasattr(inputs, "detach"):
         inputs = inputs.detach().cpu().numpy()
-    index = {n: state_names.index(n) for n in ("px", "py", "theta", "v")}
+    index = _state_index(state_names, system)
+    vehicle = getattr(getattr(system, "vehicle", None), "name", None)
+    if vehicle is not None and vehicle != config.vehicle_type:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"solution.vehicle_type is {config.vehicle_type} but the {type(system).__name__} system "
+                          f"models the {vehicle}; set solution.vehicle_type = \"{vehicle}\"")
     if any(frame_offset):
         import numpy as np
 
@@ -191,6 +218,21 @@ def write_solution(
     CommonRoadSolutionWriter(solution).write_to_file(output_path=str(tmp.parent), filename=tmp.name, overwrite=True)
     tmp.replace(path)
     return path
+
+
+def _state_index(state_names: tuple[str, ...], system: Any) -> dict[str, int]:
+    """Columns of ``px, py, theta, v`` (and ``delta`` where the state has a steering angle)."""
+    if system is None:
+        index = {n: state_names.index(n) for n in ("px", "py", "theta", "v")}
+    else:
+        if system.heading_index is None or system.speed_index is None:
+            raise ValueError(f"solution.xml needs a system with heading and speed; {type(system).__name__} has none")
+        ix, iy = system.position_indices
+        index = {"px": ix, "py": iy, "theta": system.heading_index, "v": system.speed_index}
+        state_names = tuple(system.state_names)
+    if "delta" in state_names:
+        index["delta"] = state_names.index("delta")
+    return index
 
 
 def read_solution(path: str | Path) -> Any:

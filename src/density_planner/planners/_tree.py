@@ -40,7 +40,6 @@ from ..cost.composite import CostConfig, WeightedCost, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
 from ..density.liouville import ExactLiouville
-from ..systems.car import THETA
 from ._report import evaluate_samples
 from .base import Planner, PlanResult, PlanStatus
 from .density_planner import sample_initial_states
@@ -245,10 +244,12 @@ class TreePlanner(Planner):
         if cfg.include_input_cost:
             cost = cost + wts["input"] * terms["input"]
         goal = torch.tensor(problem.goal, dtype=torch.float64)
-        delta = goal - end[:, :2]
+        delta = goal - problem.system.positions(end)
         dist = torch.linalg.norm(delta, dim=-1)
         bearing = torch.atan2(delta[:, 1], delta[:, 0])
-        heading_err = torch.atan2(torch.sin(end[:, THETA] - bearing), torch.cos(end[:, THETA] - bearing)).abs()
+        heading = problem.system.headings(end)
+        heading_err = (torch.zeros_like(bearing) if heading is None
+                       else torch.atan2(torch.sin(heading - bearing), torch.cos(heading - bearing)).abs())
         remaining = (S - depths).double() * par.segment_duration
         partial = depths < S
         speed_ok = dist <= cfg.max_required_speed * remaining

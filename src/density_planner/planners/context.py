@@ -121,7 +121,8 @@ def build_context(
 
     def predictor() -> DensityPredictor:
         if not loaded:
-            p = load_predictor(name, car, ctrl, liouville=run_config.liouville, parameterization=parameterization)
+            p = load_predictor(name, car, ctrl, liouville=run_config.liouville, parameterization=parameterization,
+                               models=mset.name)
             loaded.append(p.to(device=device, dtype=dtype) if hasattr(p, "to") else p)
         return loaded[0]
 

@@ -179,6 +179,15 @@ class DensityPlanner(Planner):
         return (torch.tensor(lo, dtype=self.dtype, device=self.device)[:, None],
                 torch.tensor(hi, dtype=self.dtype, device=self.device)[:, None])
 
+    def _step_scale(self, problem: PlanningProblem) -> Tensor | None:
+        """Per-input scale ``(nu, 1)`` of ``init_std``, ``lr`` and ``update_clip`` (the system's
+        ``input_step_scale``, e.g. 0.1 for the KS model's steering rate whose box is a tenth of the car's turn
+        rate's), or ``None`` (1: the settings are in the input's own units)."""
+        scale = getattr(problem.system, "input_step_scale", None)
+        if scale is None:
+            return None
+        return torch.tensor(scale, dtype=self.dtype, device=self.device)[:, None]
+
     def _slices(self, problem: PlanningProblem) -> Tensor:
         """Occupancy slice of every planning time (absolute times ``t_start + k plan_dt``)."""
         return problem.slices(device=self.device)
@@ -215,7 +224,11 @@ class DensityPlanner(Planner):
 
         p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
                                         generator=generator)
-        params = torch.maximum(torch.minimum(p0.to(self.dtype).to(self.device), high), low)
+        scale = self._step_scale(problem)
+        p0 = p0.to(self.dtype).to(self.device)
+        if scale is not None:
+            p0 = p0 * scale
+        params = torch.maximum(torch.minimum(p0, high), low)
         t_seed = time.perf_counter()
         seeds = self.seed_candidates(problem)
         n_seeds = 0 if seeds is None else int(seeds.shape[0])
@@ -223,7 +236,8 @@ class DensityPlanner(Planner):
             seeds = seeds.to(dtype=self.dtype, device=self.device)
             params = torch.cat([torch.maximum(torch.minimum(seeds, high), low), params])
         t_seed = time.perf_counter() - t_seed
-        opt = BatchedAdam(params, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high)
+        opt = BatchedAdam(params, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high,
+                          scale=scale)
         m = params.shape[0]
         bounds_on = torch.zeros(m, dtype=torch.bool, device=self.device)
         coll_on = torch.zeros(m, dtype=torch.bool, device=self.device)
@@ -292,7 +306,8 @@ class DensityPlanner(Planner):
         x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
                                                      dtype=self.dtype, device=self.device)
         p = params.unsqueeze(0).clone()
-        opt = BatchedAdam(p, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high)
+        opt = BatchedAdam(p, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high,
+                          scale=self._step_scale(problem))
         history: dict[str, list[float]] = {}
         best: tuple[float, Tensor | None, Reference | None, DensityTrajectory | None] = (math.inf, None, None, None)
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:

@@ -27,6 +27,7 @@ class BatchedAdam:
         update_clip: float | None = 0.02,
         low: float | Tensor | None = None,
         high: float | Tensor | None = None,
+        scale: Tensor | None = None,
     ):
         if lr <= 0:
             raise ValueError(f"lr must be > 0, got {lr}")
@@ -39,6 +40,9 @@ class BatchedAdam:
         # bounds broadcastable to params, e.g. (nu, 1) for per-channel input bounds
         self.low = None if low is None else torch.as_tensor(low).to(params)
         self.high = None if high is None else torch.as_tensor(high).to(params)
+        #: per-coordinate step scale broadcastable to params (e.g. ``(nu, 1)``): the step is Adam's on
+        #: ``params / scale`` (lr and update_clip then act in those units); ``None``: 1
+        self.scale = None if scale is None else torch.as_tensor(scale).to(params)
         self.m = torch.zeros_like(params)
         self.v = torch.zeros_like(params)
         self.t = torch.zeros(params.shape[0], dtype=params.dtype, device=params.device)
@@ -69,6 +73,8 @@ class BatchedAdam:
         update = self.lr * m_hat / (v_hat.sqrt() + self.eps)
         if self.update_clip is not None:
             update = update.clamp(-self.update_clip, self.update_clip)
+        if self.scale is not None:
+            update = update * self.scale
         self.params.sub_(a * update)
         if self.low is not None:
             torch.maximum(self.params, self.low, out=self.params)
