@@ -1,6 +1,7 @@
-"""The NLP baselines (MPC M0, tube MPC, oracle) for a system other than the car: a linear double integrator
-(``x = (p_x, p_y, v_x, v_y)``, no heading, no hidden state, a disc body of 1 m) read its dynamics
-(``f_symbolic``), bounds and speed limit from the system; systems without what they need get one clear error."""
+"""The NLP baselines (MPC M0, tube MPC, oracle) for systems other than the car: a linear double integrator
+(``x = (p_x, p_y, v_x, v_y)``, no heading, no hidden state, a disc body of 1 m) and the kinematic single-track model
+read their dynamics (``f_symbolic``), bounds and speed limit from the system; systems without what they need get one
+clear error."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.base import Footprint, System
 from density_planner.systems.car import KinematicCar
 from density_planner.systems.linear import LinearSystem
+from density_planner.systems.registry import make_system
 
 ca = pytest.importorskip("casadi", reason="the NLP baselines need the optional 'mpc' extra (casadi)")
 
@@ -149,3 +151,28 @@ def test_oracle_takes_the_double_integrators_disc_around_a_block():
     assert res.status == PlanStatus.SUCCESS, res.message
     assert _goal_distance(res.states) < 0.1
     assert block_clearance(res.states) > 0.5 + 0.3
+
+
+@pytest.mark.parametrize("name", ["car", "ks", "double-integrator"])
+def test_oracle_plans_every_system_to_the_goal(name):
+    scene = small_empty()
+    if name == "double-integrator":
+        problem = _problem(scene, _double_integrator())
+    else:
+        problem = PlanningProblem.from_scene(scene, seed=0, system=make_system(name))
+    res = OraclePlanner(OracleConfig(restarts=1, max_iter=500)).plan(problem)
+    assert res.status == PlanStatus.SUCCESS, res.message
+    assert res.states.shape == (101, problem.system.nx) and res.params.shape == (problem.system.nu, 10)
+    assert _goal_distance(res.states) < 0.1
+    lo, hi = problem.system.input_bounds
+    assert bool((res.params >= torch.tensor(lo)[:, None] - 1e-9).all() & (res.params <= torch.tensor(hi)[:, None]
+                                                                              + 1e-9).all())
+
+
+@pytest.mark.slow
+def test_mpc_plans_the_single_track_model_to_the_goal():
+    """~10 s: the KS speed box (40 m/s) makes the occupancy windows 4 times wider than the car's."""
+    problem = PlanningProblem.from_scene(small_empty(), seed=0, system=make_system("ks"))
+    res = MPCPlanner(MPCConfig(max_cpu_time=math.inf)).plan(problem)
+    assert res.status == PlanStatus.SUCCESS, res.message
+    assert _goal_distance(res.states) < 1.0 and res.states.shape[1] == 5
