@@ -763,7 +763,8 @@ def mpc_objective(
     closed-loop MPC runs with it. Terms unweighted, ``total`` weighted; body occupancy (``collision``'s
     disc-dilated grid at the disc centres, summed over the discs; default a point on ``grid``) interpolated
     bilinearly (fill 1 outside the map), summed over ``offsets (M, 2)`` [m] if given. ``states[k]`` lies at the
-    absolute time ``t_start + k dt`` (default ``t_start``: the grid's ``t0``)."""
+    absolute time ``t_start + k dt`` (default ``t_start``: the grid's ``t0``). Unset :class:`MPCWeights` are the
+    density planner's default weights (:class:`CostWeights`); planners pass their resolved ``weights``."""
     states = states.detach().to("cpu", torch.float64)
     inputs = inputs.detach().to("cpu", torch.float64)
     model = (collision or CollisionModel(grid)).to("cpu")
