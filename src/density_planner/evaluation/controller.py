@@ -24,7 +24,7 @@ from ..control.reference import Reference
 from ..control.sampling import sample_feasible_references, sample_initial_errors
 from ..density.liouville import LiouvilleConfig, simulate_closed_loop
 from ..systems.base import System
-from ..systems.car import KinematicCar
+from ..systems.registry import make_system
 
 __all__ = ["TrackingEvaluation", "evaluate_tracking", "BIAS_VARIANTS", "TRACKING_INTEGRATION"]
 
@@ -102,12 +102,12 @@ def evaluate_tracking(
         n_references: number of references (one initial error each, per bias variant).
         seed: seed of references and initial errors.
         times: summary times [s] (must lie on the output grid of ``config``).
-        system: the system (default the car, ``KinematicCar()``).
+        system: the system (default: the registry's default system, the car in the paper's domain).
         config: integration settings (default :data:`TRACKING_INTEGRATION`: Euler, 0.01 s).
     """
     if not controllers:
         raise ValueError("controllers must name at least one controller")
-    system = system or KinematicCar()
+    system = system or make_system()
     config = config or TRACKING_INTEGRATION
     gen = torch.Generator().manual_seed(seed)
     reference = sample_feasible_references(system, n_references, gen, dtype=dtype)

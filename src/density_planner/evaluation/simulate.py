@@ -5,7 +5,7 @@ the planner's registration), as in the paper's comparison (§V):
 
 * ``TRACK`` (density, search and sampling planners): the plan is a reference trajectory computed offline from the
   initial *distribution*; the tracking controller follows it in closed loop from the true state, seeing the
-  heading-biased measurement of :meth:`~density_planner.systems.KinematicCar.measure` (the true state's
+  measurement of :meth:`~density_planner.systems.base.System.measure` (for the car: heading-biased) (the true state's
   ``theta_bias`` component is the bias; 0 for the unbiased variant). Explicit Euler at 0.01 s by default
   (the paper's code), the controller evaluated at every step. Many initial states run in one batched call.
 * ``RECEDING`` (MPC M0-M3): ``planner.plan_from(problem, true_state)`` runs the MPC step by step from the
