@@ -85,3 +85,18 @@ def test_report_errors(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     assert main(["report", str(tmp_path)]) == 2
     assert "no benchmark records" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("system,expected", [("car", ("unbiased", "biased")), ("ks", ("unbiased",))])
+def test_biased_variant_only_for_systems_with_a_hidden_state(system, expected):
+    """The biased variant draws the car's hidden heading bias; a system without hidden states (ks) would only
+    repeat the unbiased runs, so its sweeps leave it out unless --variants names it."""
+    from density_planner.cli import build_parser
+    from density_planner.cli._common import apply_system_args
+    from density_planner.cli.bench import spec_from_args
+    from density_planner.config import load_config
+    from density_planner.settings import RunConfig
+
+    args = build_parser().parse_args(["bench", "artificial", "--envs", "1", "--system", system, "--out", "unused"])
+    spec = spec_from_args(args, apply_system_args(args, load_config(RunConfig)))
+    assert spec.variants == expected

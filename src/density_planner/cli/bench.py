@@ -109,6 +109,16 @@ def parse_seeds(text: str) -> range:
     return range(a, b)
 
 
+def _default_variants(variants: tuple[str, ...], run_config) -> tuple[str, ...]:
+    """The setting's variants, without "biased" for a system with no hidden state (nothing to bias: it would repeat
+    "unbiased")."""
+    from ..planners.context import run_system
+
+    if run_system(run_config, None).hidden_states:
+        return tuple(variants)
+    return tuple(v for v in variants if v != "biased") or tuple(variants)
+
+
 def spec_from_args(args: argparse.Namespace, run_config):
     """The :class:`BenchmarkSpec` of the command line (validates every choice with a one-line error)."""
     from ..evaluation.benchmark import BenchmarkSpec
@@ -136,7 +146,7 @@ def spec_from_args(args: argparse.Namespace, run_config):
     for name in planners:
         if name not in known:
             raise ValueError(f"unknown planner {name!r} in --planners; valid choices: {', '.join(known)}")
-    variants = _list(args.variants, "variants") or setting.variants
+    variants = _list(args.variants, "variants") or _default_variants(setting.variants, run_config)
     allowed = setting.variants
     for v in variants:
         if v not in allowed:
