@@ -422,3 +422,20 @@ def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
     assert scene.goal == pytest.approx(near.goal, abs=1e-6)
     assert scene.road.goal.shapes.equals_exact(near.road.goal.shapes, 1e-6)
     assert near.meta["frame_offset"] == [0.0, 0.0]
+
+
+def test_the_ego_size_is_the_systems_body(commonroad_dir):
+    """One owner of the vehicle's size: the road scene (road barrier, verdict) takes the system's footprint; the
+    import's vehicle_length/width only serve a point system."""
+    from density_planner.systems.linear import LinearSystem
+    from density_planner.systems.registry import make_system
+
+    path = commonroad_dir / "USA_Peach-4_8_T-1.xml"
+    for system in (make_system("car", "road"), make_system("ks", "road")):
+        road = load_commonroad_scene(path, _cfg(), system=system).road
+        assert (road.vehicle_length, road.vehicle_width) == (system.footprint.length, system.footprint.width)
+    point = LinearSystem([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]], [[0, 0], [0, 0], [1, 0], [0, 1]])
+    assert point.footprint.is_point
+    # a point has no speed state and no acceleration input: the importer says which fact is missing
+    with pytest.raises(ValueError, match="no speed state"):
+        load_commonroad_scene(path, _cfg(vehicle_length=3.0), system=point)

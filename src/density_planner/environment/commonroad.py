@@ -50,7 +50,7 @@ import logging
 import math
 import warnings
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -161,7 +161,8 @@ class CommonRoadSceneConfig:
     sampled_goal_radius: float = 2.0
     #: horizon of a sampled start/goal pair [s]
     sampled_horizon: float = 10.0
-    #: the ego vehicle's length and width [m] (CommonRoad planning problems do not give them)
+    #: the ego vehicle's length and width [m] when the run's system is a point (CommonRoad planning problems do not
+    #: give them); a system with a body uses its own footprint (``system.footprint``: the one owner of the size)
     vehicle_length: float = 4.5
     vehicle_width: float = 1.8
     #: footprint model of the dynamic obstacles (incl. the growth of the prediction error)
@@ -712,7 +713,14 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
     if road_notes["non_drivable_lanelets"]:
         note("%d lanelets are not drivable by a car (types %s or road users without cars) and are left out",
              len(road_notes["non_drivable_lanelets"]), list(cfg.non_drivable_lanelet_types))
+    if system is None:
+        from density_planner.systems.registry import make_system
+
+        system = make_system()
     v_min, v_max, a_max, model = _model_limits(system)
+    body = system.footprint
+    if not body.is_point:  # the ego's size is the system's body (road barrier, verdict and risk read the same one)
+        cfg = replace(cfg, vehicle_length=body.length, vehicle_width=body.width)
 
     # -- planning problem: start, goal, horizon
     problem = _planning_problem(problem_set, cfg.planning_problem_id, where)
