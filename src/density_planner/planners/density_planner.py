@@ -183,7 +183,7 @@ class DensityPlanner(Planner):
         """Per-input scale ``(nu, 1)`` of ``init_std``, ``lr`` and ``update_clip`` (the system's
         ``input_step_scale``, e.g. 0.1 for the KS model's steering rate whose box is a tenth of the car's turn
         rate's), or ``None`` (1: the settings are in the input's own units)."""
-        scale = getattr(problem.system, "input_step_scale", None)
+        scale = problem.system.input_step_scale
         if scale is None:
             return None
         return torch.tensor(scale, dtype=self.dtype, device=self.device)[:, None]

@@ -69,6 +69,9 @@ class System(ABC):
     #: indices of states the vehicle cannot measure or know when it plans (the car's heading bias): a reference
     #: starts with them at 0 (:meth:`nominal_state`) and a replan keeps their initial law
     hidden_states: tuple[int, ...] = ()
+    #: scale of the density planner's step sizes per input (``init_std``, ``lr``, ``update_clip`` are set for inputs
+    #: of about +-3); ``None``: 1 for every input
+    input_step_scale: tuple[float, ...] | None = None
     #: the body; a point unless the system says otherwise
     footprint: Footprint = Footprint()
 
@@ -249,9 +252,12 @@ class ControlAffineSystem(System):
     def drift(self, x: Tensor) -> Tensor:
         """Drift ``a(x)``, shape ``(*batch, nx)``."""
 
-    @abstractmethod
     def input_matrix(self, x: Tensor) -> Tensor:
-        """Input matrix ``B(x)``, shape ``(*batch, nx, nu)`` (or ``(nx, nu)`` when constant)."""
+        """Input matrix ``B(x)``, shape ``(*batch, nx, nu)`` (or ``(nx, nu)`` when constant). Default: the
+        :attr:`constant_input_matrix` on ``x``'s dtype and device; systems whose ``B`` depends on ``x`` override it."""
+        if self.constant_input_matrix is None:
+            raise NotImplementedError(f"{type(self).__name__} defines neither input_matrix nor constant_input_matrix")
+        return torch.tensor(self.constant_input_matrix, dtype=x.dtype, device=x.device)
 
     #: ``B`` as a constant nested list when it does not depend on ``x`` (enables the structured divergence)
     constant_input_matrix: tuple[tuple[float, ...], ...] | None = None

@@ -253,9 +253,6 @@ class KinematicCar(ControlAffineSystem):
         zero = torch.zeros_like(v)
         return torch.stack([v * torch.cos(theta), v * torch.sin(theta), zero, zero, zero], dim=-1)
 
-    def input_matrix(self, x: Tensor) -> Tensor:
-        return torch.tensor(self.constant_input_matrix, dtype=x.dtype, device=x.device)
-
     def f(self, x: Tensor, u: Tensor) -> Tensor:
         theta, v = x[..., THETA], x[..., V]
         omega, acc = torch.broadcast_tensors(u[..., OMEGA], u[..., ACC])

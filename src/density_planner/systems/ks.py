@@ -246,9 +246,6 @@ class KinematicSingleTrack(ControlAffineSystem):
         return torch.stack([v * torch.cos(psi), v * torch.sin(psi), zero, zero,
                             v * torch.tan(delta) / self.wheelbase], dim=-1)
 
-    def input_matrix(self, x: Tensor) -> Tensor:
-        return torch.tensor(self.constant_input_matrix, dtype=x.dtype, device=x.device)
-
     def f(self, x: Tensor, u: Tensor) -> Tensor:
         delta, v, psi = x[..., DELTA], x[..., V], x[..., PSI]
         rate, acc = torch.broadcast_tensors(u[..., STEER_RATE], u[..., ACC])
