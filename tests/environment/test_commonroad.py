@@ -202,7 +202,11 @@ def test_road_user_is_predicted_past_its_last_state(tmp_path):
     assert (poly.centroid.x, poly.centroid.y) == pytest.approx((60.0, 5.25), abs=1e-6)
     assert track.position_std[-1] > track.position_std[track.times.size // 2] > 0
     k = 60
-    assert _lookup(scene, 60.0, 5.25, k) > 0.3  # still there, with a lower peak
+    # the shape model (default): the chance that the 4 m x 2 m rectangle covers its predicted centre, with the
+    # position error sqrt(0.2^2 + (rate * 4 s)^2) along (rate 1 m/s) and across (0.3 m/s) after 4 s of prediction
+    s_u, s_w = math.hypot(0.2, 4.0), math.hypot(0.2, 1.2)
+    expected = math.erf(2.0 / s_u / math.sqrt(2)) * math.erf(1.0 / s_w / math.sqrt(2))
+    assert _lookup(scene, 60.0, 5.25, k) == pytest.approx(expected, abs=0.02)  # still there, with a lower peak
     assert _lookup(scene, 60.0, 5.25, k) < _lookup(scene, 30.0, 5.25, 0)
     info = next(d for d in scene.meta["dynamic_obstacles"] if d["id"] == 11)
     assert info["predicted_after_s"] == pytest.approx(2.0)

@@ -165,8 +165,10 @@ class CommonRoadSceneConfig:
     #: give them); a system with a body uses its own footprint (``system.footprint``: the one owner of the size)
     vehicle_length: float = 4.5
     vehicle_width: float = 1.8
-    #: footprint model of the dynamic obstacles (incl. the growth of the prediction error)
-    footprint: FootprintConfig = field(default_factory=FootprintConfig)
+    #: footprint model of the dynamic obstacles (incl. the growth of the prediction error): by default each road
+    #: user's own rectangle with a 0.2-m position error (``model = "shape"``; the recorded futures are the
+    #: scenario's ground truth); ``footprint.model = "gaussian"`` is the paper's "length + 1 m" Gaussian
+    footprint: FootprintConfig = field(default_factory=lambda: FootprintConfig(model="shape"))
     #: start/goal sampler rules (``sample_start_goal``)
     start_goal: StartGoalConfig = field(default_factory=StartGoalConfig)
     #: seed of the start/goal sampler

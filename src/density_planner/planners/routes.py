@@ -75,7 +75,7 @@ class RouteSeedConfig:
     #: comfortable acceleration / deceleration of the speed profiles [m/s^2]
     acceleration: float = 1.5
     #: at most this many route candidates join the random ones
-    max_candidates: int = 32
+    max_candidates: int = 48
     #: Adam iterations of the fit through the reference roll-out
     fit_iterations: int = 80
     #: Adam learning rate of the fit [input units per step]
@@ -84,12 +84,29 @@ class RouteSeedConfig:
     fit_speed_weight: float = 1.0
     #: radius [m] of the goal disc around the scene's goal point where the scene has no goal region
     goal_point_radius: float = 2.0
+    #: risk-aware speed profiles kept per route (:func:`risk_aware_profiles`: the best of a two-phase family by
+    #: the occupancy the body meets along the path, the goal and the effort); 0 = off
+    risk_aware: int = 3
+    #: weight of the expected time in collision [m^2 / s] against the squared goal miss in that choice
+    risk_weight: float = 100.0
+    #: weight of the squared acceleration [m^2 / (m/s^2)^2 / s] in that choice
+    effort_weight: float = 0.05
+    #: speed levels of the two-phase family (evenly spaced over the system's speed range)
+    profile_speeds: int = 13
+    #: times [s] at which the two-phase profiles may switch to their second target speed
+    profile_switch_times: tuple[float, ...] = (1.0, 2.0, 4.0, 6.0, 8.0)
 
     def __post_init__(self) -> None:
-        for name in ("max_routes", "max_candidates", "fit_iterations"):
+        for name in ("max_routes", "max_candidates", "fit_iterations", "profile_speeds"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"routes.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.risk_aware, bool) or not isinstance(self.risk_aware, int) or self.risk_aware < 0:
+            raise ValueError(f"routes.risk_aware must be an integer >= 0, got {self.risk_aware!r}")
+        for name in ("risk_weight", "effort_weight"):
+            check_positive(f"routes.{name}", getattr(self, name), allow_zero=True)
+        if not all(math.isfinite(t) and t > 0 for t in self.profile_switch_times):
+            raise ValueError(f"routes.profile_switch_times must be times > 0 [s], got {self.profile_switch_times!r}")
         for name in ("lane_change_length", "lane_change_time", "acceleration", "fit_lr", "goal_point_radius"):
             check_positive(f"routes.{name}", getattr(self, name))
         for name in ("lane_change_cost", "fit_speed_weight"):
@@ -415,6 +432,87 @@ def speed_profiles(
     return s, v, labels
 
 
+def profile_family(v0: float, tau: np.ndarray, *, v_limits: tuple[float, float], rates: tuple[float, ...],
+                   n_speeds: int, switch_times: tuple[float, ...]) -> np.ndarray:
+    """Speeds ``(C, T)`` of two-phase profiles: from ``v0`` ramp at a rate of ``rates`` towards ``v1``; from the
+    switch time on, ramp at a rate of ``rates`` towards ``v2`` (``v1, v2`` on ``n_speeds`` levels of
+    ``v_limits``); every combination, switch times past the horizon give one-phase profiles."""
+    v_lo, v_hi = float(v_limits[0]), float(v_limits[1])
+    levels = np.linspace(v_lo, v_hi, n_speeds)
+    horizon = float(tau[-1])
+    switches = sorted({min(float(t), horizon) for t in switch_times} | {horizon})
+    out = []
+    for r1 in rates:
+        first = _ramp_hold(float(np.clip(v0, v_lo, v_hi)), levels, tau, r1)  # (n, T)
+        for t_s in switches:
+            k = int(np.searchsorted(tau, t_s - 1e-9))
+            if k >= tau.size - 1:
+                out.append(first)
+                continue
+            v_k = first[:, k]  # (n,)
+            for r2 in rates:
+                dv = levels[None, :] - v_k[:, None]  # (n1, n2)
+                rel = np.maximum(tau[None, None, :] - tau[k], 0.0)
+                second = v_k[:, None, None] + np.sign(dv)[..., None] * np.minimum(np.abs(dv)[..., None], r2 * rel)
+                prof = np.where(tau[None, None, :] >= tau[k], second, first[:, None, :])
+                out.append(prof.reshape(-1, tau.size))
+    return np.clip(np.concatenate(out), v_lo, v_hi)
+
+
+def risk_aware_profiles(
+    occupancy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    path: np.ndarray,
+    v0: float,
+    tau: np.ndarray,
+    goal_arc: tuple[float, float] | None,
+    goal_time: tuple[float, float],
+    *,
+    v_limits: tuple[float, float],
+    rates: tuple[float, ...],
+    n_speeds: int,
+    switch_times: tuple[float, ...],
+    n_keep: int,
+    risk_weight: float,
+    effort_weight: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``n_keep`` best of :func:`profile_family` along ``path`` by a cost that sees the scene's occupancy.
+
+    Each profile ``s(t)`` puts the vehicle on the path (heading along it); ``occupancy(xy (C, T, 2), heading
+    (C, T), speed (C, T)) -> (C, T)`` is the occupancy its body meets (the problem's collision model). The cost is::
+
+        risk_weight * sum_t P_occ(t) dt  +  d_goal^2  +  effort_weight * sum_t a(t)^2 dt
+
+    with ``d_goal`` [m] the smallest distance along the path from ``s(t)`` to ``goal_arc`` over the times of the goal
+    interval (0 without a position goal). Profiles are kept best first, skipping any whose speeds differ from a
+    kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
+    """
+    v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
+    s = _integrate(v, tau)
+    dt = np.diff(tau, prepend=tau[0])
+    xy = path_points(path, s)
+    ahead = path_points(path, s + 0.5)
+    heading = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
+    p_occ = occupancy(xy, heading, v)
+    cost = risk_weight * (p_occ * dt).sum(axis=1)
+    if goal_arc is not None:
+        in_time = (tau >= goal_time[0] - 1e-9) & (tau <= goal_time[1] + 1e-9)
+        if not in_time.any():
+            in_time = np.abs(tau - goal_time[1]) == np.abs(tau - goal_time[1]).min()
+        d = np.maximum(goal_arc[0] - s[:, in_time], 0.0) + np.maximum(s[:, in_time] - goal_arc[1], 0.0)
+        cost = cost + d.min(axis=1) ** 2
+    acc = np.diff(v, axis=1) / np.maximum(np.diff(tau), 1e-9)
+    cost = cost + effort_weight * (acc**2 * np.diff(tau)).sum(axis=1)
+    order = np.argsort(cost, kind="stable")
+    kept: list[int] = []
+    for i in order:
+        if all(np.sqrt(np.mean((v[i] - v[j]) ** 2)) >= 1.0 for j in kept):
+            kept.append(int(i))
+        if len(kept) >= n_keep:
+            break
+    idx = np.asarray(kept, dtype=np.int64)
+    return s[idx], v[idx], cost[idx]
+
+
 # --------------------------------------------------------------------------------------------------------- fit
 def _unwrap_from(theta0: float, headings: np.ndarray) -> np.ndarray:
     """Headings ``(M, T)`` unwrapped along time and shifted so the first lies within pi of ``theta0``."""
@@ -527,6 +625,26 @@ def _goal_of(problem: Any, radius: float) -> tuple[Any | None, tuple[float, floa
     return shapely.Point(gx, gy).buffer(radius), None
 
 
+def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
+                    ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """``(xy (C, T, 2), heading (C, T), speed (C, T)) -> (C, T)``: the occupancy the problem's body meets at those
+    poses on the planning times (:meth:`~density_planner.risk.collision.CollisionModel.occupancy`)."""
+    system = problem.system
+    model = problem.collision(device)
+    slices = problem.slices(device=device)
+    ix, iy = system.position_indices
+
+    def occupancy(xy: np.ndarray, heading: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        x = torch.zeros((*heading.shape, system.nx), dtype=dtype, device=device)
+        x[..., ix] = torch.as_tensor(xy[..., 0], dtype=dtype, device=device)
+        x[..., iy] = torch.as_tensor(xy[..., 1], dtype=dtype, device=device)
+        x[..., system.heading_index] = torch.as_tensor(heading, dtype=dtype, device=device)
+        x[..., system.speed_index] = torch.as_tensor(speed, dtype=dtype, device=device)
+        return model.occupancy(x, slices[: heading.shape[-1]]).cpu().numpy().astype(np.float64)
+
+    return occupancy
+
+
 def _scene_road_cost(scene: Any, device: torch.device | str) -> Callable[[Tensor], Tensor] | None:
     """The per-state road barrier of ``scene`` (default settings), or ``None`` without a drivable area."""
     road = getattr(scene, "road", None)
@@ -623,6 +741,7 @@ def route_seed_parameters(
             goal_time = (horizon, horizon)
     import shapely
 
+    occupancy = _body_occupancy(problem, dtype, device) if cfg.risk_aware else None
     all_s, all_v, all_xy, all_h, labels = [], [], [], [], []
     for r, route in enumerate(routes):
         cum = _arc(route.path)
@@ -639,6 +758,14 @@ def route_seed_parameters(
                 goal_arc = (s_near, s_near)
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                                    acceleration=cfg.acceleration, max_acceleration=a_max)
+        if occupancy is not None:
+            s_r, v_r, _ = risk_aware_profiles(
+                occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
+                rates=tuple(sorted({cfg.acceleration, a_max})), n_speeds=cfg.profile_speeds,
+                switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
+                effort_weight=cfg.effort_weight)
+            s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
+            lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
         xy = path_points(route.path, s)  # (P, T, 2)
         ahead = path_points(route.path, s + 0.5)
         h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
