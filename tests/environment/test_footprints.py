@@ -144,3 +144,59 @@ def test_resample_tracks_interpolates_exactly():
     assert math.cos(out["h"][0, 2]) == pytest.approx(-1.0, abs=1e-12)
     # a NaN neighbour makes the user absent
     assert np.isnan(resample_tracks(values, src, np.array([0.13]), angles=("h",))["h"]).all()
+
+
+# ------------------------------------------------------------------ shape model (CommonRoad default)
+SHAPE_MODEL = FootprintConfig(model="shape", coarse_cell=0.0)
+
+
+def _rectangle_chance(u, w, length, width, s_u, s_w):
+    """Closed form: P(point (u, w) in the rectangle) when the rectangle's centre has N(0, s^2) errors per axis."""
+    phi = lambda z: 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))  # noqa: E731
+    return (phi((length / 2 - u) / s_u) - phi((-length / 2 - u) / s_u)) * (
+        phi((width / 2 - w) / s_w) - phi((-width / 2 - w) / s_w))
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 30.0, -120.0])
+def test_shape_model_is_the_chance_that_the_rectangle_covers_a_point(heading_deg):
+    th = math.radians(heading_deg)
+    p = raster(users([1.0], [-2.0], [th], [15.0], length=4.5, width=1.8), SHAPE_MODEL).astype(np.float64)
+    rng = np.random.default_rng(0)
+    for u, w in [(0.0, 0.0), (2.25, 0.0), (0.0, 0.9), (2.5, 0.6), (-2.0, -1.0), (3.0, 0.0), *rng.uniform(-3, 3, (6, 2))]:
+        # the cell nearest to the point (u, w) of the road user's frame; the value is checked at the cell centre
+        x, y = 1.0 + u * math.cos(th) - w * math.sin(th), -2.0 + u * math.sin(th) + w * math.cos(th)
+        i, j = int(round((x - ORIGIN[0]) / H)), int(round((y - ORIGIN[1]) / H))
+        xc, yc = ORIGIN[0] + i * H - 1.0, ORIGIN[1] + j * H + 2.0
+        uc, wc = xc * math.cos(th) + yc * math.sin(th), -xc * math.sin(th) + yc * math.cos(th)
+        expected = _rectangle_chance(uc, wc, 4.5, 1.8, 0.2, 0.2)
+        assert p[i, j] == pytest.approx(expected if expected > 2e-3 else p[i, j], abs=2e-5)
+    # no skew along the motion (speed 15 m/s), and nothing beyond 3 stds outside the rectangle
+    assert p[int(round((1.0 + 3.0 * math.cos(th) - ORIGIN[0]) / H)), int(round((-2.0 + 3.0 * math.sin(th) - ORIGIN[1]) / H))] == 0.0
+
+
+def test_shape_model_spreads_with_the_prediction_error():
+    """Past the last recorded state the position error grows (rates 1 and 0.3 m/s): after 5 s the centre value is
+    the closed form with stds sqrt(0.2^2 + 5^2) along and sqrt(0.2^2 + 1.5^2) across."""
+    tr = users([0.0], [0.0], [0.0], [0.0])
+    tr = RoadUserTracks(tr.x, tr.y, tr.heading, tr.speed, tr.length, tr.width, tr.cls, tr.ids,
+                        predicted_for=np.array([[5.0]]))
+    p = raster(tr, SHAPE_MODEL)
+    expected = _rectangle_chance(0.0, 0.0, 4.0, 2.0, math.hypot(0.2, 5.0), math.hypot(0.2, 1.5))
+    assert p[300, 300] == pytest.approx(expected, abs=1e-5)
+    assert p[300, 300] < 0.5
+
+
+def test_shape_model_on_the_coarse_lattice_matches_the_exact_one():
+    tr = users([0.3], [0.1], [0.4], [0.0])
+    tr = RoadUserTracks(tr.x, tr.y, tr.heading, tr.speed, tr.length, tr.width, tr.cls, tr.ids,
+                        predicted_for=np.array([[3.0]]))  # stds >= 1.2 m: the coarse lattice is used
+    exact = raster(tr, SHAPE_MODEL)
+    coarse = raster(tr, FootprintConfig(model="shape"))
+    assert np.abs(exact - coarse).max() < 0.02
+
+
+def test_footprint_model_is_checked():
+    with pytest.raises(ValueError, match="FootprintConfig.model must be one of gaussian, shape"):
+        FootprintConfig(model="box")
+    with pytest.raises(ValueError, match="shape_std"):
+        FootprintConfig(shape_std=0.0)

@@ -21,6 +21,8 @@ from density_planner.planners.routes import (
     find_routes,
     fit_reference_parameters,
     path_points,
+    profile_family,
+    risk_aware_profiles,
     route_seed_parameters,
     speed_profiles,
 )
@@ -100,6 +102,36 @@ def test_speed_profiles_reach_the_goal_in_its_time_interval():
     assert (s2[lab2.index("accelerate"), 90:] >= 89.0).any()
 
 
+def test_profile_family_ramps_within_its_rates_and_limits():
+    tau = np.arange(101) * 0.1
+    v = profile_family(8.0, tau, v_limits=(0.0, 12.0), rates=(1.5, 6.0), n_speeds=5, switch_times=(2.0, 5.0))
+    assert v.shape[1] == 101 and v.shape[0] == 2 * 5 + 2 * 2 * 2 * 25  # one-phase + (rate, switch, rate) x 5 x 5
+    assert np.all(v[:, 0] == 8.0) and np.all((v >= 0.0) & (v <= 12.0))
+    assert np.abs(np.diff(v, axis=1)).max() <= 6.0 * 0.1 + 1e-9
+    assert np.isclose(v[:, -1], 0.0).any() and np.isclose(v[:, -1], 12.0).any()
+
+
+def test_risk_aware_profiles_stop_behind_a_standing_car_and_reach_a_goal_in_time():
+    """A straight path along x; a car stands at x in [40, 45] (the body's 2.25 m half-length included): starting
+    at 10 m/s, the kept profile stops short of it, while "keep" would hit it at t ~ 4 s. Without the car, the kept
+    profile is inside the goal arc [70, 75] m during the goal interval [6, 7] s."""
+    tau = np.arange(101) * 0.1
+    path = np.array([[0.0, 0.0], [200.0, 0.0]])
+
+    def blocked(xy, heading, speed):
+        return ((xy[..., 0] + 2.25 >= 40.0) & (xy[..., 0] - 2.25 <= 45.0)).astype(float)
+
+    kw = dict(v_limits=(0.0, 15.0), rates=(1.5, 6.0), n_speeds=13, switch_times=(1.0, 2.0, 4.0), n_keep=3,
+              risk_weight=1.0e4, effort_weight=0.05)
+    s, v, cost = risk_aware_profiles(blocked, path, 10.0, tau, (100.0, 110.0), (9.0, 10.0), **kw)
+    assert s.shape == v.shape == (3, 101) and np.all(np.diff(cost) >= 0)
+    assert s[0].max() + 2.25 < 40.0  # no collision
+    assert np.sqrt(np.mean((v[1] - v[0]) ** 2)) >= 1.0  # diverse
+    free = lambda xy, heading, speed: np.zeros(heading.shape)  # noqa: E731
+    s, v, cost = risk_aware_profiles(free, path, 10.0, tau, (70.0, 75.0), (6.0, 7.0), **kw)
+    assert cost[0] < 5.0 and ((s[0, 60:71] >= 70.0 - 1e-6) & (s[0, 60:71] <= 75.0 + 1e-6)).any()
+
+
 @pytest.mark.parametrize("route_goal, speed", [((110.5, 113.0, -10.5, -8.5), 8.0), ((85, 95, 4.0, 6.5), 6.0)])
 def test_fit_reproduces_the_route(route_goal, speed):
     """The batched fit puts the roll-out within 0.5 m RMS (1.5 m worst point) of turn and lane-change targets:
@@ -150,6 +182,10 @@ def test_route_seed_config_rejects_bad_values():
         RouteSeedConfig(max_routes=0)
     with pytest.raises(ValueError, match="routes.acceleration"):
         RouteSeedConfig(acceleration=float("nan"))
+    with pytest.raises(ValueError, match="routes.risk_aware"):
+        RouteSeedConfig(risk_aware=-1)
+    with pytest.raises(ValueError, match="routes.profile_switch_times"):
+        RouteSeedConfig(profile_switch_times=(0.0,))
 
 
 def test_stage_one_with_route_seeds_turns_at_the_junction_and_stays_on_the_road():

@@ -87,8 +87,9 @@ class RouteSeedConfig:
     #: risk-aware speed profiles kept per route (:func:`risk_aware_profiles`: the best of a two-phase family by
     #: the occupancy the body meets along the path, the goal and the effort); 0 = off
     risk_aware: int = 3
-    #: weight of the expected time in collision [m^2 / s] against the squared goal miss in that choice
-    risk_weight: float = 100.0
+    #: weight of the expected time in collision [m^2 / s] against the squared goal miss in that choice (0.1 s at
+    #: P_occ = 1 weighs as a 32-m miss: collision first)
+    risk_weight: float = 1.0e4
     #: weight of the squared acceleration [m^2 / (m/s^2)^2 / s] in that choice
     effort_weight: float = 0.05
     #: speed levels of the two-phase family (evenly spaced over the system's speed range)
