@@ -317,7 +317,8 @@ class DensityPlanner(Planner):
                 # along them (exact Liouville then skips the divergence)
                 ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0,
                                           states_only=cfg.weighting == "mass")
-                cost = objective(self._inputs(ref, traj, log_q0, slices))
+                cost = self._with_reference_goal(problem, objective, ref, slices,
+                                                 objective(self._inputs(ref, traj, log_q0, slices)))
                 self._record(history, cost.select(0))
                 total = float(cost.total.detach()[0])
                 if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
@@ -328,6 +329,17 @@ class DensityPlanner(Planner):
                 (grad,) = torch.autograd.grad(cost.total.sum(), pv)
                 opt.step(grad.unsqueeze(0))
         return best, history, (x0, log_rho0, log_q0), slices
+
+    def _with_reference_goal(self, problem: PlanningProblem, objective, ref: Reference, slices: Tensor,
+                             cost: CostBreakdown) -> CostBreakdown:
+        """On road scenes (goal region in time), ``cost`` plus ``cost.road.reference_goal_weight`` times the goal
+        cost of the reference itself (term ``"reference_goal"``): the plan that is judged must reach the goal."""
+        w = self.config.cost.road.reference_goal_weight
+        if w <= 0 or getattr(problem.scene, "road", None) is None or "goal" not in objective.terms:
+            return cost
+        ref_goal = objective.terms["goal"](CostInputs.single(ref.x_plan, ref.u_plan, slices))
+        terms = dict(cost.terms, reference_goal=ref_goal)
+        return CostBreakdown(cost.total + w * objective.weights["goal"] * ref_goal, terms)
 
     # -------------------------------------------------------------------- plan
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
