@@ -86,6 +86,20 @@ def test_mpc_records_do_not_depend_on_the_learned_components():
     assert config_hash(tweaked, "density") == config_hash(spec, "density")
 
 
+def test_records_depend_on_the_scene_sections_of_their_setting_only():
+    """A CommonRoad or inD setting cannot change the numbers of random scenes, and vice versa."""
+    from dataclasses import replace
+
+    spec = _spec(planners=("density", "mpc"))
+    cr = replace(spec, run_config=update(spec.run_config, {"commonroad": {"footprint": {"model": "gaussian"}}}))
+    rnd = replace(spec, run_config=update(spec.run_config, {"random_scene": {"n_static": (5, 7)}}))
+    for planner in ("density", "mpc"):
+        assert config_hash(cr, planner) == config_hash(spec, planner)
+        assert config_hash(rnd, planner) != config_hash(spec, planner)
+        assert config_hash(replace(cr, setting="commonroad"), planner) != config_hash(replace(spec, setting="commonroad"),
+                                                                                     planner)
+
+
 def test_planner_exception_becomes_a_recorded_failure(tmp_path):
     spec = _spec(planners=("test_crash", "density"), variants=("unbiased",))
     rep = run_benchmark(spec, tmp_path, workers=1, job_fn=run_job_with_test_planners)

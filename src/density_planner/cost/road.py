@@ -67,10 +67,6 @@ class RoadCostConfig:
     goal_velocity_weight: float = 1.0
     #: weight of the squared heading distance in the goal-region cost [m^2 / rad^2]
     goal_orientation_weight: float = 25.0
-    #: the density planner's stage 2 adds this many times the goal-region cost of the reference itself (the plan
-    #: that is submitted and judged: ``solution.xml``, the verdict) to the sample-averaged cost, so that the plan
-    #: reaches the goal while the samples price the risk; 0 = off (the expectation alone)
-    reference_goal_weight: float = 10.0
     #: add the road barrier J_R
     barrier: bool = True
     #: alpha_R, weight of J_R [1/m]
@@ -85,8 +81,8 @@ class RoadCostConfig:
     sdf_max_cells: int = 4_000_000
 
     def __post_init__(self) -> None:
-        for name in ("goal_weight", "goal_margin", "goal_velocity_weight", "goal_orientation_weight",
-                     "reference_goal_weight", "weight", "margin"):
+        for name in ("goal_weight", "goal_margin", "goal_velocity_weight", "goal_orientation_weight", "weight",
+                     "margin"):
             check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
         for name in ("footprint_spacing", "sdf_cell_size"):
             check_positive(f"cost.road.{name}", getattr(self, name))

@@ -106,7 +106,8 @@ class BenchmarkSpec:
 
 
 #: run-configuration sections that every record depends on (scenes, scoring, the reported cost)
-_COMMON_SECTIONS = ("random_scene", "commonroad", "ind", "evaluation")
+#: sections every record depends on, besides the scene sections of its setting (``Setting.scene_sections``)
+_COMMON_SECTIONS = ("evaluation",)
 
 
 #: settings of ``[evaluation]`` that change how a sweep runs, never its numbers: left out of the configuration hash
@@ -134,7 +135,9 @@ def _config_payload(spec: BenchmarkSpec, planner: str | None = None) -> dict[str
         payload.update(run_config=cfg, controller=spec.controller, density=spec.density, components=spec.components)
         return payload
     info = planner_info(planner, default=True)
-    payload.update({k: cfg.get(k) for k in _COMMON_SECTIONS})
+    setting = SETTINGS.get(spec.setting)
+    scene_sections = setting.scene_sections if setting else ("random_scene", "commonroad", "ind")
+    payload.update({k: cfg.get(k) for k in (*scene_sections, *_COMMON_SECTIONS)})
     payload["cost"] = (cfg.get("density_planner") or {}).get("cost")
     payload["planner"] = {planner: cfg.get(info.section) if info.section else None}
     if info.reads:

@@ -24,6 +24,8 @@ class Setting:
     #: execute the plans in closed loop (False: the ablation compares the planned references)
     closed_loop: bool
     description: str = ""
+    #: configuration sections its scenes are built from (the others cannot change its records' numbers)
+    scene_sections: tuple[str, ...] = ("random_scene",)
 
 
 SETTINGS: dict[str, Setting] = {
@@ -39,11 +41,13 @@ SETTINGS: dict[str, Setting] = {
     "real": Setting(
         "real", ("density", "mpc", "tube_mpc_0.5", "oracle"), ("unbiased", "biased"), 30, True,
         description="density planner, M0, M2 and oracle on recorded traffic (inD, or the shipped CommonRoad scenes)",
+        scene_sections=("ind", "commonroad"),
     ),
     "commonroad": Setting(
         "commonroad", ("density", "mpc"), ("unbiased",), 0, True,
         description="every CommonRoad scenario of --scenarios DIR as its author posed it, judged by the verdict "
         "(evaluation/commonroad_bench.py)",
+        scene_sections=("commonroad",),
     ),
 }
 

@@ -77,6 +77,10 @@ class DensityPlannerConfig:
     #: probability mass a sample carries (unbiased expectations, default; the same weights as risk.estimator =
     #: "is"); "density" = the densities at the samples (paper; use with risk.estimator = "paper")
     weighting: Literal["density", "mass"] = "mass"
+    #: on road scenes (a goal region in time), stage 2 adds this many times the goal cost of the reference itself
+    #: (the plan that is submitted and judged: ``solution.xml``, the verdict) to the sample-averaged cost, so that
+    #: the plan reaches the goal while the samples price the risk; 0 = off (the expectation alone, paper)
+    reference_goal_weight: float = 10.0
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
     #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
@@ -104,6 +108,8 @@ class DensityPlannerConfig:
             v = getattr(self, name)
             if not math.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if not math.isfinite(self.reference_goal_weight) or self.reference_goal_weight < 0:
+            raise ValueError(f"reference_goal_weight must be a finite number >= 0, got {self.reference_goal_weight!r}")
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
         check_choice("weighting", self.weighting, ("density", "mass"))
         check_seed("seed", self.seed)
@@ -332,9 +338,9 @@ class DensityPlanner(Planner):
 
     def _with_reference_goal(self, problem: PlanningProblem, objective, ref: Reference, slices: Tensor,
                              cost: CostBreakdown) -> CostBreakdown:
-        """On road scenes (goal region in time), ``cost`` plus ``cost.road.reference_goal_weight`` times the goal
-        cost of the reference itself (term ``"reference_goal"``): the plan that is judged must reach the goal."""
-        w = self.config.cost.road.reference_goal_weight
+        """On road scenes (goal region in time), ``cost`` plus ``reference_goal_weight`` times the goal cost of the
+        reference itself (term ``"reference_goal"``): the plan that is judged must reach the goal."""
+        w = self.config.reference_goal_weight
         if w <= 0 or getattr(problem.scene, "road", None) is None or "goal" not in objective.terms:
             return cost
         ref_goal = objective.terms["goal"](CostInputs.single(ref.x_plan, ref.u_plan, slices))
