@@ -190,7 +190,8 @@ class CommonRoadSceneConfig:
         if self.max_cell_size < self.cell_size:
             raise ValueError("CommonRoadSceneConfig.max_cell_size must be >= cell_size")
         if self.offroad_margin is not None and not (math.isfinite(self.offroad_margin) and self.offroad_margin >= 0):
-            raise ValueError(f"CommonRoadSceneConfig.offroad_margin must be None or >= 0 [m], got {self.offroad_margin}")
+            raise ValueError(
+                f"CommonRoadSceneConfig.offroad_margin must be None or >= 0 [m], got {self.offroad_margin}")
         if self.area and (
             len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]
         ):
