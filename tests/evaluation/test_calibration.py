@@ -108,11 +108,12 @@ def test_road_users_only_occupancy_leaves_the_road_edge_free():
     full = load_commonroad_scene(f, system=car)
     users = load_commonroad_scene(f, CommonRoadSceneConfig(offroad_occupied=False), system=car)
     assert full.grid.probs.shape == users.grid.probs.shape and full.grid.origin == users.grid.origin
-    off = ~np.asarray(shapely.contains_xy(full.road.drivable, *np.meshgrid(
+    margin = full.grid.cell_size * np.sqrt(0.5)  # commonroad.offroad_margin: half a cell diagonal outside the road
+    off = ~np.asarray(shapely.contains_xy(full.road.drivable.buffer(margin + 1e-6), *np.meshgrid(
         full.grid.origin[0] + full.grid.cell_size * np.arange(full.grid.probs.shape[1]),
         full.grid.origin[1] + full.grid.cell_size * np.arange(full.grid.probs.shape[2]), indexing="ij")))
     assert off.any()
-    assert float(full.grid.probs[0][off].min()) == 1.0  # the road's edge is occupied by default
+    assert float(full.grid.probs[0][off].min()) == 1.0  # beyond the road's edge is occupied by default
     assert float(users.grid.probs[0][off].mean()) < 0.05  # only road users (and static obstacles) remain
     assert bool((users.grid.probs <= full.grid.probs + 1e-6).all())
 
