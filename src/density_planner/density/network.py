@@ -143,7 +143,7 @@ class DensityLayout:
         return (0 if self.heading is None else 2) + len(self.reference_states)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def system_layout(name: str) -> DensityLayout:
     """The :class:`DensityLayout` of the registered system ``name``."""
     from ..systems.registry import make_system

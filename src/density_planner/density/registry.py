@@ -49,11 +49,12 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
 
     If ``controller`` is given, it must be the controller the predictor was trained for; if ``system`` is given, its
     state layout must be the one the predictor reads. ``models`` names the model set whose shipped weights the names
-    refer to (default: the set of ``controller``'s car domain, else ``"paper"``). References outside the training domain (start speed) raise
-    :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use it with a logged warning.
+    refer to (default: the set of ``controller``'s car domain, else ``"paper"``). References outside the training
+    domain (start speed) raise :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use
+    it with a logged warning.
 
     Raises:
-        CheckpointError: missing/corrupt/mismatched weights, or a controller other than the training one.
+        CheckpointError: missing/corrupt/mismatched weights, a system or a controller other than the training one.
     """
     from .network import (
         DensityLayout,
