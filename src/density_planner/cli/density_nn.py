@@ -112,9 +112,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
         "Writes DIR/density_report.json, DIR/density_errors.png and DIR/density_heatmaps.png (network vs exact "
         "at t = 0.5, 4, 10 s).",
     )
-    p.add_argument("--density", default="trajectory,pointwise", metavar="NAME|FILE[,...]",
+    p.add_argument("--density", default=None, metavar="NAME|FILE[,...]",
                    help="learned predictor(s), comma-separated: trajectory, pointwise, learned or weights files "
-                        "(default: trajectory,pointwise)")
+                        "(default: the model set's shipped ones, trajectory,pointwise for the car)")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
                    help="tracking controller (default: the one the predictor was trained for, c3m)")
     _system_flags(p)
@@ -270,7 +270,15 @@ def run_validate(args: argparse.Namespace) -> int:
     out = out_dir(args.out)
     mset = _model_set(args)
     system = mset.make_system()
-    specs = [s.strip() for s in str(args.density).split(",") if s.strip()]
+    if args.density is None:
+        from ..density.network import ARCHITECTURES, shipped_density_path
+
+        specs = [a for a in ARCHITECTURES if shipped_density_path(a, mset.name).is_file()]
+        if not specs:
+            raise ValueError(f"the package ships no learned density predictor for the model set {mset.name!r}; name "
+                             "one with --density FILE.pt")
+    else:
+        specs = [s.strip() for s in str(args.density).split(",") if s.strip()]
     predictors = {}
     for spec in specs:
         pred = load_learned_predictor(spec, models=mset.name, system=system)
