@@ -33,7 +33,7 @@ from density_planner.density.train import DensityTrainConfig, fit_normalisation,
 from density_planner.density.validation import compare_with_exact, fresh_references
 from density_planner.errors import CheckpointError
 from density_planner.systems.car import KinematicCar, car_domain
-from density_planner.systems.ks import DELTA, PSI, V, KinematicSingleTrack
+from density_planner.systems.ks import DELTA, PSI, KinematicSingleTrack, V
 
 SNAPSHOT = Path(__file__).parent / "data" / "shipped_car_predictions.pt"
 

@@ -68,7 +68,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--seed", type=int, default=None, help=f"seed (default {dd.seed})")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
                    help=f"tracking controller: c3m, analytic or a C3M weights file for the car, analytic for ks "
-                        f"(default {dd.controller} for the car, else the model set's default)")
+                        f"(default {dd.controller}; for another system the model set's default)")
     _system_flags(p)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: number of cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
