@@ -67,8 +67,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help=f"initial errors per reference (default {dd.samples})")
     p.add_argument("--seed", type=int, default=None, help=f"seed (default {dd.seed})")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
-                   help=f"tracking controller: c3m, analytic or a C3M weights file for the car, analytic for ks "
-                        f"(default {dd.controller}; for another system the model set's default)")
+                   help=f"tracking controller: for the car c3m, analytic or a C3M weights file (default "
+                        f"{dd.controller}), for another system one of its own (default: its model set's, analytic "
+                        "for ks)")
     _system_flags(p)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: number of cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
