@@ -245,3 +245,33 @@ def test_a_predictor_of_another_system_is_refused():
         load_learned_predictor("trajectory", models="paper", system=ks)
     # with no name, a mismatching predictor falls back to exact Liouville
     assert isinstance(load_predictor(None, ks, ks_controller, models="paper"), ExactLiouville)
+
+
+# ------------------------------------------------------------------------------------------------------- CLI
+@pytest.mark.slow
+def test_cli_data_train_validate_for_ks(tmp_path, capsys):
+    from density_planner.cli import main
+
+    data = tmp_path / "data"
+    assert main(["data", "density", "--system", "ks", "--references", "8", "--samples", "3", "--set",
+                 "references_per_shard=4", "--workers", "1", "--quiet", "--out", str(data)]) == 0
+    manifest = json.loads((data / "manifest.json").read_text())
+    assert manifest["config"]["domain"] == "ks" and manifest["config"]["controller"] == "analytic"
+    assert manifest["command"].startswith("density-planner data density --system ks")
+    out = tmp_path / "train"
+    assert main(["train", "density", "--data", str(data), "--epochs", "1", "--set", "hidden=8", "--set", "layers=1",
+                 "--threads", "1", "--quiet", "--out", str(out)]) == 0
+    meta = json.loads((out / "density_trajectory.json").read_text())
+    assert meta["architecture"]["system"] == "ks" and meta["controller"]["spec"] == "analytic"
+    assert meta["commands"]["validate"].endswith("--models ks")
+    val = tmp_path / "val"
+    assert main(["validate", "density", "--system", "ks", "--density", str(out / "density_trajectory.pt"),
+                 "--references", "2", "--samples", "3", "--figure-samples", "50", "--threads", "1",
+                 "--out", str(val)]) == 0
+    report = json.loads((val / "density_report.json").read_text())
+    assert report["models"] == "ks" and report["controller"] == "analytic"
+    # a KS predictor named for a car set is refused with one line naming the system
+    capsys.readouterr()
+    assert main(["validate", "density", "--models", "paper", "--density", str(out / "density_trajectory.pt"),
+                 "--references", "1", "--samples", "2", "--out", str(tmp_path / "v2")]) == 2
+    assert "reads states of the system 'ks'" in capsys.readouterr().err
