@@ -275,3 +275,9 @@ def test_cli_data_train_validate_for_ks(tmp_path, capsys):
     assert main(["validate", "density", "--models", "paper", "--density", str(out / "density_trajectory.pt"),
                  "--references", "1", "--samples", "2", "--out", str(tmp_path / "v2")]) == 2
     assert "reads states of the system 'ks'" in capsys.readouterr().err
+
+
+def test_the_ks_set_is_found_from_the_system():
+    ks = KinematicSingleTrack()
+    pred = load_learned_predictor("trajectory", load_controller(None, models="ks"), system=ks)
+    assert pred.layout == system_layout("ks")

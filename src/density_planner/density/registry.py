@@ -49,9 +49,9 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
 
     If ``controller`` is given, it must be the controller the predictor was trained for; if ``system`` is given, its
     state layout must be the one the predictor reads. ``models`` names the model set whose shipped weights the names
-    refer to (default: the set of ``controller``'s car domain, else ``"paper"``). References outside the training
-    domain (start speed) raise :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use
-    it with a logged warning.
+    refer to (default: the set of ``controller``'s car domain, else the first set of ``system``'s type, else
+    ``"paper"``). References outside the training domain (start speed) raise
+    :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use it with a logged warning.
 
     Raises:
         CheckpointError: missing/corrupt/mismatched weights, a system or a controller other than the training one.
@@ -65,7 +65,7 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
     )
 
     if models is None:
-        models = getattr(getattr(controller, "car", None), "domain", None) or "paper"
+        models = getattr(getattr(controller, "car", None), "domain", None) or _model_set_of(system) or "paper"
     name = DEFAULT_LEARNED if spec == "learned" else spec
     if name in ("trajectory", "pointwise"):
         path, arch = shipped_density_path(str(name), models), str(name)
@@ -95,6 +95,16 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
                 "--density exact or train a predictor for this controller"
             )
     return LearnedDensity(model, meta=meta, fallback=fallback)
+
+
+def _model_set_of(system: System | None) -> str | None:
+    """The first model set registered for ``system``'s type (``None``: no system, or none registered)."""
+    if system is None:
+        return None
+    from ..control.registry import MODEL_SETS, model_set
+
+    model_set()  # loads the registrations
+    return next((name for name, m in MODEL_SETS.items() if type(m.make_system()) is type(system)), None)
 
 
 def load_predictor(
