@@ -389,11 +389,7 @@ class DensityNetwork(nn.Module):
         reference start, log-density ratio 0."""
         lay = self.layout
         body0 = sample_features(xe0, ref_start.unsqueeze(-2), lay)
-        keep = [0, 1] + [2 + lay.rest.index(i) for i in lay.learned]
-        if keep != list(range(len(keep))):
-            body0 = body0[..., keep]
-        else:
-            body0 = body0[..., : len(keep)]
+        body0 = _pick(body0, (0, 1, *(2 + lay.rest.index(i) for i in lay.learned)))
         return torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1)
 
 
