@@ -443,3 +443,24 @@ def test_the_ego_size_is_the_systems_body(commonroad_dir):
     # a point has no speed state and no acceleration input: the importer says which fact is missing
     with pytest.raises(ValueError, match="no speed state"):
         load_commonroad_scene(path, _cfg(vehicle_length=3.0), system=point)
+
+
+def test_offroad_margin_offsets_the_grid_quantisation():
+    """A cell is off the road when its centre lies more than ``offroad_margin`` outside the drivable area (default:
+    half the cell diagonal, 0.71 m at 1-m cells); 0 marks every centre outside."""
+    import shapely
+
+    from density_planner.environment.commonroad import static_map
+
+    road = shapely.box(0.0, 0.0, 10.0, 3.0)
+    args = dict(drivable=road, static_polygons=[])
+    # cell centres at x = -2.5 .. 12.5, y = -1.5 .. 4.5 (origin (-2.5, -1.5), 1-m cells)
+    auto, _ = static_map(None, (-2.5, -1.5), 1.0, (16, 7), CommonRoadSceneConfig(), **args)
+    exact, _ = static_map(None, (-2.5, -1.5), 1.0, (16, 7), CommonRoadSceneConfig(offroad_margin=0.0), **args)
+    # centre (5.5, -0.5): 0.5 m outside the road; (5.5, -1.5): 1.5 m outside; (5.5, 1.5): on the road
+    assert exact[8, 1] == 1.0 and auto[8, 1] == 0.0
+    assert exact[8, 0] == 1.0 and auto[8, 0] == 1.0
+    assert exact[8, 3] == 0.0 and auto[8, 3] == 0.0
+    assert auto.sum() < exact.sum()
+    with pytest.raises(ValueError, match="offroad_margin"):
+        CommonRoadSceneConfig(offroad_margin=-1.0)

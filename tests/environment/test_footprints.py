@@ -162,7 +162,8 @@ def test_shape_model_is_the_chance_that_the_rectangle_covers_a_point(heading_deg
     th = math.radians(heading_deg)
     p = raster(users([1.0], [-2.0], [th], [15.0], length=4.5, width=1.8), SHAPE_MODEL).astype(np.float64)
     rng = np.random.default_rng(0)
-    for u, w in [(0.0, 0.0), (2.25, 0.0), (0.0, 0.9), (2.5, 0.6), (-2.0, -1.0), (3.0, 0.0), *rng.uniform(-3, 3, (6, 2))]:
+    points = [(0.0, 0.0), (2.25, 0.0), (0.0, 0.9), (2.5, 0.6), (-2.0, -1.0), (3.0, 0.0), *rng.uniform(-3, 3, (6, 2))]
+    for u, w in points:
         # the cell nearest to the point (u, w) of the road user's frame; the value is checked at the cell centre
         x, y = 1.0 + u * math.cos(th) - w * math.sin(th), -2.0 + u * math.sin(th) + w * math.cos(th)
         i, j = int(round((x - ORIGIN[0]) / H)), int(round((y - ORIGIN[1]) / H))
@@ -171,7 +172,9 @@ def test_shape_model_is_the_chance_that_the_rectangle_covers_a_point(heading_deg
         expected = _rectangle_chance(uc, wc, 4.5, 1.8, 0.2, 0.2)
         assert p[i, j] == pytest.approx(expected if expected > 2e-3 else p[i, j], abs=2e-5)
     # no skew along the motion (speed 15 m/s), and nothing beyond 3 stds outside the rectangle
-    assert p[int(round((1.0 + 3.0 * math.cos(th) - ORIGIN[0]) / H)), int(round((-2.0 + 3.0 * math.sin(th) - ORIGIN[1]) / H))] == 0.0
+    i = int(round((1.0 + 3.0 * math.cos(th) - ORIGIN[0]) / H))
+    j = int(round((-2.0 + 3.0 * math.sin(th) - ORIGIN[1]) / H))
+    assert p[i, j] == 0.0
 
 
 def test_shape_model_spreads_with_the_prediction_error():

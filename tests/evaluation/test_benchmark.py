@@ -96,8 +96,8 @@ def test_records_depend_on_the_scene_sections_of_their_setting_only():
     for planner in ("density", "mpc"):
         assert config_hash(cr, planner) == config_hash(spec, planner)
         assert config_hash(rnd, planner) != config_hash(spec, planner)
-        assert config_hash(replace(cr, setting="commonroad"), planner) != config_hash(replace(spec, setting="commonroad"),
-                                                                                     planner)
+        cr_setting, default_setting = replace(cr, setting="commonroad"), replace(spec, setting="commonroad")
+        assert config_hash(cr_setting, planner) != config_hash(default_setting, planner)
 
 
 def test_planner_exception_becomes_a_recorded_failure(tmp_path):

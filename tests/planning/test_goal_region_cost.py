@@ -144,9 +144,10 @@ def test_margin_keeps_plans_off_the_regions_edge():
     assert float(thin(_inputs(mid[None]))[0]) == 0.0
 
 
-def test_stage_two_adds_the_reference_goal_cost_on_road_scenes_only():
-    """``reference_goal_weight`` w: stage 2's cost becomes cost + w alpha_G J_G(reference) on a road scene (with its
-    gradient through the reference), and stays the paper's cost on a random scene or with w = 0."""
+def test_stage_two_adds_the_references_own_cost_on_road_scenes_only():
+    """``reference_weight`` w: stage 2's cost becomes cost + w sum_n alpha_n J_n(reference) over goal, collision,
+    road and bounds on a road scene (with its gradient through the reference), and stays the paper's cost on a
+    random scene or with w = 0."""
     from density_planner.control.reference import make_reference
     from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
     from density_planner.planners.problem import PlanningProblem
@@ -154,24 +155,29 @@ def test_stage_two_adds_the_reference_goal_cost_on_road_scenes_only():
     goal = GoalRegion(shapely.box(85, 0.5, 95, 3.0), (9.0, 10.0))
     for scene, expect in ((road_scene(goal, start=(40.0, 1.75, 0.0, 6.0)), True), (empty_scene(), False)):
         problem = PlanningProblem.from_scene(scene)
-        planner = DensityPlanner(predictor=None, config=DensityPlannerConfig(reference_goal_weight=10.0))
+        planner = DensityPlanner(predictor=None, config=DensityPlannerConfig(reference_weight=10.0))
         objective = build_cost(scene, CostConfig(), system=problem.system)
         slices = problem.slices()
-        params = torch.zeros(problem.system.nu, problem.parameterization.n_segments, requires_grad=True)
+        params = torch.zeros(problem.system.nu, problem.parameterization.n_segments)
+        params[1, :3] = 1.0  # accelerate for 3 s: it ends past the goal region
+        params.requires_grad_(True)
         ref = make_reference(problem.system, problem.reference_start(), params.unsqueeze(0), problem.parameterization)
         base = objective(CostInputs.single(ref.x_plan[0].unsqueeze(0), ref.u_plan[0].unsqueeze(0), slices))
-        out = planner._with_reference_goal(problem, objective, ref, slices, base)
+        out = planner._with_reference(problem, objective, ref, slices, base)
         if not expect:
             assert out is base
             continue
-        j_ref = objective.terms["goal"](CostInputs.single(ref.x_plan, ref.u_plan, slices))
-        j_ref = j_ref.detach()
-        assert float(j_ref) > 1.0  # constant 6 m/s for 10 s ends 100 m along: past the region
-        assert float(out.total.detach()) == pytest.approx(float(base.total.detach()) + 10.0 * objective.weights["goal"] * float(j_ref))
-        assert float(out.terms["reference_goal"].detach()) == pytest.approx(float(j_ref))
+        own = objective(CostInputs.single(ref.x_plan, ref.u_plan, slices))
+        added = sum(10.0 * objective.weights[n] * float(own.terms[n].detach()) for n in ("goal", "collision", "road",
+                                                                                       "bounds"))
+        assert float(own.terms["goal"].detach()) > 1.0  # it ends past the region
+        assert float(out.total.detach()) == pytest.approx(float(base.total.detach()) + added, rel=1e-6)
+        for n in ("goal", "collision", "road", "bounds"):
+            assert float(out.terms[f"reference_{n}"].detach()) == pytest.approx(float(own.terms[n].detach()))
+        assert "reference_input" not in out.terms
         (grad,) = torch.autograd.grad(out.total.sum(), params)
         assert grad.abs().sum() > 0
-        off = DensityPlanner(predictor=None, config=DensityPlannerConfig(reference_goal_weight=0.0))
-        assert off._with_reference_goal(problem, objective, ref, slices, base) is base
-    with pytest.raises(ValueError, match="reference_goal_weight"):
-        DensityPlannerConfig(reference_goal_weight=-1.0)
+        off = DensityPlanner(predictor=None, config=DensityPlannerConfig(reference_weight=0.0))
+        assert off._with_reference(problem, objective, ref, slices, base) is base
+    with pytest.raises(ValueError, match="reference_weight"):
+        DensityPlannerConfig(reference_weight=-1.0)

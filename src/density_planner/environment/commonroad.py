@@ -143,6 +143,11 @@ class CommonRoadSceneConfig:
     #: planners without a road term keep to the road through it); false: the road users only (the collision
     #: probability is then the probability of hitting a road user; used by the calibration check)
     offroad_occupied: bool = True
+    #: a cell counts as off the road only when its centre lies more than this far outside the drivable area [m];
+    #: None: half the cell's diagonal, which offsets the grid's quantisation (the body's disc-dilated grid is
+    #: conservative by up to a cell) so that a narrow lane stays open at coarse cells; the exact road edge is the
+    #: road barrier's and the verdict's (``cost.road``, ``on_road``)
+    offroad_margin: float | None = None
     #: drop the dynamic obstacle that coincides with the planning problem's initial state (the recorded ego)
     drop_ego: bool = True
     #: position tolerance of that match [m]
@@ -184,6 +189,9 @@ class CommonRoadSceneConfig:
                 raise ValueError(f"CommonRoadSceneConfig.{name} must be > 0, got {value}")
         if self.max_cell_size < self.cell_size:
             raise ValueError("CommonRoadSceneConfig.max_cell_size must be >= cell_size")
+        if self.offroad_margin is not None and not (math.isfinite(self.offroad_margin) and self.offroad_margin >= 0):
+            raise ValueError(
+                f"CommonRoadSceneConfig.offroad_margin must be None or >= 0 [m], got {self.offroad_margin}")
         if self.area and (
             len(self.area) != 4 or self.area[0] >= self.area[1] or self.area[2] >= self.area[3]
         ):
@@ -480,8 +488,10 @@ def static_map(
     xs = origin[0] + cell_size * np.arange(nx)
     ys = origin[1] + cell_size * np.arange(ny)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    shapely.prepare(drivable)
-    static = (~shapely.intersects_xy(drivable, gx, gy)).astype(np.float32)
+    margin = cell_size * math.sqrt(0.5) if cfg.offroad_margin is None else float(cfg.offroad_margin)
+    road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
+    shapely.prepare(road)
+    static = (~shapely.intersects_xy(road, gx, gy)).astype(np.float32)
     if not cfg.offroad_occupied:
         static[:] = 0.0
     if static_polygons is None:

@@ -77,10 +77,12 @@ class DensityPlannerConfig:
     #: probability mass a sample carries (unbiased expectations, default; the same weights as risk.estimator =
     #: "is"); "density" = the densities at the samples (paper; use with risk.estimator = "paper")
     weighting: Literal["density", "mass"] = "mass"
-    #: on road scenes (a goal region in time), stage 2 adds this many times the goal cost of the reference itself
-    #: (the plan that is submitted and judged: ``solution.xml``, the verdict) to the sample-averaged cost, so that
-    #: the plan reaches the goal while the samples price the risk; 0 = off (the expectation alone, paper)
-    reference_goal_weight: float = 10.0
+    #: on road scenes (a goal region in time), stage 2 adds this many times the cost of the reference itself (its
+    #: goal, collision, road-barrier and bounds terms as a single trajectory) to the sample-averaged cost: the plan
+    #: that is submitted and judged (``solution.xml``, the verdict) must itself reach the goal without collision
+    #: and on the road, while the samples price the risk of the uncertain executions; 0 = off (the expectation
+    #: alone, paper)
+    reference_weight: float = 10.0
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
     #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
@@ -108,8 +110,8 @@ class DensityPlannerConfig:
             v = getattr(self, name)
             if not math.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-        if not math.isfinite(self.reference_goal_weight) or self.reference_goal_weight < 0:
-            raise ValueError(f"reference_goal_weight must be a finite number >= 0, got {self.reference_goal_weight!r}")
+        if not math.isfinite(self.reference_weight) or self.reference_weight < 0:
+            raise ValueError(f"reference_weight must be a finite number >= 0, got {self.reference_weight!r}")
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
         check_choice("weighting", self.weighting, ("density", "mass"))
         check_seed("seed", self.seed)
@@ -247,6 +249,11 @@ class DensityPlanner(Planner):
         m = params.shape[0]
         bounds_on = torch.zeros(m, dtype=torch.bool, device=self.device)
         coll_on = torch.zeros(m, dtype=torch.bool, device=self.device)
+        # seeds (e.g. route-following, risk-aware) are built near the goal, on the road: every term is on from the
+        # start (the staging serves random candidates far from the goal; a goal after the horizon would otherwise
+        # never switch the collision term on, its goal cost staying above goal_close_threshold)
+        bounds_on[:n_seeds] = True
+        coll_on[:n_seeds] = True
         totals = []
         per_candidate: dict[str, list[Tensor]] = {}
         with self._bar(cfg.epochs_init, "stage 1 (initialisation)") as bar:
@@ -323,8 +330,8 @@ class DensityPlanner(Planner):
                 # along them (exact Liouville then skips the divergence)
                 ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0,
                                           states_only=cfg.weighting == "mass")
-                cost = self._with_reference_goal(problem, objective, ref, slices,
-                                                 objective(self._inputs(ref, traj, log_q0, slices)))
+                cost = self._with_reference(problem, objective, ref, slices,
+                                            objective(self._inputs(ref, traj, log_q0, slices)))
                 self._record(history, cost.select(0))
                 total = float(cost.total.detach()[0])
                 if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
@@ -336,16 +343,27 @@ class DensityPlanner(Planner):
                 opt.step(grad.unsqueeze(0))
         return best, history, (x0, log_rho0, log_q0), slices
 
-    def _with_reference_goal(self, problem: PlanningProblem, objective, ref: Reference, slices: Tensor,
-                             cost: CostBreakdown) -> CostBreakdown:
-        """On road scenes (goal region in time), ``cost`` plus ``reference_goal_weight`` times the goal cost of the
-        reference itself (term ``"reference_goal"``): the plan that is judged must reach the goal."""
-        w = self.config.reference_goal_weight
-        if w <= 0 or getattr(problem.scene, "road", None) is None or "goal" not in objective.terms:
+    #: terms of the reference's own cost added in stage 2 (:attr:`DensityPlannerConfig.reference_weight`)
+    REFERENCE_TERMS = ("goal", "collision", "road", "bounds")
+
+    def _with_reference(self, problem: PlanningProblem, objective, ref: Reference, slices: Tensor,
+                        cost: CostBreakdown) -> CostBreakdown:
+        """On road scenes (goal region in time), ``cost`` plus ``reference_weight`` times the goal, collision, road
+        and bounds terms of the reference itself (terms ``"reference_<name>"``): the plan that is judged must
+        itself be good, the samples price the risk of its uncertain executions."""
+        w = self.config.reference_weight
+        if w <= 0 or getattr(problem.scene, "road", None) is None:
             return cost
-        ref_goal = objective.terms["goal"](CostInputs.single(ref.x_plan, ref.u_plan, slices))
-        terms = dict(cost.terms, reference_goal=ref_goal)
-        return CostBreakdown(cost.total + w * objective.weights["goal"] * ref_goal, terms)
+        names = [n for n in self.REFERENCE_TERMS if n in objective.terms]
+        own = objective(CostInputs.single(ref.x_plan, ref.u_plan, slices),
+                        active={n: torch.zeros(1, dtype=torch.bool, device=ref.x_plan.device)
+                                for n in objective.terms if n not in names})
+        total = cost.total
+        terms = dict(cost.terms)
+        for n in names:
+            total = total + w * objective.weights[n] * own.terms[n]
+            terms[f"reference_{n}"] = own.terms[n]
+        return CostBreakdown(total, terms)
 
     # -------------------------------------------------------------------- plan
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
