@@ -464,3 +464,25 @@ def test_offroad_margin_offsets_the_grid_quantisation():
     assert auto.sum() < exact.sum()
     with pytest.raises(ValueError, match="offroad_margin"):
         CommonRoadSceneConfig(offroad_margin=-1.0)
+
+
+def test_scene_gives_the_planners_initial_uncertainty(tmp_path):
+    """``commonroad.initial_error`` (position, heading, speed half-widths) replaces those entries of the system's XE0
+    box in the planner's initial law; the hidden heading bias keeps the system's; None: the system's box."""
+    from density_planner.environment.random_scene import random_scene
+    from density_planner.planners.problem import PlanningProblem, initial_error_box
+    from density_planner.systems.car import KinematicCar, car_domain
+
+    car = KinematicCar(car_domain("road"))
+    scene = load_commonroad_scene(write_scenario(tmp_path / "s.xml"), _cfg())
+    assert scene.meta["initial_error"] == {"position": 0.5, "heading": 0.05, "speed": 0.3}
+    box = initial_error_box(scene, car)
+    assert box == pytest.approx((0.5, 0.5, 0.05, 0.3, car.initial_error_max[4]))
+    law = PlanningProblem.from_scene(scene, system=car).initial_distribution
+    lo, hi = law.support
+    assert (hi - lo).tolist() == pytest.approx([2 * b for b in box])
+    paper = load_commonroad_scene(write_scenario(tmp_path / "p.xml"), _cfg(initial_error=None))
+    assert initial_error_box(paper, car) == tuple(car.initial_error_max)
+    assert initial_error_box(random_scene(0), car) == tuple(car.initial_error_max)
+    with pytest.raises(ValueError, match="initial_error"):
+        CommonRoadSceneConfig(initial_error=(0.5, 0.0, 0.3))

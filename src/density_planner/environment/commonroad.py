@@ -143,6 +143,12 @@ class CommonRoadSceneConfig:
     #: planners without a road term keep to the road through it); false: the road users only (the collision
     #: probability is then the probability of hitting a road user; used by the calibration check)
     offroad_occupied: bool = True
+    #: half-widths of the planner's initial uncertainty on the scenario (the measurement error law of the scene):
+    #: position [m] (both axes), heading [rad], speed [m/s], written to ``scene.meta["initial_error"]``; a system's
+    #: states the pose does not fix (the car's heading bias) keep the system's XE0 box. Default: lane-level
+    #: localisation and automotive-grade heading and speed (docs/environments.md); ``None``: the system's XE0 box
+    #: (the paper's: +-1 m, +-0.5 rad, +-0.5 m/s)
+    initial_error: tuple[float, float, float] | None = (0.5, 0.05, 0.3)
     #: a cell counts as off the road only when its centre lies more than this far outside the drivable area [m];
     #: None: half the cell's diagonal, which offsets the grid's quantisation (the body's disc-dilated grid is
     #: conservative by up to a cell) so that a narrow lane stays open at coarse cells; the exact road edge is the
@@ -189,6 +195,10 @@ class CommonRoadSceneConfig:
                 raise ValueError(f"CommonRoadSceneConfig.{name} must be > 0, got {value}")
         if self.max_cell_size < self.cell_size:
             raise ValueError("CommonRoadSceneConfig.max_cell_size must be >= cell_size")
+        if self.initial_error is not None and (
+                len(self.initial_error) != 3 or not all(math.isfinite(v) and v > 0 for v in self.initial_error)):
+            raise ValueError("CommonRoadSceneConfig.initial_error must be None or three numbers > 0 (position [m], "
+                             f"heading [rad], speed [m/s]), got {self.initial_error!r}")
         if self.offroad_margin is not None and not (math.isfinite(self.offroad_margin) and self.offroad_margin >= 0):
             raise ValueError(
                 f"CommonRoadSceneConfig.offroad_margin must be None or >= 0 [m], got {self.offroad_margin}")
@@ -958,6 +968,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         "start_goal_sampled": bool(cfg.sample_start_goal),
         "goal": {**goal.to_json_dict(), "point": list(goal_xy), "point_rule": goal_rule},
         "model_domain": {"model": model, "v_min": v_min, "v_max": v_max, "a_max": a_max},
+        "initial_error": None if cfg.initial_error is None else dict(zip(("position", "heading", "speed"),
+                                                                          map(float, cfg.initial_error))),
         "map": {"area": list(area), "cell_size": cell, "shape": [n_slices, nx, ny], "memory_bytes": memory,
                 "region": region_rule},
         "road": road_notes,

@@ -24,7 +24,7 @@ from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from ..systems.registry import make_system
 
-__all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON"]
+__all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON", "initial_error_box"]
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +115,22 @@ class PlanningConfig:
         return PiecewiseConstantInputs(n, float(self.segment_duration), float(self.dt), float(self.plan_dt))
 
 
+def initial_error_box(scene: Scene, system: System) -> tuple[float, ...]:
+    """Half-widths (``system.nx``) of the initial-error box of a plan on ``scene``: the system's XE0 box
+    (``system.initial_error_max``), with the position, heading and speed entries replaced by the scene's measurement
+    errors ``scene.meta["initial_error"]`` (``{"position", "heading", "speed"}``) where the scene gives them (e.g.
+    CommonRoad scenes, ``commonroad.initial_error``)."""
+    box = list(system.initial_error_max)
+    given = (scene.meta or {}).get("initial_error") if isinstance(getattr(scene, "meta", None), dict) else None
+    if given:
+        for i in system.position_indices:
+            box[i] = float(given["position"])
+        for index, key in ((system.heading_index, "heading"), (system.speed_index, "speed")):
+            if index is not None:
+                box[index] = float(given[key])
+    return tuple(box)
+
+
 @dataclass
 class PlanningProblem:
     """Everything a planner needs.
@@ -167,14 +183,15 @@ class PlanningProblem:
         risk: RiskConfig | None = None,
         planning: PlanningConfig | None = None,
     ) -> PlanningProblem:
-        """The paper's default problem: its 5-component Gaussian mixture on the system's XE0 box
-        (``system.initial_error_max``) around the scene start (``system.state_from_pose(*scene.start)``), drawn
-        with ``seed``. The horizon comes from ``parameterization`` if given, else from ``planning`` (default
-        :class:`PlanningConfig`: the scene's suggestion or 10 s)."""
+        """The paper's default problem: its 5-component Gaussian mixture on the initial-error box
+        (:func:`initial_error_box`: the system's XE0 box, with the scene's own position / heading / speed errors where
+        it gives them) around the scene start (``system.state_from_pose(*scene.start)``), drawn with ``seed``. The
+        horizon comes from ``parameterization`` if given, else from ``planning`` (default :class:`PlanningConfig`:
+        the scene's suggestion or 10 s)."""
         check_seed("seed", seed)
         system = system or make_system()
         start = system.state_from_pose(*scene.start)
-        dist = paper_gaussian_mixture(start, system.initial_error_max, torch.Generator().manual_seed(seed))
+        dist = paper_gaussian_mixture(start, initial_error_box(scene, system), torch.Generator().manual_seed(seed))
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
         return cls(scene, dist, system, parameterization, risk or RiskConfig())
