@@ -23,6 +23,7 @@ from density_planner.density.network import (
     load_density_model,
     outputs_to_errors,
     save_density_model,
+    system_layout,
     to_reference_frame,
 )
 from density_planner.density.registry import PREDICTOR_CHOICES, load_learned_predictor, load_predictor
@@ -78,8 +79,9 @@ def test_frames_round_trip():
     xe[..., 4] = xe[:, :1, 4]
     lr = torch.randn(4, 101, generator=g, dtype=torch.float64)
     heading = torch.randn(4, 101, generator=g, dtype=torch.float64)
-    y = errors_to_outputs(xe, lr, heading)
-    xe2, lr2 = outputs_to_errors(y, xe[:, 0], heading)
+    car = system_layout("car")
+    y = errors_to_outputs(xe, lr, heading, car)
+    xe2, lr2 = outputs_to_errors(y, xe[:, 0], heading, car)
     torch.testing.assert_close(xe2, xe)
     torch.testing.assert_close(lr2, lr)
 
@@ -101,7 +103,7 @@ def test_normalisation_round_trip(tiny_data):
     assert float((std - 1).abs().max()) < 0.05
     # round trip: baseline + scale * z reproduces the learned outputs in physical units
     y = net.baseline(s, r, net.base_weight[1:], net.base_bias[1:]) + net.out_scale[1:] * z
-    truth = errors_to_outputs(train.xe, train.log_ratio, train.x_ref_heading)[:, 1:]
+    truth = errors_to_outputs(train.xe, train.log_ratio, train.x_ref_heading, net.layout)[:, 1:]
     torch.testing.assert_close(y, truth, rtol=1e-4, atol=1e-3)
     # an untrained network (zero last layer) predicts the linear baseline: its training error is the
     # residual standard deviation stored as out_scale

@@ -26,6 +26,28 @@ def _set_threads(n: int | None) -> None:
         torch.set_num_threads(n)
 
 
+def _system_flags(p: argparse.ArgumentParser) -> None:
+    """``--system`` and ``--models``: which model set (a registered system in a domain, with its controllers and
+    density weights) the command is about."""
+    from ..systems.registry import system_names
+
+    p.add_argument("--system", default=None, metavar="NAME",
+                   help=f"dynamics: {', '.join(system_names())} (default car; with --models unset, the system's first "
+                        "model set: paper for the car, ks for the kinematic single-track model)")
+    p.add_argument("--models", default=None, metavar="SET",
+                   help="model set: paper or road for the car, ks for the kinematic single-track model (default: "
+                        "from --system)")
+
+
+def _model_set(args: argparse.Namespace, fallback: str | None = None):
+    """The model set named by ``--models`` / ``--system`` (``fallback``: the set when neither is given)."""
+    from ..control.registry import model_set, model_set_for_scene
+
+    if args.models is None and args.system is None:
+        return model_set(fallback)
+    return model_set_for_scene(None, override=args.models, system=args.system)
+
+
 def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     data = group(sub, groups, "data")
     p = data.add_parser(
@@ -45,7 +67,10 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help=f"initial errors per reference (default {dd.samples})")
     p.add_argument("--seed", type=int, default=None, help=f"seed (default {dd.seed})")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
-                   help=f"tracking controller: c3m, analytic or a C3M weights file (default {dd.controller})")
+                   help=f"tracking controller: for the car c3m, analytic or a C3M weights file (default "
+                        f"{dd.controller}), for another system one of its own (default: its model set's, analytic "
+                        "for ks)")
+    _system_flags(p)
     p.add_argument("--workers", type=int, default=None, help="local worker processes (default: number of cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:8786) to run the shards on a cluster")
@@ -88,13 +113,12 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
         "Writes DIR/density_report.json, DIR/density_errors.png and DIR/density_heatmaps.png (network vs exact "
         "at t = 0.5, 4, 10 s).",
     )
-    p.add_argument("--density", default="trajectory,pointwise", metavar="NAME|FILE[,...]",
+    p.add_argument("--density", default=None, metavar="NAME|FILE[,...]",
                    help="learned predictor(s), comma-separated: trajectory, pointwise, learned or weights files "
-                        "(default: trajectory,pointwise)")
+                        "(default: the model set's shipped ones, trajectory,pointwise for the car)")
     p.add_argument("--controller", default=None, metavar="NAME|FILE",
                    help="tracking controller (default: the one the predictor was trained for, c3m)")
-    p.add_argument("--models", default=None, metavar="SET",
-                   help="model set whose shipped predictors and controller the names mean: paper (default) or road")
+    _system_flags(p)
     p.add_argument("--references", type=int, default=200, help="fresh references (default 200)")
     p.add_argument("--samples", type=int, default=100, help="initial errors per reference (default 100)")
     p.add_argument("--seed", type=int, default=1_000_003, help="seed of the fresh references (default 1000003)")
@@ -113,6 +137,8 @@ def run_data(args: argparse.Namespace) -> int:
     config = load_config(DensityDataConfig, args.config, args.overrides)
     changes = {k: v for k, v in (("references", args.references), ("samples", args.samples), ("seed", args.seed),
                                  ("controller", args.controller)) if v is not None}
+    if args.system is not None or args.models is not None:
+        changes["domain"] = _model_set(args).name
     if changes:
         config = update(config, changes)
     out = out_dir(args.out)
@@ -190,7 +216,8 @@ def run_train(args: argparse.Namespace) -> int:
         "commands": {
             "data": manifest.get("command"),
             "train": _command(args),
-            "validate": "density-planner validate density --out results/density_validation",
+            "validate": "density-planner validate density --out results/density_validation"
+                        + ("" if data_cfg.get("domain", "paper") == "paper" else f" --models {data_cfg['domain']}"),
         },
     }
     name = f"density_{config.arch}"
@@ -210,17 +237,16 @@ def run_train(args: argparse.Namespace) -> int:
 
 def _fresh_validation(model, manifest: dict, *, n_references: int, samples: int, seed: int) -> dict:
     """Compact accuracy summary of ``model`` on fresh references (per-time curves left out)."""
-    from ..control.registry import load_controller
+    from ..control.registry import load_controller, model_set
     from ..density.liouville import ExactLiouville
     from ..density.network import LearnedDensity
     from ..density.validation import compare_with_exact, fresh_references
-    from ..systems.car import KinematicCar, car_domain
 
     domain = manifest["config"].get("domain", "paper")
-    car = KinematicCar(car_domain(domain))
+    system = model_set(domain).make_system()
     controller = load_controller(manifest["config"]["controller"], models=domain)
     ref, x0 = fresh_references(n_references, samples, seed, domain=domain)
-    cmp = compare_with_exact(LearnedDensity(model), ExactLiouville(car, controller), ref, x0)
+    cmp = compare_with_exact(LearnedDensity(model), ExactLiouville(system, controller), ref, x0)
     s = cmp.summary()
     for key in ("position_error_m", "log_density_abs_error", "log_density_relative_abs_error"):
         s[key] = {"overall": s[key]["overall"], "final_time": {q: s[key]["per_time"][q][-1]
@@ -237,21 +263,26 @@ def run_validate(args: argparse.Namespace) -> int:
     from ..density.registry import load_learned_predictor
     from ..density.validation import compare_with_exact, fresh_references
     from ..io.atomic import atomic_write_json
-    from ..systems.car import KinematicCar
     from ..viz.density import plot_density_errors, plot_density_heatmaps
 
     _set_threads(args.threads)
     if args.references < 1 or args.samples < 1 or args.figure_samples < 1:
         raise ValueError("--references, --samples and --figure-samples must be >= 1")
     out = out_dir(args.out)
-    from ..control.registry import model_set
+    mset = _model_set(args)
+    system = mset.make_system()
+    if args.density is None:
+        from ..density.network import ARCHITECTURES, shipped_density_path
 
-    mset = model_set(args.models)
-    car = KinematicCar(mset.car)
-    specs = [s.strip() for s in str(args.density).split(",") if s.strip()]
+        specs = [a for a in ARCHITECTURES if shipped_density_path(a, mset.name).is_file()]
+        if not specs:
+            raise ValueError(f"the package ships no learned density predictor for the model set {mset.name!r}; name "
+                             "one with --density FILE.pt")
+    else:
+        specs = [s.strip() for s in str(args.density).split(",") if s.strip()]
     predictors = {}
     for spec in specs:
-        pred = load_learned_predictor(spec, models=mset.name)
+        pred = load_learned_predictor(spec, models=mset.name, system=system)
         name = pred.name if spec in ("trajectory", "pointwise", "learned") else Path(spec).stem
         if name in predictors:
             name = f"{name} ({spec})"
@@ -259,11 +290,11 @@ def run_validate(args: argparse.Namespace) -> int:
     first = next(iter(predictors.values()))
     ctrl_spec = args.controller or (first.meta.get("controller") or {}).get("spec") or None
     controller = load_controller(ctrl_spec, models=mset.name)
-    predictors = {name: load_learned_predictor(spec, controller, models=mset.name)
+    predictors = {name: load_learned_predictor(spec, controller, models=mset.name, system=system)
                   for name, spec in zip(predictors, specs)}
-    exact = ExactLiouville(car, controller)
+    exact = ExactLiouville(system, controller)
 
-    ref, x0 = fresh_references(args.references, args.samples, args.seed, domain=mset.domain)
+    ref, x0 = fresh_references(args.references, args.samples, args.seed, domain=mset.name)
     report: dict = {"seed": args.seed, "controller": ctrl_spec, "models": mset.name,
                     "initial_errors": "uniform in the XE0 box",
                     "exact": {"integrator": exact.config.integrator, "dt": exact.config.dt},
@@ -282,7 +313,7 @@ def run_validate(args: argparse.Namespace) -> int:
                               f"{args.samples} samples")
 
     # the paper-style figure: one fresh reference, many samples
-    fig_ref, fig_x0 = fresh_references(1, args.figure_samples, args.seed + 1, domain=mset.domain)
+    fig_ref, fig_x0 = fresh_references(1, args.figure_samples, args.seed + 1, domain=mset.name)
     lr0 = torch.zeros(fig_x0.shape[:-1])
     clouds = {}
     with torch.no_grad():

@@ -14,7 +14,14 @@ from .distributions import (
 )
 from .integrators import EULER, RK4, FixedStepIntegrator, get_integrator
 from .liouville import ExactLiouville, LiouvilleConfig, propagate_density, simulate_closed_loop
-from .network import DensityNetArchitecture, DensityNetwork, LearnedDensity, load_density_model, save_density_model
+from .network import (
+    DensityLayout,
+    DensityNetArchitecture,
+    DensityNetwork,
+    LearnedDensity,
+    load_density_model,
+    save_density_model,
+)
 from .registry import DEFAULT_PREDICTOR, PREDICTOR_CHOICES, load_learned_predictor, load_predictor
 from .train import DensityTrainConfig, DensityTrainResult, train_density
 from .validation import DensityComparison, compare_with_exact, fresh_references
@@ -40,6 +47,7 @@ __all__ = [
     "simulate_closed_loop",
     "DensityDataConfig",
     "DensityData",
+    "DensityLayout",
     "generate_density_data",
     "load_density_data",
     "DensityNetArchitecture",

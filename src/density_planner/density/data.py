@@ -1,22 +1,29 @@
 """Training data for the learned density predictors: exact Liouville propagation along random references.
 
-Every *shard* holds ``B`` random feasible references (parameters ``clamp(2 N(0, 1), -3, 3)``, starts uniform in
-the reference-start box, references leaving the state box rejected; :func:`~density_planner.control.sampling.
-sample_feasible_references`) and ``N`` initial errors per reference, uniform in the XE0 box including the heading
-bias (:func:`~density_planner.control.sampling.sample_initial_errors`). All ``B x N`` closed loops of a shard are
+The data belong to one *model set* (``DensityDataConfig.domain``: a registered system in one of its domains with
+its tracking controllers, :mod:`density_planner.control.registry`): the car's ``paper`` and ``road`` sets, the
+kinematic single-track model's ``ks``. Everything system-specific comes from the set's
+:class:`~density_planner.systems.base.System`: the state dimension ``nx``, the reference-start box, the XE0 box
+(``initial_error_max``), the heading.
+
+Every *shard* holds ``B`` random feasible references (parameters ``clamp(param_scale N(0, 1))`` to the input box,
+starts uniform in the reference-start box, references leaving the state box rejected;
+:func:`~density_planner.control.sampling.sample_feasible_references`) and ``N`` initial errors per reference,
+uniform in the XE0 box including hidden states such as the car's heading bias
+(:func:`~density_planner.control.sampling.sample_initial_errors`). All ``B x N`` closed loops of a shard are
 propagated together by :func:`~density_planner.density.liouville.propagate_density` (``x0`` of shape
-``(B, N, 5)``), so a shard costs one batched integration, not ``B`` separate ones.
+``(B, N, nx)``), so a shard costs one batched integration, not ``B`` separate ones.
 
 A shard file ``shard_NNNNN.pt`` (``torch.save`` of plain tensors, read with ``weights_only=True``) stores, in
 float32::
 
-    xe0        (B, N, 5)       initial error x0 - x_ref(0) [m, m, rad, m/s, rad] (last entry: heading bias)
-    ref_start  (B, 5)          reference start x_ref(0)
+    xe0        (B, N, nx)      initial error x0 - x_ref(0) (the car: m, m, rad, m/s, rad; last entry heading bias)
+    ref_start  (B, nx)         reference start x_ref(0)
     params     (B, nu, S)      reference parameters (piecewise-constant inputs)
     t          (T,)            output times [s] (the 0.1-s planning grid, T = 101)
-    xe         (B, N, T, 5)    error trajectory x(t) - x_ref(t)
+    xe         (B, N, T, nx)   error trajectory x(t) - x_ref(t)
     log_ratio  (B, N, T)       log rho(x(t), t) - log rho0(x0) = -int_0^t div f_cl   (paper Eq. (2))
-    x_ref      (B, T, 5)       reference on the planning grid (for figures and checks)
+    x_ref      (B, T, nx)      reference on the planning grid (for figures and checks)
 
 Shards are written atomically, one task per shard, through :func:`~density_planner.parallel.run_tasks` (joblib
 processes locally, a Dask scheduler for a cluster). Shard ``i`` draws from a generator seeded by ``(seed, i)``,
@@ -33,7 +40,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
 
@@ -82,23 +89,31 @@ class DensityDataConfig:
     validation_fraction: float = 0.05
     #: seed; shard ``i`` uses a generator seeded from ``(seed, i)``
     seed: int = 0
-    #: tracking controller: ``"c3m"`` (shipped weights of the model set ``domain``), ``"analytic"`` or a C3M
-    #: weights file
+    #: tracking controller: a name registered for the model set's system (the car: ``"c3m"``, the shipped weights
+    #: of the set, or ``"analytic"``; KS: ``"analytic"``), ``"auto"`` (the set's default) or a C3M weights file.
+    #: The default ``"c3m"`` means the set's default controller for a set of another system (written out)
     controller: str = "c3m"
-    #: car domain and model set (``"paper"`` or ``"road"``): the car's boxes and the controller behind "c3m"
+    #: model set (``density-planner data density --system/--models``): the car's ``"paper"`` or ``"road"``, the
+    #: kinematic single-track model's ``"ks"``; its system gives the state layout and boxes, its controllers the
+    #: closed loop
     domain: str = "paper"
-    #: reference parameters are ``clamp(param_scale N(0, 1))`` to the input bounds
-    param_scale: float = 2.0
-    #: lower corner of the reference-start box ``(p_x, p_y, theta, v, bias)``; ``None``: the car's box of
-    #: ``docs/spec.md`` §5 ([-12, 12] x [-30, 10] m, theta in [0, 2 pi], v in [1, 8] m/s, bias 0). The default
-    #: widens heading and speed to the starts the planner meets (random scenes start with theta in
-    #: [-2.1, -0.5] rad and v up to 9 m/s; the controller is not 2 pi-periodic in theta).
-    start_low: tuple[float, float, float, float, float] | None = (-12.0, -30.0, 0.0, 1.0, 0.0)
-    #: upper corner of the reference-start box; ``None``: the car's box
-    start_high: tuple[float, float, float, float, float] | None = (12.0, 10.0, 2 * math.pi, 9.0, 0.0)
-    #: initial errors are uniform in ``error_scale * XE0`` (XE0 = +-(1 m, 1 m, 0.5 rad, 0.5 m/s, pi/16 rad)). The
-    #: default 1.2 covers the offset of the planner's reference start (the mean of the initial law) from the centre
-    #: of the XE0 box its samples are drawn in (below 20 % of the half-widths for 95 % of the paper's mixtures)
+    #: reference parameters are ``clamp(param_scale N(0, 1))`` to the input bounds (one number or one per input).
+    #: The default 2 is the paper's; for a system whose configuration names its own reference input scale (KS:
+    #: ``reference_input_scale``, steering rates of 0.1 rad/s) it means that one (written out)
+    param_scale: float | tuple[float, ...] = 2.0
+    #: lower corner of the reference-start box (``nx`` entries; the car: ``(p_x, p_y, theta, v, bias)``);
+    #: ``None``: the system's reference-start box (the car's of ``docs/spec.md`` §5: [-12, 12] x [-30, 10] m, theta
+    #: in [0, 2 pi], v in [1, 8] m/s, bias 0). The default widens the paper set's heading and speed to the starts
+    #: the planner meets (random scenes start with theta in [-2.1, -0.5] rad and v up to 9 m/s; the controller is
+    #: not 2 pi-periodic in theta); for any other model set it means the system's reference-start box (written
+    #: out, so the data's configuration records the box)
+    start_low: tuple[float, ...] | None = (-12.0, -30.0, 0.0, 1.0, 0.0)
+    #: upper corner of the reference-start box; ``None``: the system's box (default: as for ``start_low``)
+    start_high: tuple[float, ...] | None = (12.0, 10.0, 2 * math.pi, 9.0, 0.0)
+    #: initial errors are uniform in ``error_scale * XE0`` (the system's ``initial_error_max``; the car's
+    #: +-(1 m, 1 m, 0.5 rad, 0.5 m/s, pi/16 rad)). The default 1.2 covers the offset of the planner's reference start
+    #: (the mean of the initial law) from the centre of the XE0 box its samples are drawn in (below 20 % of the
+    #: half-widths for 95 % of the paper's mixtures)
     error_scale: float = 1.2
     #: numerics of the exact propagation (default RK4 at 0.1 s, validated against fine solutions)
     liouville: LiouvilleConfig = field(default_factory=LiouvilleConfig)
@@ -121,16 +136,45 @@ class DensityDataConfig:
                 f"{self.references} references in shards of {self.references_per_shard} give one shard; a "
                 "validation split needs at least two (lower references_per_shard or set validation_fraction = 0)"
             )
-        if not self.param_scale > 0:
-            raise ValueError(f"param_scale must be > 0, got {self.param_scale!r}")
+        scales = self.param_scale if isinstance(self.param_scale, tuple) else (self.param_scale,)
+        if not scales or not all(v > 0 for v in scales):
+            raise ValueError(f"param_scale must be > 0 (one number or one per input), got {self.param_scale!r}")
         if not self.error_scale > 0:
             raise ValueError(f"error_scale must be > 0, got {self.error_scale!r}")
-        for name in ("start_low", "start_high"):
-            v = getattr(self, name)
-            if v is not None and len(v) != 5:
-                raise ValueError(f"{name} must have 5 entries (p_x, p_y, theta, v, bias), got {v!r}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        mset = self.model_set()
+        system = mset.make_system()
+        defaults = {f.name: f.default for f in fields(self)}
+        if mset.name != "paper":  # the class defaults are the paper set's; other sets: their system's box
+            cfg = getattr(system, "config", None)
+            for name, attr in (("start_low", "reference_start_min"), ("start_high", "reference_start_max")):
+                box = getattr(cfg, attr, None)
+                if getattr(self, name) == defaults[name]:
+                    object.__setattr__(self, name, None if box is None else tuple(float(v) for v in box))
+        if mset.system != "car" and self.controller == defaults["controller"]:
+            object.__setattr__(self, "controller", mset.default_controller)
+        own_scale = getattr(getattr(system, "config", None), "reference_input_scale", None)
+        if own_scale is not None and self.param_scale == defaults["param_scale"]:
+            object.__setattr__(self, "param_scale", tuple(float(v) for v in own_scale))
+        if isinstance(self.param_scale, tuple) and len(self.param_scale) not in (1, system.nu):
+            raise ValueError(f"param_scale must be one number or {system.nu} (one per input), got {self.param_scale!r}")
+        names = ", ".join(system.state_names)
+        for name in ("start_low", "start_high"):
+            v = getattr(self, name)
+            if v is not None and len(v) != system.nx:
+                raise ValueError(f"{name} must have {system.nx} entries ({names}) for the model set "
+                                 f"{self.domain!r}, got {v!r}")
+
+    def model_set(self):
+        """The :class:`~density_planner.control.registry.ModelSet` named by :attr:`domain`."""
+        from ..control.registry import model_set
+
+        return model_set(self.domain)
+
+    def make_system(self):
+        """The model set's system (state layout, boxes, XE0)."""
+        return self.model_set().make_system()
 
     @property
     def n_shards(self) -> int:
@@ -177,21 +221,20 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
     ``controller`` overrides ``config.controller`` (for tests); by default it is loaded from its name.
     """
     from ..control.sampling import sample_feasible_references, sample_initial_errors
-    from ..systems.car import KinematicCar, car_domain
     from .liouville import propagate_density
 
     if not 0 <= index < config.n_shards:
         raise ValueError(f"shard index {index} out of range [0, {config.n_shards})")
     dtype = torch.float64 if config.dtype == "float64" else torch.float32
-    car = KinematicCar(car_domain(config.domain))
+    system = config.make_system()
     controller = (controller.to(dtype) if controller is not None
                   else _controller(config.controller, dtype, config.domain))
     gen = torch.Generator().manual_seed(shard_seed(config.seed, index))
     b, n = config.shard_references(index), config.samples
-    ref = sample_feasible_references(car, b, gen, param_scale=config.param_scale, start_low=config.start_low,
+    ref = sample_feasible_references(system, b, gen, param_scale=config.param_scale, start_low=config.start_low,
                                      start_high=config.start_high, dtype=dtype)
-    box = [config.error_scale * v for v in car.config.initial_error_max]
-    xe0 = sample_initial_errors(b * n, gen, box=box, dtype=dtype).reshape(b, n, car.nx)
+    box = [config.error_scale * v for v in system.initial_error_max]
+    xe0 = sample_initial_errors(b * n, gen, box=box, dtype=dtype).reshape(b, n, system.nx)
     x0 = ref.start.unsqueeze(-2) + xe0
     device = torch.device(config.device)
     if device.type != "cpu":
@@ -200,7 +243,7 @@ def generate_shard(config: DensityDataConfig, index: int, controller=None) -> di
         ref = Reference(ref.params.to(device), ref.x.to(device), ref.u.to(device), ref.parameterization)
         x0, xe0, controller = x0.to(device), xe0.to(device), controller.to(device)
     with torch.no_grad():
-        traj = propagate_density(car, controller, x0, ref, config=config.liouville)
+        traj = propagate_density(system, controller, x0, ref, config=config.liouville)
     x_ref = ref.x_plan
     if traj.x.shape[-2] != x_ref.shape[-2]:
         raise ValueError(
@@ -250,7 +293,7 @@ def _shard_complete(path: Path, config: DensityDataConfig, index: int) -> bool:
     return (
         data.get("index") == index
         and data.get("config_key") == _config_key(config)
-        and tuple(data["xe0"].shape) == (b, n, 5)
+        and tuple(data["xe0"].shape) == (b, n, config.make_system().nx)
         and data["xe"].shape[:2] == (b, n)
     )
 
@@ -407,14 +450,16 @@ class DensityData:
     """Closed-loop trajectories of one split, flattened to one row per trajectory.
 
     Attributes:
-        xe0: ``(M, 5)`` initial errors.
-        ref_start: ``(M, 5)`` reference starts.
+        xe0: ``(M, nx)`` initial errors.
+        ref_start: ``(M, nx)`` reference starts.
         params: ``(M, nu, S)`` reference parameters.
         t: ``(T,)`` times [s].
-        xe: ``(M, T, 5)`` error trajectories.
+        xe: ``(M, T, nx)`` error trajectories.
         log_ratio: ``(M, T)`` log-density ratios ``log rho(t) - log rho0``.
-        x_ref_heading: ``(M, T)`` heading of the reference on the time grid [rad].
+        x_ref_heading: ``(M, T)`` heading of the reference on the time grid [rad] (zeros without heading).
         reference_id: ``(M,)`` global index of the reference of every row.
+        system: the registered system of the states (its layout: :class:`~density_planner.density.network.
+            DensityLayout`).
     """
 
     xe0: Tensor
@@ -425,6 +470,7 @@ class DensityData:
     log_ratio: Tensor
     x_ref_heading: Tensor
     reference_id: Tensor
+    system: str = "car"
 
     def __len__(self) -> int:
         return int(self.xe0.shape[0])
@@ -435,10 +481,16 @@ class DensityData:
 
     def subset(self, index: Tensor | slice) -> DensityData:
         return DensityData(self.xe0[index], self.ref_start[index], self.params[index], self.t, self.xe[index],
-                           self.log_ratio[index], self.x_ref_heading[index], self.reference_id[index])
+                           self.log_ratio[index], self.x_ref_heading[index], self.reference_id[index], self.system)
 
     @classmethod
-    def from_shards(cls, shards: Sequence[dict[str, Tensor]], first_reference: Sequence[int]) -> DensityData:
+    def from_shards(cls, shards: Sequence[dict[str, Tensor]], first_reference: Sequence[int],
+                    system: str = "car") -> DensityData:
+        """Rows of ``shards`` (their first references' global indices ``first_reference``) of the registered
+        ``system``."""
+        from .network import system_layout
+
+        heading = system_layout(system).heading
         parts: dict[str, list[Tensor]] = {k: [] for k in ("xe0", "ref_start", "params", "xe", "log_ratio", "head",
                                                        "rid")}
         t = None
@@ -454,13 +506,15 @@ class DensityData:
                                    .reshape(b * n, *data["params"].shape[1:]))
             parts["xe"].append(data["xe"].reshape(b * n, *data["xe"].shape[2:]))
             parts["log_ratio"].append(data["log_ratio"].reshape(b * n, -1))
-            parts["head"].append(data["x_ref"][..., 2].unsqueeze(1).expand(b, n, -1).reshape(b * n, -1))
+            x_ref = data["x_ref"]
+            head = x_ref.new_zeros(x_ref.shape[:-1]) if heading is None else x_ref[..., heading]
+            parts["head"].append(head.unsqueeze(1).expand(b, n, -1).reshape(b * n, -1))
             parts["rid"].append((r0 + torch.arange(b)).repeat_interleave(n))
         if t is None:
             raise DataError("no shards to load")
         return cls(torch.cat(parts["xe0"]), torch.cat(parts["ref_start"]), torch.cat(parts["params"]), t,
                    torch.cat(parts["xe"]), torch.cat(parts["log_ratio"]), torch.cat(parts["head"]),
-                   torch.cat(parts["rid"]))
+                   torch.cat(parts["rid"]), system)
 
 
 def load_density_data(data_dir: str | Path, split: Literal["train", "val", "all"] = "train",
@@ -490,4 +544,10 @@ def load_density_data(data_dir: str | Path, split: Literal["train", "val", "all"
         n_refs += s["references"]
     if not shards:
         raise DataError(f"{data_dir}: no shards of split {split!r}")
-    return DensityData.from_shards(shards, firsts)
+    from ..control.registry import model_set
+
+    try:
+        system = model_set(manifest["config"].get("domain", "paper")).system
+    except ValueError as exc:
+        raise DataError(f"{data_dir}: {exc}") from exc
+    return DensityData.from_shards(shards, firsts, system)

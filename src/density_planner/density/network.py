@@ -3,29 +3,38 @@
 Both architectures predict, for an initial error ``xe0 = x0 - x_ref(0)``, a reference start and the reference
 parameters ``p``, the closed-loop error ``xe(t) = x(t) - x_ref(t)`` and the log-density ratio
 ``L(t) = log rho(x(t), t) - log rho0(x0) = -int_0^t div f_cl`` (paper Eq. (2)) on the planning grid
-``t_k = k dt``, ``k = 0..T-1`` (T = 101, dt = 0.1 s):
+``t_k = k dt``, ``k = 0..T-1`` (T = 101, dt = 0.1 s), for any registered system:
 
 * ``"pointwise"`` (the paper): an MLP (7 x 150, ReLU) of ``(xe0, reference start, t, p)`` that returns the
   outputs at one time ``t``; a trajectory needs ``T - 1`` evaluations per sample.
 * ``"trajectory"`` (ours, the paper's future work): an MLP of ``(xe0, reference start, p)`` that returns the whole
-  horizon, ``(T - 1) x 5`` outputs, in one evaluation per sample.
+  horizon, ``(T - 1) x n_out`` outputs (the car: 5), in one evaluation per sample.
+
+Layout. The networks read a system's state through its own facts (:class:`DensityLayout`, built from the
+:class:`~density_planner.systems.base.System` named by the architecture's ``system``): the planar position
+(``position_indices``), the heading (``heading_index``) and the states a plan cannot know (``hidden_states``, the
+car's heading bias). Below, ``nx`` is the state dimension; for the car (``px, py, theta, v, bias``) the features
+and outputs are exactly those of the paper's set-up, for CommonRoad's kinematic single-track model (``px, py,
+delta, v, psi``) the steering angle joins the speed.
 
 Frames. Position errors are expressed in the frame of the reference at the same time, ``(e_long, e_lat) =
 R(theta_ref(t))^T (p - p_ref(t))``, both for the initial error (frame of the reference start) and for the outputs
 (rotated back with the exactly known reference heading ``theta_ref(t)``). The rotation of the world-frame error
-with the reference heading is then no longer something the network has to learn.
+with the reference heading is then no longer something the network has to learn (a system without heading keeps
+world axes).
 
-Inputs. The reference start enters through ``(cos theta_ref(0), sin theta_ref(0), v_ref(0))`` only: the closed
-loop is invariant to translations (the controller sees position *errors*; its gains are scheduled on heading and
-speed), so the start position carries no information, and leaving it out lets a predictor trained on the
-artificial map serve scenes with any coordinates; the heading enters periodically. The features
-``(xe0 [5], cos, sin, v, p [nu * S])`` are standardised with the mean and standard deviation of the training data
-(buffers ``in_mean``, ``in_std``; the pointwise net also gets ``(t - t_mid) / t_half``).
+Inputs. The reference start enters through ``(cos theta_ref(0), sin theta_ref(0))`` and its other known states
+(the car: ``v_ref(0)``; KS: ``delta_ref(0), v_ref(0)``), never its position: the closed loop is invariant to
+translations (the controller sees position *errors*; its gains are scheduled on heading and speed), so the start
+position carries no information, and leaving it out lets a predictor trained on the artificial map serve scenes
+with any coordinates; the heading enters periodically. The features ``(xe0 [nx], cos, sin, other start states,
+p [nu * S])`` are standardised with the mean and standard deviation of the training data (buffers ``in_mean``,
+``in_std``; the pointwise net also gets ``(t - t_mid) / t_half``).
 
-Outputs. Known parts are not learned: at ``t = 0`` the output is exactly ``(xe0, 0)``, and the heading-bias
-component of the error is constant (the bias does not change and the reference has none). The four other error
-components (``e_long, e_lat, e_theta, e_v``) and ``L`` are predicted as a per-time linear baseline plus a scaled
-network residual::
+Outputs. Known parts are not learned: at ``t = 0`` the output is exactly ``(xe0, 0)``, and the errors of the
+hidden states are constant (a bias does not change and the reference has none). The other error components (the
+car: ``e_long, e_lat, e_theta, e_v``; KS: ``e_long, e_lat, e_delta, e_v, e_psi``) and ``L`` are predicted as a
+per-time linear baseline plus a scaled network residual::
 
     y_k = A_k f + b_k + s_k * net(f)_k          (per output channel)
 
@@ -43,6 +52,7 @@ and start (the planner's second stage backpropagates through it).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import math
@@ -57,12 +67,13 @@ from torch import Tensor, nn
 
 from ..control.reference import Reference
 from ..errors import CheckpointError, DomainError
-from ..systems.car import BIAS, THETA, V
+from ..systems.base import System
 from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 
 __all__ = [
     "ARCHITECTURES",
     "DENSITY_KIND",
+    "DensityLayout",
     "DensityNetArchitecture",
     "DensityNetwork",
     "LearnedDensity",
@@ -78,14 +89,67 @@ Arch = Literal["pointwise", "trajectory"]
 ARCHITECTURES: tuple[str, ...] = ("trajectory", "pointwise")
 #: ``kind`` entry of the weights' JSON metadata
 DENSITY_KIND = "density_predictor"
-#: error components predicted by the network (p_x, p_y, theta, v); the bias error (the last one) is constant
-LEARNED_ERR = (0, 1, 2, 3)
-assert BIAS == len(LEARNED_ERR), "the heading bias must be the last state component"
-N_ERR = 5
-#: outputs per time step: four error components and the log-density ratio
-N_OUT = len(LEARNED_ERR) + 1
-#: reference-start features: cos and sin of the heading, speed
-N_REF_START = 3
+
+
+@dataclass(frozen=True)
+class DensityLayout:
+    """Where a learned predictor finds its inputs and outputs in a system's state: the system's own facts
+    (:meth:`of`), never indices of one vehicle model."""
+
+    #: state dimension
+    nx: int
+    #: indices of the planar position (rotated into the reference's frame)
+    position: tuple[int, int]
+    #: index of the heading (``None``: no heading; world axes, no heading features)
+    heading: int | None
+    #: states a plan cannot know (constant error, not learned, not a reference feature)
+    hidden: tuple[int, ...]
+    #: index of the speed (``None``: none); the training domain is a range of reference start speeds
+    speed: int | None = None
+
+    @classmethod
+    def of(cls, system: System) -> DensityLayout:
+        return cls(system.nx, (int(system.position_indices[0]), int(system.position_indices[1])),
+                   system.heading_index, tuple(system.hidden_states), system.speed_index)
+
+    @property
+    def rest(self) -> tuple[int, ...]:
+        """The non-position states, in state order: the sample features after ``(e_long, e_lat)``."""
+        return tuple(i for i in range(self.nx) if i not in self.position)
+
+    @property
+    def learned(self) -> tuple[int, ...]:
+        """Non-position states whose errors the network predicts (all but the hidden ones), in state order."""
+        return tuple(i for i in self.rest if i not in self.hidden)
+
+    @property
+    def reference_states(self) -> tuple[int, ...]:
+        """States of the reference start that enter as features besides the heading's cos / sin."""
+        return tuple(i for i in self.learned if i != self.heading)
+
+    @property
+    def n_learned(self) -> int:
+        """Error channels per time step: ``(e_long, e_lat)`` and :attr:`learned`."""
+        return 2 + len(self.learned)
+
+    @property
+    def n_out(self) -> int:
+        """Outputs per time step: the error channels and the log-density ratio (the last one)."""
+        return self.n_learned + 1
+
+    @property
+    def n_reference_start(self) -> int:
+        """Reference-start features: cos and sin of the heading (if any) and :attr:`reference_states`."""
+        return (0 if self.heading is None else 2) + len(self.reference_states)
+
+
+@functools.cache
+def system_layout(name: str) -> DensityLayout:
+    """The :class:`DensityLayout` of the registered system ``name``."""
+    from ..systems.registry import make_system
+
+    return DensityLayout.of(make_system(name))
+
 
 _ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh}
 
@@ -109,6 +173,9 @@ class DensityNetArchitecture:
     #: reference inputs (channels) and segments per channel: the parameter vector has nu * n_segments entries
     nu: int = 2
     n_segments: int = 10
+    #: registered system whose states the network reads and predicts (:class:`DensityLayout`); weights written
+    #: before other systems existed are the car's
+    system: str = "car"
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHITECTURES:
@@ -123,6 +190,7 @@ class DensityNetArchitecture:
             raise ValueError(f"n_times must be >= 2, got {self.n_times}")
         if not (math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt must be > 0, got {self.dt!r}")
+        self.layout  # noqa: B018 - an unknown system fails here, with the valid choices
 
     @classmethod
     def default(cls, arch: Arch) -> DensityNetArchitecture:
@@ -132,12 +200,21 @@ class DensityNetArchitecture:
         return cls(arch=arch)
 
     @property
+    def layout(self) -> DensityLayout:
+        return system_layout(self.system)
+
+    @property
+    def n_out(self) -> int:
+        """Outputs per time step (error channels and the log-density ratio)."""
+        return self.layout.n_out
+
+    @property
     def n_sample_features(self) -> int:
-        return N_ERR
+        return self.layout.nx
 
     @property
     def n_reference_features(self) -> int:
-        return N_REF_START + self.nu * self.n_segments
+        return self.layout.n_reference_start + self.nu * self.n_segments
 
     @property
     def n_features(self) -> int:
@@ -170,8 +247,9 @@ class DensityNetwork(nn.Module):
     def __init__(self, architecture: DensityNetArchitecture):
         super().__init__()
         a = self.architecture = architecture
+        self.layout = a.layout
         n_in = a.n_features + (1 if a.arch == "pointwise" else 0)
-        n_out = N_OUT * (a.n_times - 1) if a.arch == "trajectory" else N_OUT
+        n_out = a.n_out * (a.n_times - 1) if a.arch == "trajectory" else a.n_out
         act = _ACTIVATIONS[a.activation]
         widths = [n_in] + [a.hidden] * a.layers
         self.first = nn.Linear(n_in, a.hidden)
@@ -185,21 +263,21 @@ class DensityNetwork(nn.Module):
         f, t = a.n_features, a.n_times
         self.register_buffer("in_mean", torch.zeros(f))
         self.register_buffer("in_std", torch.ones(f))
-        self.register_buffer("base_weight", torch.zeros(t, f, N_OUT))
-        self.register_buffer("base_bias", torch.zeros(t, N_OUT))
-        self.register_buffer("out_scale", torch.ones(t, N_OUT))
+        self.register_buffer("base_weight", torch.zeros(t, f, a.n_out))
+        self.register_buffer("base_bias", torch.zeros(t, a.n_out))
+        self.register_buffer("out_scale", torch.ones(t, a.n_out))
 
     # ------------------------------------------------------------------------------------------- features
     def features(self, xe0: Tensor, ref_start: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-        """Standardised sample features ``s (..., 5)`` and reference features ``r (..., 3 + nu S)`` for rows with
-        one reference each (``xe0 (..., 5)``, ``ref_start (..., 5)``, ``params (..., nu, S)``)."""
+        """Standardised sample features ``s (..., nx)`` and reference features ``r (..., R)`` for rows with one
+        reference each (``xe0 (..., nx)``, ``ref_start (..., nx)``, ``params (..., nu, S)``)."""
         ns = self.architecture.n_sample_features
-        s = (sample_features(xe0, ref_start) - self.in_mean[:ns]) / self.in_std[:ns]
-        r = (reference_features(ref_start, params) - self.in_mean[ns:]) / self.in_std[ns:]
+        s = (sample_features(xe0, ref_start, self.layout) - self.in_mean[:ns]) / self.in_std[:ns]
+        r = (reference_features(ref_start, params, self.layout) - self.in_mean[ns:]) / self.in_std[ns:]
         return s, r
 
     def _sample_axis_features(self, xe0: Tensor, ref_start: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-        """Features for samples ``xe0 (*b, N, 5)`` of references ``(*b, 5)``: ``s (*b, N, 5)``, ``r (*b, 1, R)``."""
+        """Features for samples ``xe0 (*b, N, nx)`` of references ``(*b, nx)``: ``s (*b, N, nx)``, ``r (*b, 1, R)``."""
         s, r = self.features(xe0, ref_start.unsqueeze(-2), params.unsqueeze(-3))
         return s, r
 
@@ -209,7 +287,8 @@ class DensityNetwork(nn.Module):
 
     # --------------------------------------------------------------------------------------- normalisation
     def tables_at(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Baseline weight ``(K, F, 5)``, bias ``(K, 5)`` and scale ``(K, 5)`` at times ``t (K,)`` (linear in t)."""
+        """Baseline weight ``(K, F, O)``, bias ``(K, O)`` and scale ``(K, O)`` at times ``t (K,)`` (linear in t; ``O``
+        outputs per time)."""
         a = self.architecture
         pos = (t / a.dt).clamp(0, a.n_times - 1)
         lo = pos.floor().long().clamp(max=a.n_times - 2)
@@ -223,8 +302,8 @@ class DensityNetwork(nn.Module):
         return interp(self.base_weight), interp(self.base_bias), interp(self.out_scale)
 
     def baseline(self, s: Tensor, r: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
-        """``A f + b`` for features split into ``s (..., 5)`` and ``r (..., R)``: ``(..., K, 5)`` for tables of K
-        times (``weight (K, F, 5)``)."""
+        """``A f + b`` for features split into ``s (..., nx)`` and ``r (..., R)``: ``(..., K, O)`` for tables of K
+        times (``weight (K, F, O)``)."""
         ns = self.architecture.n_sample_features
         ys = torch.einsum("...f,kfo->...ko", s, weight[:, :ns])
         yr = torch.einsum("...f,kfo->...ko", r, weight[:, ns:])
@@ -235,15 +314,15 @@ class DensityNetwork(nn.Module):
         return self.last(self.body(first))
 
     def raw_trajectory(self, s: Tensor, r: Tensor) -> Tensor:
-        """Trajectory head: network output ``(..., T - 1, 5)`` (normalised residual) for broadcastable ``s, r``."""
+        """Trajectory head: network output ``(..., T - 1, O)`` (normalised residual) for broadcastable ``s, r``."""
         ns = self.architecture.n_sample_features
         w, b = self.first.weight, self.first.bias
         h = F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:], b)
         out = self._trunk(h)
-        return out.reshape(*out.shape[:-1], self.architecture.n_times - 1, N_OUT)
+        return out.reshape(*out.shape[:-1], self.architecture.n_times - 1, self.architecture.n_out)
 
     def raw_pointwise(self, s: Tensor, r: Tensor, t: Tensor) -> Tensor:
-        """Pointwise net: network output ``(..., 5)`` (normalised residual) at times ``t`` (broadcastable)."""
+        """Pointwise net: network output ``(..., O)`` (normalised residual) at times ``t`` (broadcastable)."""
         ns = self.architecture.n_sample_features
         nf = self.architecture.n_features
         w, b = self.first.weight, self.first.bias
@@ -251,33 +330,33 @@ class DensityNetwork(nn.Module):
         return self._trunk(h)
 
     def grid_outputs(self, s: Tensor, r: Tensor) -> Tensor:
-        """Outputs ``y (..., T - 1, 5)`` (reference frame) at ``t_1 .. t_{T-1}`` from standardised features.
+        """Outputs ``y (..., T - 1, O)`` (reference frame) at ``t_1 .. t_{T-1}`` from standardised features.
 
         The trajectory head folds the baseline and the output scale into one affine map of the last hidden layer
         and the features (three matrix products, no per-time element-wise work)."""
         a = self.architecture
-        t1 = a.n_times - 1
+        t1, n_out = a.n_times - 1, a.n_out
         if a.arch == "trajectory":
             ns = a.n_sample_features
             w, b = self.first.weight, self.first.bias
             h = self.body(F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:], b))
             scale = self.out_scale[1:].reshape(-1)
-            base = self.base_weight[1:].permute(0, 2, 1).reshape(t1 * N_OUT, -1)  # (T-1 * 5, F)
+            base = self.base_weight[1:].permute(0, 2, 1).reshape(t1 * n_out, -1)  # (T-1 * O, F)
             bias = scale * self.last.bias + self.base_bias[1:].reshape(-1)
             y = F.linear(h, scale.unsqueeze(-1) * self.last.weight, bias) + F.linear(s, base[:, :ns]) + F.linear(
                 r, base[:, ns:])
-            return y.reshape(*y.shape[:-1], t1, N_OUT)
+            return y.reshape(*y.shape[:-1], t1, n_out)
         t = torch.arange(1, a.n_times, dtype=s.dtype, device=s.device) * a.dt
-        net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t)  # (..., T-1, 5)
+        net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t)  # (..., T-1, O)
         return self.baseline(s, r, self.base_weight[1:], self.base_bias[1:]) + self.out_scale[1:] * net
 
     def forward(self, xe0: Tensor, ref_start: Tensor, params: Tensor, ref_heading: Tensor) -> tuple[Tensor, Tensor]:
-        """Predictions on the full grid for samples ``xe0 (*b, N, 5)`` of references ``ref_start (*b, 5)``,
-        ``params (*b, nu, S)`` with headings ``ref_heading (*b, T)`` on the grid: world-frame error
-        ``xe (*b, N, T, 5)`` and log-density ratio ``L (*b, N, T)``."""
+        """Predictions on the full grid for samples ``xe0 (*b, N, nx)`` of references ``ref_start (*b, nx)``,
+        ``params (*b, nu, S)`` with headings ``ref_heading (*b, T)`` on the grid (zeros for a system without
+        heading): world-frame error ``xe (*b, N, T, nx)`` and log-density ratio ``L (*b, N, T)``."""
         s, r = self._sample_axis_features(xe0, ref_start, params)
         y = self.grid_outputs(s, r)
-        xe_rest, lr_rest = outputs_to_errors(y, xe0, ref_heading[..., 1:].unsqueeze(-2))
+        xe_rest, lr_rest = outputs_to_errors(y, xe0, ref_heading[..., 1:].unsqueeze(-2), self.layout)
         xe = torch.cat([xe0.unsqueeze(-2), xe_rest], dim=-2)
         log_ratio = torch.cat([lr_rest.new_zeros(*lr_rest.shape[:-1], 1), lr_rest], dim=-1)
         return xe, log_ratio
@@ -285,15 +364,14 @@ class DensityNetwork(nn.Module):
     def predict_at(self, xe0: Tensor, ref_start: Tensor, params: Tensor, t: Tensor,
                    ref_heading_t: Tensor) -> tuple[Tensor, Tensor]:
         """Evaluation at arbitrary times ``t (K,)`` in ``[0, horizon]`` (reference headings ``ref_heading_t
-        (*b, K)`` at those times): ``xe (*b, N, K, 5)``, ``L (*b, N, K)``. The pointwise net evaluates at ``t``
+        (*b, K)`` at those times): ``xe (*b, N, K, nx)``, ``L (*b, N, K)``. The pointwise net evaluates at ``t``
         directly; the trajectory head interpolates its grid outputs linearly."""
         a = self.architecture
         s, r = self._sample_axis_features(xe0, ref_start, params)
         if a.arch == "trajectory":
             y_grid = self.grid_outputs(s, r)
-            body0 = sample_features(xe0, ref_start.unsqueeze(-2))[..., : len(LEARNED_ERR)]
-            y0 = torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1)  # exact outputs at t = 0
-            y_grid = torch.cat([y0.unsqueeze(-2), y_grid], dim=-2)  # (*b, N, T, 5) in the reference frame
+            y0 = self._initial_outputs(xe0, ref_start)  # exact outputs at t = 0
+            y_grid = torch.cat([y0.unsqueeze(-2), y_grid], dim=-2)  # (*b, N, T, O) in the reference frame
             pos = (t / a.dt).clamp(0, a.n_times - 1)
             lo = pos.floor().long().clamp(max=a.n_times - 2)
             w = (pos - lo.to(pos.dtype)).to(y_grid.dtype).unsqueeze(-1)
@@ -302,10 +380,17 @@ class DensityNetwork(nn.Module):
             weight, bias, scale = self.tables_at(t)
             net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t.to(s.dtype))
             y = self.baseline(s, r, weight, bias) + scale * net
-            body0 = sample_features(xe0, ref_start.unsqueeze(-2))[..., : len(LEARNED_ERR)]
-            y0 = torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1).unsqueeze(-2)
+            y0 = self._initial_outputs(xe0, ref_start).unsqueeze(-2)
             y = torch.where((t == 0).reshape(-1, 1), y0, y)  # t = 0 is known exactly
-        return outputs_to_errors(y, xe0, ref_heading_t.unsqueeze(-2))
+        return outputs_to_errors(y, xe0, ref_heading_t.unsqueeze(-2), self.layout)
+
+    def _initial_outputs(self, xe0: Tensor, ref_start: Tensor) -> Tensor:
+        """The exact outputs at ``t = 0`` ``(*b, N, O)``: the initial error's learned channels in the frame of the
+        reference start, log-density ratio 0."""
+        lay = self.layout
+        body0 = sample_features(xe0, ref_start.unsqueeze(-2), lay)
+        body0 = _pick(body0, (0, 1, *(2 + lay.rest.index(i) for i in lay.learned)))
+        return torch.cat([body0, body0.new_zeros(*body0.shape[:-1], 1)], dim=-1)
 
 
 # ---------------------------------------------------------------------------------------------- transforms
@@ -321,34 +406,60 @@ def from_reference_frame(e_long: Tensor, e_lat: Tensor, heading: Tensor) -> tupl
     return c * e_long - s * e_lat, s * e_long + c * e_lat
 
 
-def sample_features(xe0: Tensor, ref_start: Tensor) -> Tensor:
-    """Initial error ``(..., 5)`` with its position part in the frame of the reference start (``ref_start``
-    broadcasts with ``xe0``)."""
-    el, et = to_reference_frame(xe0[..., 0], xe0[..., 1], ref_start[..., THETA])
-    return torch.cat([el.unsqueeze(-1), et.unsqueeze(-1), xe0[..., 2:]], dim=-1)
+def _heading(x: Tensor, layout: DensityLayout) -> Tensor:
+    """Heading of states ``x (..., nx)`` (zeros for a system without heading: world axes)."""
+    if layout.heading is None:
+        return x.new_zeros(x.shape[:-1])
+    return x[..., layout.heading]
 
 
-def reference_features(ref_start: Tensor, params: Tensor) -> Tensor:
-    """``(cos theta_ref(0), sin theta_ref(0), v_ref(0), p flattened)``, ``(..., 3 + nu S)``."""
-    th = ref_start[..., THETA]
-    return torch.cat([torch.stack([torch.cos(th), torch.sin(th), ref_start[..., V]], dim=-1), params.flatten(-2)],
-                     dim=-1)
+def _pick(x: Tensor, indices: tuple[int, ...]) -> Tensor:
+    """``x[..., indices]``, as a slice (a view, the same arithmetic) when the indices are consecutive."""
+    if indices and list(indices) == list(range(indices[0], indices[0] + len(indices))):
+        return x[..., indices[0]: indices[0] + len(indices)]
+    return x[..., list(indices)]
 
 
-def errors_to_outputs(xe: Tensor, log_ratio: Tensor, ref_heading: Tensor) -> Tensor:
-    """Learned outputs ``(..., T, 5)`` = ``(e_long, e_lat, e_theta, e_v, L)`` of world-frame errors ``xe (..., T,
-    5)``, log-density ratios ``(..., T)`` and reference headings ``(..., T)``."""
-    el, et = to_reference_frame(xe[..., 0], xe[..., 1], ref_heading)
-    return torch.stack([el, et, xe[..., 2], xe[..., 3], log_ratio], dim=-1)
+def sample_features(xe0: Tensor, ref_start: Tensor, layout: DensityLayout) -> Tensor:
+    """Initial error ``(..., nx)`` with its position part in the frame of the reference start (``ref_start``
+    broadcasts with ``xe0``): ``(e_long, e_lat, the other components in state order)``."""
+    i, j = layout.position
+    el, et = to_reference_frame(xe0[..., i], xe0[..., j], _heading(ref_start, layout))
+    return torch.cat([el.unsqueeze(-1), et.unsqueeze(-1), _pick(xe0, layout.rest)], dim=-1)
 
 
-def outputs_to_errors(y: Tensor, xe0: Tensor, ref_heading: Tensor) -> tuple[Tensor, Tensor]:
-    """World-frame errors ``(..., K, 5)`` (bias copied from ``xe0``) and log-density ratios ``(..., K)`` from
-    outputs ``y (..., K, 5)``; ``ref_heading`` broadcasts to ``y.shape[:-1]``."""
+def reference_features(ref_start: Tensor, params: Tensor, layout: DensityLayout) -> Tensor:
+    """``(cos theta_ref(0), sin theta_ref(0), the other known start states, p flattened)``, ``(..., R)``; the car:
+    ``(cos, sin, v_ref(0), p)``."""
+    parts = []
+    if layout.heading is not None:
+        th = ref_start[..., layout.heading]
+        parts += [torch.cos(th), torch.sin(th)]
+    parts += [ref_start[..., k] for k in layout.reference_states]
+    return torch.cat([torch.stack(parts, dim=-1), params.flatten(-2)], dim=-1)
+
+
+def errors_to_outputs(xe: Tensor, log_ratio: Tensor, ref_heading: Tensor, layout: DensityLayout) -> Tensor:
+    """Learned outputs ``(..., T, O)`` = ``(e_long, e_lat, the learned components, L)`` of world-frame errors
+    ``xe (..., T, nx)``, log-density ratios ``(..., T)`` and reference headings ``(..., T)``."""
+    i, j = layout.position
+    el, et = to_reference_frame(xe[..., i], xe[..., j], ref_heading)
+    return torch.stack([el, et, *(xe[..., k] for k in layout.learned), log_ratio], dim=-1)
+
+
+def outputs_to_errors(y: Tensor, xe0: Tensor, ref_heading: Tensor,
+                      layout: DensityLayout) -> tuple[Tensor, Tensor]:
+    """World-frame errors ``(..., K, nx)`` (hidden components copied from ``xe0``) and log-density ratios
+    ``(..., K)`` from outputs ``y (..., K, O)``; ``ref_heading`` broadcasts to ``y.shape[:-1]``."""
     dx, dy = from_reference_frame(y[..., 0], y[..., 1], ref_heading)
-    bias = xe0[..., BIAS].unsqueeze(-1).expand_as(dx)
-    xe = torch.stack([dx, dy, y[..., 2], y[..., 3], bias], dim=-1)
-    return xe, y[..., len(LEARNED_ERR)]
+    cols: list[Tensor | None] = [None] * layout.nx
+    cols[layout.position[0]], cols[layout.position[1]] = dx, dy
+    for c, k in enumerate(layout.learned):
+        cols[k] = y[..., 2 + c]
+    for k in layout.hidden:
+        cols[k] = xe0[..., k].unsqueeze(-1).expand_as(dx)
+    xe = torch.stack(cols, dim=-1)  # type: ignore[arg-type]
+    return xe, y[..., layout.n_learned]
 
 
 # -------------------------------------------------------------------------------------------------- predictor
@@ -380,16 +491,18 @@ class LearnedDensity(DensityPredictor):
         self.name = model.architecture.arch
         #: predictor used (with a logged warning) for references outside the training domain; ``None``: refuse
         self.fallback = fallback
+        #: the system's state layout the network reads
+        self.layout = model.layout
         #: ``(v_min, v_max)`` of the reference start speeds of the training data [m/s] (``None``: unknown)
-        self.speed_range = training_speed_range(self.meta)
+        self.speed_range = training_speed_range(self.meta, self.layout)
 
     def domain_problem(self, reference: Reference) -> str | None:
         """Why ``reference`` lies outside the training domain (its start speed outside the training data's range),
         or ``None`` when it lies inside."""
-        if self.speed_range is None:
+        if self.speed_range is None or self.layout.speed is None:
             return None
         lo, hi = self.speed_range
-        v = reference.start[..., V]
+        v = reference.start[..., self.layout.speed]
         bad = (v < lo - _SPEED_TOLERANCE) | (v > hi + _SPEED_TOLERANCE)
         if not bool(bad.any()):
             return None
@@ -470,14 +583,14 @@ class LearnedDensity(DensityPredictor):
 
     def _predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
         dtype, device = reference.x.dtype, reference.x.device
-        x0 = expand_samples(x0, reference, N_ERR)
+        x0 = expand_samples(x0, reference, self.layout.nx)
         log_rho0 = expand_log_rho0(log_rho0, x0)
         p = next(self.model.parameters())
         if p.dtype != dtype or p.device != device:
             self.model = self.model.to(device=device, dtype=dtype)
         start = reference.start
         xe0 = x0 - start.unsqueeze(-2)
-        xe, log_ratio = self.model(xe0, start, reference.params, reference.x_plan[..., THETA])
+        xe, log_ratio = self.model(xe0, start, reference.params, _heading(reference.x_plan, self.layout))
         x = reference.x_plan.unsqueeze(-3) + xe
         return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
                                  log_rho0=log_rho0)
@@ -491,14 +604,16 @@ class LearnedDensity(DensityPredictor):
 _SPEED_TOLERANCE = 0.05
 
 
-def training_speed_range(meta: dict[str, Any]) -> tuple[float, float] | None:
+def training_speed_range(meta: dict[str, Any], layout: DensityLayout | None = None) -> tuple[float, float] | None:
     """``(v_min, v_max)`` of the reference start speeds of a predictor's training data (from its JSON ``data``
-    entry), or ``None`` when the JSON does not record it."""
+    entry; ``layout``: the predictor's system, default the car), or ``None`` when the JSON does not record it or the
+    system has no speed state."""
+    layout = layout or system_layout("car")
     cfg = ((meta or {}).get("data") or {}).get("config") or {}
     lo, hi = cfg.get("start_low"), cfg.get("start_high")
-    if lo is None or hi is None:
+    if lo is None or hi is None or layout.speed is None or len(lo) != layout.nx or len(hi) != layout.nx:
         return None
-    return float(lo[V]), float(hi[V])
+    return float(lo[layout.speed]), float(hi[layout.speed])
 
 
 # ------------------------------------------------------------------------------------------------------ files

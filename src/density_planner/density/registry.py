@@ -4,15 +4,18 @@ Names:
 
 * ``"exact"``: :class:`~density_planner.density.liouville.ExactLiouville` (always available, any controller);
 * ``"trajectory"`` / ``"pointwise"``: the shipped learned predictors of the controller's model set
-  (``density_planner/weights/density_{arch}.pt`` for ``paper``, ``density_{arch}_road.pt`` for ``road``; the
-  sets are registered in :mod:`density_planner.control.registry`);
+  (``density_planner/weights/density_{arch}.pt`` for the car's ``paper``, ``density_{arch}_road.pt`` for its
+  ``road``, ``density_{arch}_ks.pt`` for the kinematic single-track model's ``ks``: ``density_{arch}{suffix}.pt``
+  with the set's ``density_suffix``; the sets are registered in :mod:`density_planner.control.registry`; the
+  package ships the trajectory head for every set and the pointwise net for the car's);
 * ``"learned"``: the default learned predictor (:data:`DEFAULT_LEARNED`, the faster one at equal or better
   accuracy);
 * a path ``NAME.pt`` (with ``NAME.json`` beside it) written by ``density-planner train density``.
 
-A learned predictor is only valid for the closed loop it was trained on, so the controller must be the one that
-generated its training data (compared by :func:`~density_planner.density.network.controller_fingerprint`); a
-named learned predictor with another controller is an error. With no name (``spec=None``) the planner uses
+A learned predictor is only valid for the closed loop it was trained on, so the system must be the one whose states
+it reads (its architecture's ``system``) and the controller the one that generated its training data (compared by
+:func:`~density_planner.density.network.controller_fingerprint`); a named learned predictor with another system
+or controller is an error. With no name (``spec=None``) the planner uses
 :data:`DEFAULT_PREDICTOR` when it fits the controller and exact Liouville otherwise (logged).
 """
 
@@ -40,21 +43,29 @@ PREDICTOR_CHOICES = ("exact", "learned", "trajectory", "pointwise")
 
 
 def load_learned_predictor(spec: str | Path, controller: TrackingController | None = None, *,
-                           models: str | None = None, fallback: DensityPredictor | None = None):
+                           models: str | None = None, fallback: DensityPredictor | None = None,
+                           system: System | None = None):
     """The learned predictor ``spec`` ("learned", "trajectory", "pointwise" or a weights path).
 
-    If ``controller`` is given, it must be the controller the predictor was trained for. ``models`` names the
-    model set whose shipped weights the names refer to (default: the set of ``controller``'s car domain, else
+    If ``controller`` is given, it must be the controller the predictor was trained for; if ``system`` is given, its
+    state layout must be the one the predictor reads. ``models`` names the model set whose shipped weights the names
+    refer to (default: the set of ``controller``'s car domain, else the first set of ``system``'s type, else
     ``"paper"``). References outside the training domain (start speed) raise
     :class:`~density_planner.errors.DomainError`, or, with a ``fallback`` predictor, use it with a logged warning.
 
     Raises:
-        CheckpointError: missing/corrupt/mismatched weights, or a controller other than the training one.
+        CheckpointError: missing/corrupt/mismatched weights, a system or a controller other than the training one.
     """
-    from .network import LearnedDensity, controller_fingerprint, load_density_model, shipped_density_path
+    from .network import (
+        DensityLayout,
+        LearnedDensity,
+        controller_fingerprint,
+        load_density_model,
+        shipped_density_path,
+    )
 
     if models is None:
-        models = getattr(getattr(controller, "car", None), "domain", None) or "paper"
+        models = getattr(getattr(controller, "car", None), "domain", None) or _model_set_of(system) or "paper"
     name = DEFAULT_LEARNED if spec == "learned" else spec
     if name in ("trajectory", "pointwise"):
         path, arch = shipped_density_path(str(name), models), str(name)
@@ -67,6 +78,12 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
     else:
         path, arch = Path(name), None
     model, meta = load_density_model(path, arch=arch)
+    if system is not None and DensityLayout.of(system) != model.layout:
+        raise CheckpointError(
+            f"the learned density predictor {str(spec)!r} reads states of the system {model.architecture.system!r}, "
+            f"not of this {type(system).__name__} ({', '.join(system.state_names)}); use --density exact or train a "
+            "predictor for this system (`density-planner data density --system NAME`, docs/density.md)"
+        )
     if controller is not None:
         trained = (meta.get("controller") or {}).get("fingerprint")
         found = controller_fingerprint(controller)
@@ -78,6 +95,16 @@ def load_learned_predictor(spec: str | Path, controller: TrackingController | No
                 "--density exact or train a predictor for this controller"
             )
     return LearnedDensity(model, meta=meta, fallback=fallback)
+
+
+def _model_set_of(system: System | None) -> str | None:
+    """The first model set registered for ``system``'s type (``None``: no system, or none registered)."""
+    if system is None:
+        return None
+    from ..control.registry import MODEL_SETS, model_set
+
+    model_set()  # loads the registrations
+    return next((name for name, m in MODEL_SETS.items() if type(m.make_system()) is type(system)), None)
 
 
 def load_predictor(
@@ -102,7 +129,7 @@ def load_predictor(
         try:
             # outside the training domain the default falls back to exact Liouville (logged), never extrapolates
             learned = load_learned_predictor(DEFAULT_PREDICTOR, controller, models=models,
-                                             fallback=ExactLiouville(system, controller, liouville))
+                                             fallback=ExactLiouville(system, controller, liouville), system=system)
         except CheckpointError as exc:
             logger.info("default density predictor %r not usable (%s); using exact Liouville",
                            DEFAULT_PREDICTOR, exc)
@@ -115,10 +142,10 @@ def load_predictor(
     if spec == "exact":
         return ExactLiouville(system, controller, liouville)
     if spec in PREDICTOR_CHOICES:
-        return _fitting(load_learned_predictor(spec, controller, models=models), parameterization)
+        return _fitting(load_learned_predictor(spec, controller, models=models, system=system), parameterization)
     path = Path(spec)
     if path.suffix in (".pt", ".json") or path.exists() or path.with_name(path.name + ".pt").exists():
-        return _fitting(load_learned_predictor(path, controller), parameterization)
+        return _fitting(load_learned_predictor(path, controller, system=system), parameterization)
     raise ValueError(
         f"unknown density predictor {str(spec)!r}; valid choices: {', '.join(PREDICTOR_CHOICES)} or a weights "
         "file (.pt)"

@@ -2,7 +2,7 @@
 
 Loss (on the normalised residual targets of the network, see the module docstring of ``network``)::
 
-    loss = mean_{rows, times, 4 error channels} (net - z)^2 + w_L * mean_{rows, times} (net_L - z_L)^2
+    loss = mean_{rows, times, error channels} (net - z)^2 + w_L * mean_{rows, times} (net_L - z_L)^2
 
 Both parts are in units of the per-time residual standard deviation, so ``w_L = 1`` would weigh a typical
 log-density error like a typical error of one state component; the default ``log_density_weight = 3`` puts more
@@ -36,7 +36,7 @@ from ..checks import check_seed
 from ..errors import CheckpointError
 from .data import DensityData
 from .network import (
-    LEARNED_ERR,
+    DensityLayout,
     DensityNetArchitecture,
     DensityNetwork,
     errors_to_outputs,
@@ -125,7 +125,7 @@ class DensityTrainConfig:
 
 
 def architecture_from_config(config: DensityTrainConfig, n_times: int = 101, dt: float = 0.1,
-                             nu: int = 2, n_segments: int = 10) -> DensityNetArchitecture:
+                             nu: int = 2, n_segments: int = 10, system: str = "car") -> DensityNetArchitecture:
     base = DensityNetArchitecture.default(config.arch)
     return DensityNetArchitecture(
         arch=config.arch,
@@ -136,6 +136,7 @@ def architecture_from_config(config: DensityTrainConfig, n_times: int = 101, dt:
         dt=dt,
         nu=nu,
         n_segments=n_segments,
+        system=system,
     )
 
 
@@ -157,61 +158,65 @@ class DensityTrainResult:
 
 
 # ----------------------------------------------------------------------------------------------- normalisation
-def _outputs(data: DensityData) -> Tensor:
-    """Learned outputs ``(M, T, 5)``: error in the reference frame (four components) and log-density ratio."""
-    return errors_to_outputs(data.xe, data.log_ratio, data.x_ref_heading)
+def _outputs(data: DensityData, layout: DensityLayout) -> Tensor:
+    """Learned outputs ``(M, T, O)``: error in the reference frame (the learned components) and log-density
+    ratio."""
+    return errors_to_outputs(data.xe, data.log_ratio, data.x_ref_heading, layout)
 
 
-def _raw_features(data: DensityData) -> Tensor:
-    return torch.cat([sample_features(data.xe0, data.ref_start), reference_features(data.ref_start, data.params)],
-                     dim=-1)
+def _raw_features(data: DensityData, layout: DensityLayout) -> Tensor:
+    return torch.cat([sample_features(data.xe0, data.ref_start, layout),
+                      reference_features(data.ref_start, data.params, layout)], dim=-1)
 
 
 @torch.no_grad()
 def fit_normalisation(model: DensityNetwork, data: DensityData, *, ridge: float = 1e-6, chunk: int = 32768) -> None:
     """Set the input standardisation and the per-time linear output baseline and scale of ``model`` from
     ``data`` (the training split), in place."""
-    a = model.architecture
+    a, lay = model.architecture, model.layout
     if data.xe.shape[1] != a.n_times:
         raise ValueError(f"data has {data.xe.shape[1]} time points, the architecture {a.n_times}")
-    f_raw = _raw_features(data).double()
+    if data.xe.shape[-1] != lay.nx:
+        raise ValueError(f"data has states of {data.xe.shape[-1]} components, the {a.system!r} network {lay.nx}")
+    f_raw = _raw_features(data, lay).double()
+    o = a.n_out
     mean = f_raw.mean(0)
     std = f_raw.std(0).clamp_min(1e-6)
     m, nf = f_raw.shape
     t = a.n_times
     gram = torch.zeros(nf + 1, nf + 1, dtype=torch.float64)
-    xty = torch.zeros(nf + 1, t * 5, dtype=torch.float64)
+    xty = torch.zeros(nf + 1, t * o, dtype=torch.float64)
     for i in range(0, m, chunk):
         x = torch.cat([(f_raw[i:i + chunk] - mean) / std, torch.ones(min(chunk, m - i), 1, dtype=torch.float64)], 1)
-        y = _outputs(data.subset(slice(i, i + chunk))).reshape(x.shape[0], -1).double()
+        y = _outputs(data.subset(slice(i, i + chunk)), lay).reshape(x.shape[0], -1).double()
         gram += x.T @ x
         xty += x.T @ y
     reg = ridge * m * torch.eye(nf + 1, dtype=torch.float64)
     reg[-1, -1] = 0.0
-    coef = torch.linalg.solve(gram + reg, xty)  # (F + 1, T * 5)
-    sq = torch.zeros(t * 5, dtype=torch.float64)
+    coef = torch.linalg.solve(gram + reg, xty)  # (F + 1, T * O)
+    sq = torch.zeros(t * o, dtype=torch.float64)
     for i in range(0, m, chunk):
         x = torch.cat([(f_raw[i:i + chunk] - mean) / std, torch.ones(min(chunk, m - i), 1, dtype=torch.float64)], 1)
-        y = _outputs(data.subset(slice(i, i + chunk))).reshape(x.shape[0], -1).double()
+        y = _outputs(data.subset(slice(i, i + chunk)), lay).reshape(x.shape[0], -1).double()
         sq += ((y - x @ coef) ** 2).sum(0)
-    res_std = (sq / max(m - 1, 1)).sqrt().reshape(t, 5)
+    res_std = (sq / max(m - 1, 1)).sqrt().reshape(t, o)
     floor = 1e-3 * res_std.max(0).values + 1e-8  # t = 0 is exact (residual 0); avoid dividing by ~0
     model.in_mean.copy_(mean.float())
     model.in_std.copy_(std.float())
-    model.base_weight.copy_(coef[:-1].reshape(nf, t, 5).permute(1, 0, 2).float())
-    model.base_bias.copy_(coef[-1].reshape(t, 5).float())
+    model.base_weight.copy_(coef[:-1].reshape(nf, t, o).permute(1, 0, 2).float())
+    model.base_bias.copy_(coef[-1].reshape(t, o).float())
     model.out_scale.copy_(torch.maximum(res_std, floor).float())
 
 
 @torch.no_grad()
 def normalised_targets(model: DensityNetwork, data: DensityData, chunk: int = 32768) -> tuple[Tensor, Tensor, Tensor]:
-    """Standardised features ``s (M, 5)``, ``r (M, R)`` and targets ``z (M, T - 1, 5)`` of ``data``."""
+    """Standardised features ``s (M, nx)``, ``r (M, R)`` and targets ``z (M, T - 1, O)`` of ``data``."""
     s_all, r_all, z_all = [], [], []
     for i in range(0, len(data), chunk):
         part = data.subset(slice(i, i + chunk))
         s, r = model.features(part.xe0, part.ref_start, part.params)
         base = model.baseline(s, r, model.base_weight[1:], model.base_bias[1:])
-        z = (_outputs(part)[:, 1:] - base) / model.out_scale[1:]
+        z = (_outputs(part, model.layout)[:, 1:] - base) / model.out_scale[1:]
         s_all.append(s)
         r_all.append(r)
         z_all.append(z)
@@ -220,9 +225,9 @@ def normalised_targets(model: DensityNetwork, data: DensityData, chunk: int = 32
 
 # -------------------------------------------------------------------------------------------------------- loss
 def _loss(pred: Tensor, target: Tensor, w_log: float) -> tuple[Tensor, Tensor, Tensor]:
-    sq = (pred - target) ** 2
-    err = sq[..., : len(LEARNED_ERR)].mean()
-    log = sq[..., len(LEARNED_ERR)].mean()
+    sq = (pred - target) ** 2  # error channels, then the log-density ratio (the last channel)
+    err = sq[..., :-1].mean()
+    log = sq[..., -1].mean()
     return err + w_log * log, err, log
 
 
@@ -303,7 +308,7 @@ class _Trainer:
             sums["err"] += float(err) * b
             sums["log"] += float(log) * b
             sums["pos_sq"] += float((d[..., 0] ** 2 + d[..., 1] ** 2).mean()) * b
-            sums["log_sq"] += float((d[..., len(LEARNED_ERR)] ** 2).mean()) * b
+            sums["log_sq"] += float((d[..., -1] ** 2).mean()) * b
             n += b
         return {
             "val_loss": sums["loss"] / n,
@@ -351,7 +356,9 @@ def train_density(
     par_shape = tuple(train.params.shape[1:])
     arch = architecture_from_config(config, n_times=int(train.t.numel()),
                                     dt=round(float(train.t[1] - train.t[0]), 6), nu=par_shape[0],
-                                    n_segments=par_shape[1])
+                                    n_segments=par_shape[1], system=train.system)
+    if val.system != train.system:
+        raise ValueError(f"training data of the system {train.system!r}, validation data of {val.system!r}")
     model = DensityNetwork(arch)
     t0 = time.perf_counter()
     fit_normalisation(model, train, ridge=config.ridge)

@@ -8,8 +8,9 @@ per-sample errors. :meth:`DensityComparison.summary` reduces them to the numbers
   log-density error ``|log rho_NN(t) - log rho_LE(t)|``, and of the *relative* log-density error (the error
   minus its mean over the samples of the same reference and time: what the planner's per-time normalised sample
   weights see);
-* overall (all samples and times): the mean squared error of the error state ``x - x_ref`` (5 components,
-  comparable with the paper's validation MSE 0.018) and the log-density RMSE (paper: about 9.3);
+* overall (all samples and times): the mean squared error of the error state ``x - x_ref`` (all ``nx``
+  components; for the car comparable with the paper's validation MSE 0.018) and the log-density RMSE (paper: about
+  9.3);
 * timing of both predictors.
 """
 
@@ -38,21 +39,22 @@ PAPER_LOG_DENSITY_RMSE = 9.3
 def fresh_references(n: int, samples: int, seed: int, *, error_scale: float = 1.0,
                      start_low: Sequence[float] | None = None, start_high: Sequence[float] | None = None,
                      dtype: torch.dtype = torch.float32, domain: str = "paper") -> tuple[Reference, Tensor]:
-    """``n`` random feasible references and ``samples`` initial states per reference (errors uniform in
-    ``error_scale * XE0``): ``(reference (n,), x0 (n, samples, 5))``. The start box defaults to the data
-    default for the paper's domain and to the car's reference-start box for the others."""
+    """``n`` random feasible references of the model set ``domain`` (the car's ``paper`` or ``road``, ``ks``, ...)
+    and ``samples`` initial states per reference (errors uniform in ``error_scale * XE0``, the system's
+    ``initial_error_max``): ``(reference (n,), x0 (n, samples, nx))``. The start box defaults to the data default
+    for the paper's set and to the system's reference-start box for the others."""
+    from ..control.registry import model_set
     from ..control.sampling import sample_feasible_references, sample_initial_errors
-    from ..systems.car import KinematicCar, car_domain
     from .data import DensityDataConfig
 
-    car = KinematicCar(car_domain(domain))
+    system = model_set(domain).make_system()
     if domain == "paper":
         defaults = DensityDataConfig()
         start_low, start_high = start_low or defaults.start_low, start_high or defaults.start_high
     gen = torch.Generator().manual_seed(seed)
-    ref = sample_feasible_references(car, n, gen, start_low=start_low, start_high=start_high, dtype=dtype)
-    box = [error_scale * v for v in car.config.initial_error_max]
-    xe0 = sample_initial_errors(n * samples, gen, box=box, dtype=dtype).reshape(n, samples, car.nx)
+    ref = sample_feasible_references(system, n, gen, start_low=start_low, start_high=start_high, dtype=dtype)
+    box = [error_scale * v for v in system.initial_error_max]
+    xe0 = sample_initial_errors(n * samples, gen, box=box, dtype=dtype).reshape(n, samples, system.nx)
     return ref, ref.start.unsqueeze(-2) + xe0
 
 
@@ -71,6 +73,8 @@ class DensityComparison:
     n_samples: int
     #: reference start speeds ``(R,)`` [m/s] (for the per-speed-band summary)
     start_speed: Tensor | None = None
+    #: indices of the system's hidden states (the car's heading bias), left out of the second error MSE
+    hidden_states: tuple[int, ...] = (4,)
 
     def by_speed_band(self, edges: Sequence[float] = SPEED_BANDS) -> dict[str, dict]:
         """Position error [m] and |log-density error| (median, p95) per band of reference start speed."""
@@ -109,7 +113,8 @@ class DensityComparison:
 
         se = self.state_error.double()
         mse5 = float((se ** 2).mean())
-        mse4 = float((se[..., :4] ** 2).mean())
+        known = [i for i in range(se.shape[-1]) if i not in self.hidden_states]
+        mse4 = float((se[..., known] ** 2).mean())
         lrmse = float((le.double() ** 2).mean().sqrt())
         rel_rmse = float((rel.double() ** 2).mean().sqrt())
         n_traj = self.n_references * self.n_samples
@@ -145,8 +150,12 @@ def compare_with_exact(
     *,
     chunk: int = 32,
 ) -> DensityComparison:
-    """Errors of ``predictor`` against ``exact`` for the initial states ``x0 (R, N, 5)`` of ``reference (R,)``,
-    ``chunk`` references at a time (log rho0 = 0: only the log-density *ratio* is compared)."""
+    """Errors of ``predictor`` against ``exact`` for the initial states ``x0 (R, N, nx)`` of ``reference (R,)``,
+    ``chunk`` references at a time (log rho0 = 0: only the log-density *ratio* is compared). Positions and speeds
+    are read through ``exact.system`` (the car's layout when it has none)."""
+    from ..systems.car import KinematicCar
+
+    system = getattr(exact, "system", None) or KinematicCar()
     r, n = x0.shape[:2]
     pos, lde, se = [], [], []
     t_exact = t_pred = 0.0
@@ -164,17 +173,19 @@ def compare_with_exact(
         t_pred += t2 - t1
         t = ex.t
         d = pr.x - ex.x
-        pos.append(d[..., :2].norm(dim=-1))
+        pos.append(system.positions(d).norm(dim=-1))
         lde.append(pr.log_rho - ex.log_rho)
         se.append(d)
     assert t is not None
+    speeds = system.speeds(reference.start)
     pe = torch.cat(pos)
     le = torch.cat(lde)
     if not (bool(torch.isfinite(pe).all()) and bool(torch.isfinite(le).all())):
         raise FloatingPointError("non-finite predictions in the density comparison")
     return DensityComparison(t=t, position_error=pe, log_density_error=le, state_error=torch.cat(se),
                              time_exact=t_exact, time_predictor=t_pred, n_references=r, n_samples=n,
-                             start_speed=reference.start[..., 3].detach().cpu())
+                             start_speed=None if speeds is None else speeds.detach().cpu(),
+                             hidden_states=tuple(system.hidden_states))
 
 
 
