@@ -138,3 +138,22 @@ def test_bad_sample_count_and_shape():
         d.sample(0)
     with pytest.raises(ValueError, match="x must have trailing shape"):
         d.log_prob(torch.zeros(3, 2))
+
+
+def test_paper_mixture_is_cut_to_the_models_state_box():
+    """A car standing still (v = 0) has no negative speeds in its initial law: the truncation box is the XE0 box cut
+    by ``bounds``; inside the bounds nothing changes; a start outside the bounds is an error."""
+    center, half = [0.0, 0.0, 0.3, 0.0, 0.0], [0.5, 0.5, 0.05, 0.3, 0.2]
+    lo, hi = [-1e3, -1e3, -10.0, 0.0, -0.4], [1e3, 1e3, 10.0, 40.0, 0.4]
+    law = paper_gaussian_mixture(center, half, torch.Generator().manual_seed(0), bounds=(lo, hi))
+    low, high = law.support
+    assert low[3] == 0.0 and high[3] == pytest.approx(0.3)
+    x = law.sample(2000, torch.Generator().manual_seed(1), dtype=torch.float64)
+    assert bool((x[:, 3] >= 0).all()) and bool((x[:, 3] <= 0.3).all())
+    free = paper_gaussian_mixture(center, half, torch.Generator().manual_seed(0))
+    inside = paper_gaussian_mixture([0.0, 0.0, 0.3, 5.0, 0.0], half, torch.Generator().manual_seed(0), bounds=(lo, hi))
+    same = paper_gaussian_mixture([0.0, 0.0, 0.3, 5.0, 0.0], half, torch.Generator().manual_seed(0))
+    assert torch.equal(inside.support[0], same.support[0]) and torch.equal(inside.support[1], same.support[1])
+    assert free.support[0][3] == pytest.approx(-0.3)
+    with pytest.raises(ValueError, match="outside the model's state box"):
+        paper_gaussian_mixture([0.0, 0.0, 0.3, -1.0, 0.0], half, bounds=(lo, hi))

@@ -317,8 +317,12 @@ def paper_gaussian_mixture(
     n_components: int = 5,
     mean_std: float = 0.3,
     variance_scale: float = 5.0,
+    bounds: tuple[Sequence[float] | Tensor, Sequence[float] | Tensor] | None = None,
 ) -> GaussianMixture:
     """The paper's default initial distribution (``docs/spec.md`` §7) around ``center``.
+
+    ``bounds = (low, high)`` (e.g. the system's state box) cuts the truncation box further, so that no initial state
+    lies outside the model (a vehicle standing still has no negative speeds in its law).
 
     ``n_components`` Gaussians with weights ``U(0, 1)`` (normalised), means ``center + mean_std N(0, I)`` and
     diagonal variances ``variance_scale U(0, 1)``, truncated to the box ``center +- half_width`` (the XE0 box of
@@ -333,4 +337,11 @@ def paper_gaussian_mixture(
     w = torch.rand(n_components, dtype=torch.float64, generator=generator)
     means = c + mean_std * torch.randn(n_components, d, dtype=torch.float64, generator=generator)
     var = variance_scale * torch.rand(n_components, d, dtype=torch.float64, generator=generator)
-    return GaussianMixture(w.clamp_min(1e-3), means, var.clamp_min(1e-4), low=c - hw, high=c + hw)
+    low, high = c - hw, c + hw
+    if bounds is not None:
+        low = torch.maximum(low, _f64("bounds[0]", bounds[0], ndim=1))
+        high = torch.minimum(high, _f64("bounds[1]", bounds[1], ndim=1))
+        if not bool((low < high).all()):
+            raise ValueError(f"the initial-error box around {c.tolist()} lies outside the bounds {bounds}: the start "
+                             "is outside the model's state box")
+    return GaussianMixture(w.clamp_min(1e-3), means, var.clamp_min(1e-4), low=low, high=high)

@@ -191,7 +191,8 @@ class PlanningProblem:
         check_seed("seed", seed)
         system = system or make_system()
         start = system.state_from_pose(*scene.start)
-        dist = paper_gaussian_mixture(start, initial_error_box(scene, system), torch.Generator().manual_seed(seed))
+        dist = paper_gaussian_mixture(start, initial_error_box(scene, system), torch.Generator().manual_seed(seed),
+                                      bounds=system.state_bounds)
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
         return cls(scene, dist, system, parameterization, risk or RiskConfig())
