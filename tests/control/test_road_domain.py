@@ -178,6 +178,20 @@ def test_learned_predictor_refuses_starts_outside_its_training_speeds():
         pred.predict(x0 + _reference(25.0).start, torch.zeros(1, 3), _reference(25.0))
 
 
+def test_learned_predictor_trained_from_near_standstill_serves_standstill():
+    """A predictor whose training speeds start at <= STANDSTILL_EXTENSION (0.5 m/s) serves starts down to v = 0 (the
+    road car's measured accuracy there equals that at 0.5-1 m/s); one trained from 1 m/s does not."""
+    from density_planner.density.network import STANDSTILL_EXTENSION
+
+    pred = _tiny_predictor()
+    assert pred.speed_range == (1.0, 9.0) and STANDSTILL_EXTENSION == 0.5
+    assert "0.20 m/s lies outside" in (pred.domain_problem(_reference(0.2)) or "")
+    pred.speed_range = (0.5, 9.0)
+    assert pred.domain_problem(_reference(0.0)) is None and pred.domain_problem(_reference(0.3)) is None
+    assert "-0.10 m/s lies outside" in (pred.domain_problem(_reference(-0.1)) or "")
+    assert "9.50 m/s lies outside" in (pred.domain_problem(_reference(9.5)) or "")
+
+
 def test_learned_predictor_falls_back_to_exact_with_a_warning(caplog):
     from density_planner.density.liouville import ExactLiouville
 
