@@ -10,11 +10,12 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["System", "ControlAffineSystem", "Footprint"]
+__all__ = ["System", "ControlAffineSystem", "Footprint", "ConfigBoxes"]
 
 
 @dataclass(frozen=True)
@@ -274,3 +275,31 @@ class ControlAffineSystem(System):
             d = torch.func.jvp(self.drift, (x,), (eye[i].expand_as(x),))[1]
             div = div + d[..., i]
         return div
+
+
+class ConfigBoxes:
+    """The boxes of a system whose configuration dataclass (``self.config``) holds them: ``state_min`` /
+    ``state_max``, ``input_min`` / ``input_max``, ``actuator_min`` / ``actuator_max`` (``None``: the input box) and
+    ``initial_error_max``. Mix it in before :class:`System` (the car and the KS model use it)."""
+
+    config: Any
+
+    @property
+    def state_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        return self.config.state_min, self.config.state_max
+
+    @property
+    def input_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        return self.config.input_min, self.config.input_max
+
+    @property
+    def applied_input_bounds(self) -> tuple[Sequence[float], Sequence[float]]:
+        """The actuator box where the controller saturates smoothly, else the input box."""
+        if self.config.actuator_min is None:
+            return self.input_bounds
+        return self.config.actuator_min, self.config.actuator_max
+
+    @property
+    def initial_error_max(self) -> tuple[float, ...]:
+        """The XE0 box of the domain (``config.initial_error_max``)."""
+        return tuple(self.config.initial_error_max)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ..checks import broadcast_shape
-from .base import ControlAffineSystem, Footprint
+from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
 __all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "wrap_heading", "PX",
@@ -190,7 +190,7 @@ def car_domain(name: str) -> CarConfig:
 CAR_DOMAINS = {"paper": CarConfig.paper, "road": CarConfig.road}
 
 
-class KinematicCar(ControlAffineSystem):
+class KinematicCar(ConfigBoxes, ControlAffineSystem):
     """Kinematic car with heading-measurement bias; see the module docstring for the equations."""
 
     state_names = ("px", "py", "theta", "v", "theta_bias")
@@ -211,26 +211,6 @@ class KinematicCar(ControlAffineSystem):
     def footprint(self) -> Footprint:  # type: ignore[override]
         """The car's rectangle ``length x width`` (:class:`CarConfig`), centred on ``(p_x, p_y)``."""
         return Footprint(self.config.length, self.config.width)
-
-    @property
-    def state_bounds(self):
-        return self.config.state_min, self.config.state_max
-
-    @property
-    def input_bounds(self):
-        return self.config.input_min, self.config.input_max
-
-    @property
-    def applied_input_bounds(self):
-        """The actuator box where the controller saturates smoothly (road domain), else the input box."""
-        if self.config.actuator_min is None:
-            return self.input_bounds
-        return self.config.actuator_min, self.config.actuator_max
-
-    @property
-    def initial_error_max(self) -> tuple[float, ...]:
-        """The XE0 box of the domain (``config.initial_error_max``)."""
-        return tuple(self.config.initial_error_max)
 
     def state_from_pose(self, x: float, y: float, heading: float, speed: float) -> tuple[float, ...]:
         """``(x, y, wrap_heading(heading), speed, 0)``: the heading shifted by a multiple of 2 pi into

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import ControlAffineSystem, Footprint
+from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
 __all__ = ["KSVehicle", "KS_VEHICLES", "KSConfig", "KS_DOMAINS", "ks_domain", "KinematicSingleTrack"]
@@ -178,7 +178,7 @@ def ks_domain(name: str) -> KSConfig:
 KS_DOMAINS = {"road": KSConfig}
 
 
-class KinematicSingleTrack(ControlAffineSystem):
+class KinematicSingleTrack(ConfigBoxes, ControlAffineSystem):
     """CommonRoad's kinematic single-track model; see the module docstring for the equations and conventions."""
 
     state_names = ("px", "py", "delta", "v", "psi")
@@ -210,22 +210,6 @@ class KinematicSingleTrack(ControlAffineSystem):
     def footprint(self) -> Footprint:  # type: ignore[override]
         """The vehicle's rectangle ``l x w``, centred on ``(p_x, p_y)`` (CommonRoad's convention, module docstring)."""
         return Footprint(self.vehicle.length, self.vehicle.width)
-
-    @property
-    def state_bounds(self):
-        return self.config.state_min, self.config.state_max
-
-    @property
-    def input_bounds(self):
-        return self.config.input_min, self.config.input_max
-
-    @property
-    def applied_input_bounds(self):
-        return self.config.actuator_min, self.config.actuator_max
-
-    @property
-    def initial_error_max(self) -> tuple[float, ...]:
-        return tuple(self.config.initial_error_max)
 
     def state_from_pose(self, x: float, y: float, heading: float, speed: float) -> tuple[float, ...]:
         """``(x, y, 0, speed, heading)`` with the heading wrapped into ``[-pi, pi)``; straight wheels."""
