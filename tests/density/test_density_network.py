@@ -257,7 +257,53 @@ def test_reference_grid_mismatch_is_rejected():
 
     pred = LearnedDensity(tiny_net("trajectory"))
     car = KinematicCar()
-    par = PiecewiseConstantInputs(n_segments=5)
-    ref = make_reference(car, torch.tensor(START), torch.zeros(2, 5), par)
-    with pytest.raises(ValueError, match="--density exact"):
-        pred.predict(ref.start + torch.zeros(4, 5), torch.zeros(4), ref)
+    for par in (PiecewiseConstantInputs(n_segments=5), PiecewiseConstantInputs(n_segments=20, segment_duration=0.5),
+                PiecewiseConstantInputs(n_segments=12, plan_dt=0.2)):
+        ref = make_reference(car, torch.tensor(START), torch.zeros(2, par.n_segments), par)
+        with pytest.raises(ValueError, match="trained for a 10-s horizon.*--density exact"):
+            pred.predict(ref.start + torch.zeros(4, 5), torch.zeros(4), ref)
+    assert pred.mismatch(PiecewiseConstantInputs(n_segments=17)) is None  # whole 1-s segments: chained
+
+
+def test_window_starts_cover_the_horizon_without_padding():
+    pred = LearnedDensity(tiny_net("trajectory"))
+    assert pred.windows(10) == [0]
+    assert pred.windows(20) == [0, 10]
+    assert pred.windows(17) == [0, 7]  # the last window ends with the reference (overlaps the first)
+    assert pred.windows(25) == [0, 10, 15]
+
+
+@pytest.mark.parametrize("n_segments", [17, 20])
+def test_chained_windows_continue_from_the_predicted_state(n_segments):
+    """A horizon longer than the trained one: the first 10 s are the network's own 10-s prediction (the reference's
+    first 10 segments), and each later window is the network applied from the state and log-density predicted at
+    its first segment, along the rest of the reference."""
+    from density_planner.control.reference import PiecewiseConstantInputs
+
+    pred = LearnedDensity(tiny_net("trajectory", dtype=torch.float64))
+    car = KinematicCar()
+    g = torch.Generator().manual_seed(3)
+    long = PiecewiseConstantInputs(n_segments=n_segments)
+    params = torch.rand(2, 2, n_segments, generator=g, dtype=torch.float64) - 0.5
+    start = torch.tensor(START, dtype=torch.float64).expand(2, 5)
+    ref = make_reference(car, start, params, long)
+    x0 = ref.start.unsqueeze(-2) + 0.3 * (torch.rand(2, 6, 5, generator=g, dtype=torch.float64) - 0.5)
+    log_rho0 = torch.randn(2, 6, generator=g, dtype=torch.float64)
+    out = pred.predict(x0, log_rho0, ref)
+    assert out.x.shape == (2, 6, 10 * n_segments + 1, 5) and out.log_rho.shape == (2, 6, 10 * n_segments + 1)
+    assert torch.allclose(out.t, ref.t_plan)
+
+    first = pred.predict(x0, log_rho0, make_reference(car, start, params[..., :10]))
+    torch.testing.assert_close(out.x[..., :101, :], first.x)
+    torch.testing.assert_close(out.log_rho[..., :101], first.log_rho)
+    s = n_segments - 10  # the last window's first segment
+    k = 10 * s
+    tail_ref = make_reference(car, ref.x_plan[:, k], params[..., s:])
+    tail = pred.predict(out.x[..., k, :], out.log_rho[..., k], tail_ref)
+    # after 10 s the last window's prediction (an overlapping window adds only the points not yet predicted)
+    torch.testing.assert_close(out.x[..., 101:, :], tail.x[..., 101 - k:, :], rtol=1e-6, atol=1e-5)
+    torch.testing.assert_close(out.log_rho[..., 101:], tail.log_rho[..., 101 - k:], rtol=1e-6, atol=1e-5)
+    # differentiable w.r.t. the reference parameters through every window
+    p = params.clone().requires_grad_(True)
+    pred.predict(x0, log_rho0, make_reference(car, start, p, long)).x[..., -1, :2].sum().backward()
+    assert torch.isfinite(p.grad).all() and p.grad[..., -1].abs().sum() > 0

@@ -161,9 +161,11 @@ def test_horizon_configuration_and_scene_suggestion():
     assert PlanningConfig(horizon=5.0).parameterization(scene).n_segments == 5
     par = PlanningConfig(horizon=6.0, segment_duration=0.5).parameterization(scene)
     assert par.n_segments == 12 and par.n_plan == 61
-    # default: the learned predictors' 10 s, whatever the scene suggests (earlier goals are met inside the plan)
+    # default: at least the learned predictors' 10 s (earlier goals are met inside the plan), at most 20 s and the
+    # scene's span (the learned predictors chain windows of their 10 s)
     assert PlanningConfig().parameterization(scene_at(0.0, horizon=7.3)).horizon == 10.0
-    assert PlanningConfig().parameterization(scene_at(0.0, horizon=40.0)).horizon == 10.0
+    assert PlanningConfig().parameterization(scene_at(0.0, horizon=12.2)).horizon == 13.0
+    assert PlanningConfig().parameterization(scene_at(0.0, horizon=40.0)).horizon == 15.0  # the scene's span
     assert PlanningConfig(min_horizon=1.0).parameterization(scene_at(0.0, horizon=7.3)).horizon == 8.0  # whole segments
     assert PlanningConfig(max_horizon=12.0).parameterization(scene_at(0.0, horizon=40.0)).horizon == 12.0
     assert PlanningConfig(max_horizon=40.0).parameterization(scene_at(0.0, horizon=40.0)).horizon == 15.0  # span

@@ -502,7 +502,9 @@ class LearnedDensity(DensityPredictor):
         if self.speed_range is None or self.layout.speed is None:
             return None
         lo, hi = self.speed_range
-        v = reference.start[..., self.layout.speed]
+        par = reference.parameterization
+        starts = self.windows(par.n_segments) if par.n_segments >= self.architecture.n_segments else [0]
+        v = reference.x[..., [s * par.steps_per_segment for s in starts], self.layout.speed]
         floor = 0.0 if lo <= STANDSTILL_EXTENSION else lo - _SPEED_TOLERANCE
         bad = (v < floor) | (v > hi + _SPEED_TOLERANCE)
         if not bool(bad.any()):
@@ -522,18 +524,39 @@ class LearnedDensity(DensityPredictor):
     def mismatch(self, parameterization) -> str | None:
         """Why this predictor cannot predict along references of ``parameterization`` (a
         :class:`~density_planner.control.reference.PiecewiseConstantInputs`), or ``None`` when it can. A network
-        never extrapolates: it only serves the horizon, planning step and segment count it was trained for."""
+        never extrapolates in time: it serves the planning step and segment length it was trained for, over its
+        own horizon or a longer one of whole segments, which it covers by chaining windows of its own horizon
+        (:meth:`windows`)."""
         a, par = self.architecture, parameterization
-        if par.n_plan != a.n_times or not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6) or par.n_segments != (
-            a.n_segments
-        ):
+        trained_seg = (a.n_times - 1) * a.dt / a.n_segments
+        if (not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6)
+                or not math.isclose(par.segment_duration, trained_seg, rel_tol=1e-6)
+                or par.n_segments < a.n_segments):
             trained = (a.n_times - 1) * a.dt
             return (
                 f"the learned density predictor {self.name!r} is trained for a {trained:g}-s horizon ({a.n_times} "
-                f"points of {a.dt:g} s, {a.n_segments} segments); this plan has {par.horizon:g} s ({par.n_plan} "
-                f"points of {par.plan_dt:g} s, {par.n_segments} segments of {par.segment_duration:g} s)"
+                f"points of {a.dt:g} s, {a.n_segments} segments; longer horizons of whole segments are chained); "
+                f"this plan has {par.horizon:g} s ({par.n_plan} points of {par.plan_dt:g} s, {par.n_segments} "
+                f"segments of {par.segment_duration:g} s)"
             )
         return None
+
+    def windows(self, n_segments: int) -> list[int]:
+        """First segments of the windows that cover a reference of ``n_segments`` segments.
+
+        The network predicts ``a.n_segments`` segments from a window's start. A longer reference is covered by
+        windows starting at ``0, S, 2 S, ...`` (``S`` = the trained segment count), the last one moved back so that
+        it ends with the reference (it then overlaps the one before): every window reads genuine reference
+        parameters, none padded. Each window starts from the state and log-density the previous one predicted at
+        its first segment: the closed loop is time-invariant given the reference (the controller reads the error
+        and the reference's state and input), so its flow over ``[t_s, t_s + H]`` is the network's flow from the
+        reference state at ``t_s``.
+        """
+        size = self.architecture.n_segments
+        starts = list(range(0, max(n_segments - size, 0) + 1, size))
+        if starts[-1] + size < n_segments:
+            starts.append(n_segments - size)
+        return starts
 
     def check_parameterization(self, parameterization) -> None:
         """Raise :class:`ValueError` (naming the fix) when :meth:`mismatch` finds one."""
@@ -547,9 +570,9 @@ class LearnedDensity(DensityPredictor):
             raise ValueError(f"reference must be a Reference (see make_reference), got {type(reference).__name__}")
         a = self.architecture
         self.check_parameterization(reference.parameterization)
-        if tuple(reference.params.shape[-2:]) != (a.nu, a.n_segments):
+        if reference.params.shape[-2] != a.nu or reference.params.shape[-1] != reference.parameterization.n_segments:
             raise ValueError(
-                f"the learned density predictor needs parameters of shape ({a.nu}, {a.n_segments}); the reference "
+                f"the learned density predictor needs parameters of shape ({a.nu}, n_segments); the reference "
                 f"has {tuple(reference.params.shape[-2:])} (use --density exact)"
             )
 
@@ -589,13 +612,37 @@ class LearnedDensity(DensityPredictor):
         p = next(self.model.parameters())
         if p.dtype != dtype or p.device != device:
             self.model = self.model.to(device=device, dtype=dtype)
-        start = reference.start
-        xe0 = x0 - start.unsqueeze(-2)
-        xe, log_ratio = self.model(xe0, start, reference.params, _heading(reference.x_plan, self.layout))
+        par, size = reference.parameterization, self.architecture.n_segments
+        if par.n_segments == size:
+            xe, log_ratio = self._window(x0, reference.start, reference.params, reference.x_plan)
+        else:  # chained windows (see windows()): each starts from the prediction at its first segment
+            per_seg = par.steps_per_segment // par.plan_stride  # planning points per segment
+            x_start, log_start = x0, torch.zeros_like(x0[..., 0])
+            xs, logs, prev, covered = [], [], None, 0
+            for first in self.windows(par.n_segments):
+                k0 = first * per_seg
+                if prev is not None:  # the previous window's prediction at this window's start
+                    px, plog, pk0 = prev
+                    x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
+                ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
+                xe, lr = self._window(x_start, ref_x[..., 0, :], reference.params[..., first:first + size], ref_x)
+                wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
+                keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
+                xs.append(wx[..., keep:, :])
+                logs.append(wlog[..., keep:])
+                prev, covered = (wx, wlog, k0), first + size
+            x, log_ratio = torch.cat(xs, dim=-2), torch.cat(logs, dim=-1)
+            return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
+                                     log_rho0=log_rho0)
         x = reference.x_plan.unsqueeze(-3) + xe
         return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
                                  log_rho0=log_rho0)
 
+    def _window(self, x0: Tensor, start: Tensor, params: Tensor, x_plan: Tensor) -> tuple[Tensor, Tensor]:
+        """Errors ``(*batch, N, T, nx)`` and log-density ratios ``(*batch, N, T)`` over one trained horizon from
+        states ``x0 (*batch, N, nx)``, along the reference that starts at ``start`` with ``params`` (planning-grid
+        states ``x_plan``)."""
+        return self.model(x0 - start.unsqueeze(-2), start, params, _heading(x_plan, self.layout))
 
     _warned = False
 

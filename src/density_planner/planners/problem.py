@@ -29,6 +29,7 @@ __all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON", "initial_erro
 log = logging.getLogger(__name__)
 
 #: the paper's planning horizon [s] (10 segments of 1 s); the shipped learned density predictors are trained for it
+#: (and chain windows of it for longer horizons)
 DEFAULT_HORIZON = 10.0
 
 
@@ -40,19 +41,21 @@ class PlanningConfig:
     The horizon is ``horizon`` when given (explicit configuration wins); else the scene's suggestion
     ``scene.meta["horizon"]`` [s from the plan's start] (e.g. the end of a CommonRoad goal's time interval),
     rounded up to whole segments and clamped to ``[min_horizon, max_horizon]`` and to the scene's time span; else
-    :data:`DEFAULT_HORIZON` (10 s, the paper). Both bounds default to 10 s: the shipped learned density predictors
-    are trained for 10 s of 1-s segments at 0.1 s, and for other values the planner falls back to exact Liouville
-    (logged warning; minutes per plan instead of seconds) or, when a learned predictor is named explicitly,
-    refuses with an error. A goal whose time interval ends earlier is met inside the 10-s plan (the goal-region
-    cost is zero during its interval); one that starts later than ``max_horizon`` cannot be reached: raise
-    ``--set planning.max_horizon=20`` (exact Liouville) for such scenes.
+    :data:`DEFAULT_HORIZON` (10 s, the paper). ``min_horizon`` is 10 s: the shipped learned density predictors are
+    trained for 10 s of 1-s segments at 0.1 s, and a goal whose time interval ends earlier is met inside the 10-s
+    plan (the goal-region cost is zero during its interval). ``max_horizon`` is 20 s (the CommonRoad suite's goals
+    end up to 20.4 s after the start): a learned predictor covers a longer horizon of whole 1-s segments by chaining
+    windows of its own 10 s (:meth:`~density_planner.density.network.LearnedDensity.windows`; measured as accurate
+    as the first window, docs/density.md). For another segment length or planning step the planner falls back to
+    exact Liouville (logged warning; minutes per plan instead of seconds) or, when a learned predictor is named
+    explicitly, refuses with an error. A goal that starts later than ``max_horizon`` cannot be reached.
     """
 
     #: planning horizon [s], a whole number of segments (None: the scene's suggestion, else 10 s)
     horizon: float | None = None
     #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped); above 10 s the
-    #: shipped learned predictors do not apply (exact Liouville)
-    max_horizon: float = DEFAULT_HORIZON
+    #: learned predictors chain windows of their 10 s
+    max_horizon: float = 20.0
     #: floor of a horizon suggested by the scene [s] (a goal that ends earlier is met inside the longer plan)
     min_horizon: float = DEFAULT_HORIZON
     #: duration of one piecewise-constant segment of the reference inputs [s]
