@@ -135,3 +135,50 @@ def test_active_subset_call_equals_the_dense_sum_with_gradients():
     g_dense = torch.autograd.grad(dense.sum(), (x, w))
     for a, b in zip(g_got, g_dense):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
+# ------------------------------------------------------------------ the road's edge in collision (risk.road_edge)
+def _edge_scene():
+    """The hand-made road whose grid marks the off-road cells occupied (as the CommonRoad importer does) and one
+    parked car on the right lane at x = 60."""
+    from dataclasses import replace
+
+    from density_planner.environment.commonroad import offroad_cells
+
+    scene = road_scene(GoalRegion(shapely.box(140, 0, 150, 3.5), (0.0, 10.0)))
+    g = scene.grid
+    _, nx, ny = g.shape
+    probs = torch.from_numpy(offroad_cells(scene.road.drivable, g.origin, g.cell_size, (nx, ny)).astype(np.float32))
+    probs = probs.expand(g.n_slices, nx, ny).clone()
+    i0, j0 = int((58 - g.origin[0]) / g.cell_size), int((1.0 - g.origin[1]) / g.cell_size)
+    probs[:, i0:i0 + 18, j0:j0 + 7] = 1.0  # 4.5 m x 1.75 m
+    return replace(scene, grid=g.with_probs(probs))
+
+
+def test_road_edge_barrier_reads_road_users_only_and_occupied_reads_the_edge():
+    from density_planner.risk.collision import RiskConfig, collision_grid
+
+    scene = _edge_scene()
+    barrier_grid = collision_grid(scene, RiskConfig())
+    assert collision_grid(scene, RiskConfig(road_edge="occupied")) is scene.grid
+    assert collision_grid(scene, RiskConfig()) is barrier_grid  # cached
+    g = scene.grid
+    on_road = ~torch.from_numpy(np.asarray(
+        shapely.intersects_xy(scene.road.drivable.buffer(g.cell_size * 0.7072),
+                              *np.meshgrid(g.xs.numpy(), g.ys.numpy(), indexing="ij"))))
+    assert float(barrier_grid.probs[:, on_road].max()) == 0.0  # every off-road cell reads 0
+    assert torch.equal(barrier_grid.probs[:, ~on_road], g.probs[:, ~on_road])  # the road users are kept
+    assert float(barrier_grid.probs.sum()) > 0
+
+    # a car on the road, its side 0.15 m from the edge: the disc cover and its dilation reach off-road cells
+    from density_planner.systems.car import KinematicCar
+
+    car = KinematicCar()
+    on_edge = torch.tensor([[[20.0, 1.05, 0.0, 5.0, 0.0]]])  # (1 sample, 1 time, state); side 0.15 m inside
+    behind = torch.tensor([[[57.0, 1.75, 0.0, 5.0, 0.0]]])  # front bumper 0.75 m into the parked car
+    k = torch.tensor([0])
+    occupied = CollisionModel(scene.grid, car, RiskConfig(road_edge="occupied"))
+    users = CollisionModel(barrier_grid, car, RiskConfig())
+    assert float(occupied.probability(on_edge, k).max) == 1.0
+    assert float(users.probability(on_edge, k).max) == 0.0
+    assert float(users.probability(behind, k).max) == 1.0

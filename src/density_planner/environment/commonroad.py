@@ -81,6 +81,8 @@ __all__ = [
     "read_commonroad",
     "obstacle_class_id",
     "static_map",
+    "offroad_cells",
+    "offroad_mask",
     "drivable_area",
     "reach_distance",
 ]
@@ -477,6 +479,40 @@ def _rasterise_polygons(out: torch.Tensor, polys_per_slice: list[list[Any]], ori
             out[k, i0:i1 + 1, j0:j1 + 1][inside] = 1.0
 
 
+def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, size: tuple[int, int],
+                  margin: float | None = None) -> np.ndarray:
+    """``(NX, NY)`` bool: the cells whose centre lies more than ``margin`` [m] outside the drivable area (``None``:
+    half the cell's diagonal, :attr:`CommonRoadSceneConfig.offroad_margin`), i.e. the off-road part of the static
+    map."""
+    _, shapely = _require()
+    nx, ny = size
+    gx, gy = np.meshgrid(origin[0] + cell_size * np.arange(nx), origin[1] + cell_size * np.arange(ny), indexing="ij")
+    margin = cell_size * math.sqrt(0.5) if margin is None else float(margin)
+    road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
+    shapely.prepare(road)
+    return ~shapely.intersects_xy(road, gx, gy)
+
+
+def offroad_mask(scene: Scene) -> torch.Tensor | None:
+    """``(NX, NY)`` bool tensor of the scene grid's cells that its static map marks off the road (as imported:
+    :func:`offroad_cells` with the scene's ``offroad_margin``), cached on the grid; ``None`` for a scene without a
+    road or one imported with ``offroad_occupied = false`` (its grid holds no road edge). Cached on the road per grid
+    geometry (the online windows share it)."""
+    road = scene.road
+    if road is None or road.drivable is None:
+        return None
+    cfg = scene.meta.get("config") or {}
+    if not bool(cfg.get("offroad_occupied", True)):
+        return None
+    _, nx, ny = scene.grid.shape
+    key = (scene.grid.origin, scene.grid.cell_size, nx, ny, cfg.get("offroad_margin"))
+    cache = road.__dict__.setdefault("_offroad_masks", {})
+    if key not in cache:
+        cache[key] = torch.from_numpy(offroad_cells(road.drivable, scene.grid.origin, scene.grid.cell_size, (nx, ny),
+                                                    cfg.get("offroad_margin")))
+    return cache[key]
+
+
 def static_map(
     scenario: Any,
     origin: tuple[float, float],
@@ -498,12 +534,10 @@ def static_map(
     xs = origin[0] + cell_size * np.arange(nx)
     ys = origin[1] + cell_size * np.arange(ny)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    margin = cell_size * math.sqrt(0.5) if cfg.offroad_margin is None else float(cfg.offroad_margin)
-    road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
-    shapely.prepare(road)
-    static = (~shapely.intersects_xy(road, gx, gy)).astype(np.float32)
-    if not cfg.offroad_occupied:
-        static[:] = 0.0
+    if cfg.offroad_occupied:
+        static = offroad_cells(drivable, origin, cell_size, size, cfg.offroad_margin).astype(np.float32)
+    else:
+        static = np.zeros((nx, ny), dtype=np.float32)
     if static_polygons is None:
         static_polygons = []
         if cfg.include_static_obstacles:

@@ -543,7 +543,8 @@ class MPCPlanner(Planner):
         system = problem.system
         self.system = system
         builds = self.n_builds
-        collision = problem.collision()
+        # no road term here: the road's edge stays occupied in the constraints
+        collision = problem.collision(road_edge="occupied")
         grid: OccupancyGrid = collision.body_grid  # occupancy seen by a body disc (the point's P_occ for a point)
         prog = self._program_for(system, grid.cell_size, self._limits(system), collision.cover.offsets)
         cfg = self.config

@@ -90,7 +90,8 @@ class _OracleProgram:
     def __init__(self, ca: Any, config: OracleConfig, weights: ResolvedWeights, problem: PlanningProblem,
                  model: NLPModel):
         par = problem.parameterization
-        collision = problem.collision()
+        # no road term here: the road's edge stays occupied in the constraints
+        collision = problem.collision(road_edge="occupied")
         grid = collision.body_grid  # occupancy seen by a body disc (the scene's P_occ for a point vehicle)
         if model.heading is None and any(collision.cover.offsets):
             raise ValueError(f"{model.system} has no heading: its body must be a single disc centred on the position")

@@ -20,7 +20,7 @@ from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import START_OCCUPIED_THRESHOLD, Scene, validate_scene
-from ..risk.collision import CollisionModel, RiskConfig
+from ..risk.collision import CollisionModel, RiskConfig, collision_grid
 from ..systems.base import System
 from ..systems.registry import make_system
 
@@ -157,10 +157,12 @@ class PlanningProblem:
     risk: RiskConfig = field(default_factory=RiskConfig)
     start_threshold: float = START_OCCUPIED_THRESHOLD
 
-    def collision(self, device: torch.device | str | None = None) -> CollisionModel:
-        """The collision model of this problem (scene grid, system, risk settings) on ``device``."""
-        grid = self.scene.grid if device is None else self.scene.grid.to(device)
-        return CollisionModel(grid, self.system, self.risk)
+    def collision(self, device: torch.device | str | None = None, *, road_edge: str | None = None) -> CollisionModel:
+        """The collision model of this problem (scene grid, system, risk settings) on ``device``; ``road_edge``
+        overrides ``risk.road_edge`` (the MPC and oracle constraints, which have no road term, pass
+        ``"occupied"``; :func:`~density_planner.risk.collision.collision_grid`)."""
+        grid = collision_grid(self.scene, self.risk, road_edge=road_edge)
+        return CollisionModel(grid if device is None else grid.to(device), self.system, self.risk)
 
     def __post_init__(self) -> None:
         validate_scene(self.scene, start_threshold=self.start_threshold)

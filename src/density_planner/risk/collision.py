@@ -44,9 +44,11 @@ from ..environment.grid import OccupancyGrid
 from ..systems.base import System
 from .body import DiscCover, body_grid
 
-__all__ = ["RiskConfig", "CollisionModel", "CollisionReport", "collision_probability", "ESTIMATORS"]
+__all__ = ["RiskConfig", "CollisionModel", "CollisionReport", "collision_probability", "collision_grid", "ESTIMATORS",
+           "ROAD_EDGES"]
 
 ESTIMATORS = ("is", "paper")
+ROAD_EDGES = ("barrier", "occupied")
 
 
 @dataclass(frozen=True)
@@ -63,9 +65,18 @@ class RiskConfig:
     #: benchmarks: Monte-Carlo closed loops per tracked plan for the risk check (0 = no check; `bench
     #: --validate-risk` sets 10000); see density_planner.evaluation.risk_validation
     validate_samples: int = 0
+    #: the road's edge on scenes with a road (CommonRoad), whose grid marks the cells off the drivable area occupied:
+    #: "barrier" (default): the collision probability and the collision cost read the road users and static
+    #: obstacles only (off-road cells read 0), the road is the road barrier's (cost.road, exact outline against the
+    #: road's signed distance) and the verdict's ``on_road``; the MPC and oracle, which have no road term, still
+    #: read off-road cells as occupied in their constraints. "occupied": off-road cells count as a collision
+    #: (probability 1) everywhere (before; on a 3.5-m lane the body's disc cover, its grid dilation and the
+    #: initial spread then read P_coll up to 1 at t = 0 for a car that is on the road)
+    road_edge: Literal["barrier", "occupied"] = "barrier"
 
     def __post_init__(self) -> None:
         check_choice("risk.estimator", self.estimator, ESTIMATORS)
+        check_choice("risk.road_edge", self.road_edge, ROAD_EDGES)
         if isinstance(self.n_discs, bool) or not isinstance(self.n_discs, int) or self.n_discs < 0:
             raise ValueError(f"risk.n_discs must be an integer >= 0 (0 = automatic), got {self.n_discs!r}")
         if isinstance(self.validate_samples, bool) or not isinstance(self.validate_samples, int) or not (
@@ -291,6 +302,30 @@ def importance_weights(x: Tensor, log_rho0: Tensor | None, log_q0: Tensor | None
     if not bool(torch.isfinite(lw).all()):
         raise ValueError("log_rho0 - log_q0 must be finite for every sample (samples outside the proposal's support?)")
     return torch.softmax(lw, dim=-1)
+
+
+def collision_grid(scene, config: RiskConfig | None = None, *, road_edge: str | None = None) -> OccupancyGrid:
+    """The grid collision reads on ``scene``: the scene's own grid, or, with ``road_edge = "barrier"`` (default
+    ``config.road_edge``) on a scene whose grid marks its off-road cells (:func:`~density_planner.environment.
+    commonroad.offroad_mask`), the same grid with those cells at 0 (road users and static obstacles only), cached
+    on the scene's grid."""
+    from ..environment.commonroad import offroad_mask
+
+    edge = road_edge or (config or RiskConfig()).road_edge
+    check_choice("road_edge", edge, ROAD_EDGES)
+    grid = scene.grid
+    if edge == "occupied":
+        return grid
+    mask = offroad_mask(scene)
+    if mask is None:
+        return grid
+    key = ("road_users", id(mask))
+    cached = grid._cache.get(key)
+    if cached is None or cached.device != grid.device:
+        keep = (~mask).to(device=grid.device, dtype=grid.probs.dtype)
+        cached = grid.with_probs(grid.probs * keep)
+        grid._cache[key] = cached
+    return cached
 
 
 def collision_probability(
