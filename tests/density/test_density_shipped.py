@@ -76,8 +76,9 @@ def test_default_learned_predictor_is_the_trajectory_head(controller):
 
 def test_shipped_road_predictor_chained_past_its_horizon_stays_close_to_exact():
     """A 20-s horizon from the road set's 10-s trajectory network (two chained windows) against exact Liouville.
-    Measured by benchmarks/bench_chained_density.py (12 references x 40 samples): position error median 0.11-0.17 m after 10 s, as in
-    the first window (docs/density.md); the tolerances catch a window that restarts from the wrong state or time."""
+    Measured by benchmarks/bench_chained_density.py (12 references x 40 samples): position error median 0.11-0.17 m
+    after 10 s, as in the first window (docs/density.md); the tolerances catch a window that restarts from the wrong
+    state or time."""
     from density_planner.control.reference import PiecewiseConstantInputs
     from density_planner.control.registry import model_set
     from density_planner.control.sampling import sample_feasible_references, sample_initial_errors
