@@ -144,6 +144,26 @@ def test_margin_keeps_plans_off_the_regions_edge():
     assert float(thin(_inputs(mid[None]))[0]) == 0.0
 
 
+def test_time_margin_keeps_plans_off_the_intervals_ends():
+    goal = GoalRegion(BOX, (0.4, 0.8))  # steps 4..8; with a 0.1-s margin 5..7
+    strict = GoalRegionCost(goal, t0=0.0, dt=0.1)
+    term = GoalRegionCost(goal, t0=0.0, dt=0.1, time_margin=0.1)
+    # in the region only at step 8 (the interval's last instant): zero without the margin, positive with it
+    late = _traj(torch.tensor([0.0, 1, 2, 3, 4, 5, 6, 7, 10.5, 20, 30]))
+    assert float(strict(_inputs(late[None]))[0]) == 0.0
+    assert float(term(_inputs(late[None]))[0]) == pytest.approx((10.0 - 7.0) ** 2)
+    # inside in the middle of the interval: zero with the margin too
+    mid = _traj(torch.tensor([0.0, 1, 2, 3, 4, 11, 12, 13, 20, 30, 40]))
+    assert float(term(_inputs(mid[None]))[0]) == 0.0
+    # the margin is at most a quarter of the interval's width, and an instant stays an instant
+    wide = GoalRegionCost(goal, t0=0.0, dt=0.1, time_margin=5.0)
+    assert wide._alts[0][1] == pytest.approx((0.5, 0.7))
+    instant = GoalRegionCost(GoalRegion(BOX, (0.6, 0.6)), t0=0.0, dt=0.1, time_margin=0.3)
+    assert instant._alts[0][1] == pytest.approx((0.6, 0.6))
+    with pytest.raises(ValueError, match="time_margin must be a finite number >= 0"):
+        GoalRegionCost(goal, t0=0.0, dt=0.1, time_margin=-1.0)
+
+
 def test_stage_two_adds_the_references_own_cost_on_road_scenes_only():
     """``reference_weight`` w: stage 2's cost becomes cost + w sum_n alpha_n J_n(reference) over goal, collision,
     road and bounds on a road scene (with its gradient through the reference), and stays the paper's cost on a

@@ -27,7 +27,9 @@ it takes a ``far_factor`` applied while ``J_G >= close_threshold`` during optimi
 ``margin`` shrinks the region for the cost (not for the verdict): shapes are eroded by up to ``margin`` [m] (less
 where a shape is too thin to keep a core), and speed / heading intervals by up to a quarter of their width (at
 most ``margin`` m/s and ``margin / 10`` rad), so that a plan the optimiser brings to zero cost lies inside the
-true region with room for the vehicle's tracking error rather than on its boundary.
+true region with room for the vehicle's tracking error rather than on its boundary. ``time_margin`` [s] does the
+same for the time interval: ``[t_lo + m, t_hi - m]`` with ``m = min(time_margin, (t_hi - t_lo) / 4)`` (an instant
+stays an instant), so that an execution that arrives a little late or leaves a little early is still inside it.
 
 Distances to polygons are exact and differentiable (point-to-segment distances to every edge of the goal's
 outline, batched; inside by the even-odd rule), so the gradient of ``d_G^2`` is ``2 (p - q)`` with ``q`` the
@@ -127,6 +129,7 @@ class GoalRegionCost(CostTerm):
         far_factor, close_threshold: as :class:`~density_planner.cost.terms.GoalCost`.
         simplify: tolerance [m] of the outline simplification (fewer edges, faster).
         margin: shrink the region by up to this much [m] (see the module docstring).
+        time_margin: shrink the time interval by up to this much [s] at both ends (see the module docstring).
         layout: state indices ``(x, y, heading, speed)`` (``None``: the system's facts are unknown, the car's
             layout ``(0, 1, 2, 3)``); :func:`~density_planner.cost.road.with_road_terms` passes the system's.
     """
@@ -135,7 +138,8 @@ class GoalRegionCost(CostTerm):
 
     def __init__(self, goal: Any, *, t0: float, dt: float, velocity_weight: float = 1.0,
                  orientation_weight: float = 25.0, far_factor: float = 1.0, close_threshold: float = 3.0,
-                 simplify: float = 0.05, margin: float = 0.0, layout: tuple[int, int, int, int] | None = None):
+                 simplify: float = 0.05, margin: float = 0.0, time_margin: float = 0.0,
+                 layout: tuple[int, int, int, int] | None = None):
         self.layout = tuple(layout) if layout is not None else _CAR_LAYOUT
         if not (math.isfinite(t0) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"GoalRegionCost needs a finite t0 and dt > 0, got {t0}, {dt}")
@@ -149,8 +153,9 @@ class GoalRegionCost(CostTerm):
         self.close_threshold = float(close_threshold)
         alternatives = tuple(getattr(goal, "alternatives", ()) or ()) or (goal,)
         self._alts = []
-        if not math.isfinite(margin) or margin < 0:
-            raise ValueError(f"margin must be a finite number >= 0, got {margin}")
+        for name, value in (("margin", margin), ("time_margin", time_margin)):
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")
         for alt in alternatives:
             shapes = getattr(alt, "shapes", None)
             if shapes is not None and margin > 0:
@@ -166,7 +171,9 @@ class GoalRegionCost(CostTerm):
                 width = (hi - lo) % (2 * math.pi) if hi < lo else hi - lo
                 half = 0.5 * width - min(0.1 * margin, 0.125 * width)
                 ori = None if width >= 2 * math.pi - 1e-9 else (lo + 0.5 * width, half)  # centre, half-width
-            self._alts.append((edges, (float(alt.time_interval[0]), float(alt.time_interval[1])),
+            t_lo, t_hi = float(alt.time_interval[0]), float(alt.time_interval[1])
+            m = min(time_margin, 0.25 * (t_hi - t_lo))
+            self._alts.append((edges, (t_lo + m, t_hi - m),
                                None if vel is None else (float(vel[0]), float(vel[1])), ori))
 
     def times(self, slices: Tensor) -> Tensor:

@@ -63,6 +63,9 @@ class RoadCostConfig:
     #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
     #: most), so that plans end inside with room for tracking errors
     goal_margin: float = 0.5
+    #: the goal's time interval is shrunk by up to this much at both ends for the cost [s] (a quarter of its width at
+    #: most; an instant stays an instant), so that executions a little early or late still meet it
+    goal_time_margin: float = 0.3
     #: weight of the squared speed distance in the goal-region cost [m^2 / (m/s)^2]
     goal_velocity_weight: float = 1.0
     #: weight of the squared heading distance in the goal-region cost [m^2 / rad^2]
@@ -81,8 +84,8 @@ class RoadCostConfig:
     sdf_max_cells: int = 4_000_000
 
     def __post_init__(self) -> None:
-        for name in ("goal_weight", "goal_margin", "goal_velocity_weight", "goal_orientation_weight", "weight",
-                     "margin"):
+        for name in ("goal_weight", "goal_margin", "goal_time_margin", "goal_velocity_weight",
+                     "goal_orientation_weight", "weight", "margin"):
             check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
         for name in ("footprint_spacing", "sdf_cell_size"):
             check_positive(f"cost.road.{name}", getattr(self, name))
@@ -209,7 +212,7 @@ def with_road_terms(
             goal, t0=scene.grid.t0, dt=scene.grid.dt,
             velocity_weight=rc.goal_velocity_weight, orientation_weight=rc.goal_orientation_weight,
             far_factor=config.goal_far_factor if optimisation else 1.0, close_threshold=config.goal_close_threshold,
-            margin=rc.goal_margin, layout=layout,
+            margin=rc.goal_margin, time_margin=rc.goal_time_margin, layout=layout,
         )
         terms = [region if t.name == "goal" else t for t in terms]
         weights["goal"] = rc.goal_weight
