@@ -64,14 +64,18 @@ def test_plan_in_the_goal_too_early_fails():
     x, u = straight()  # in the goal box x in [40, 55] during t in [8, 10] s; the interval starts at 10.5 s
     v = judge(road_scene(goal_time=(10.5, 14.0)), x, u, system=CAR, dt=DT)
     assert not v.goal_reached and v.collision_free and v.on_road and v.within_model
-    assert v.status == "failed" and "never during its time interval" in v.reasons[0]
+    assert v.status == "failed" and v.reasons[0] == (
+        "goal: in the goal area at t = 8.0-10.0 s but never during its time interval [10.5, 14.0] s")
     # the same plan with the interval in reach succeeds: the time is what failed
     assert judge(road_scene(goal_time=(9.5, 14.0)), x, u, system=CAR, dt=DT).ok
 
 
 def test_goal_velocity_interval_is_checked():
     x, u = straight(v=5.0)
-    assert not judge(road_scene(velocity=(0.0, 3.0)), x, u, system=CAR, dt=DT).goal_reached
+    v = judge(road_scene(velocity=(0.0, 3.0)), x, u, system=CAR, dt=DT)
+    assert not v.goal_reached
+    assert v.reasons[0] == ("goal: in the goal area during its time interval [8.0, 12.0] s but with speed "
+                            "5.00-5.00 m/s outside [0.00, 3.00]")
     assert judge(road_scene(velocity=(4.0, 6.0)), x, u, system=CAR, dt=DT).goal_reached
 
 

@@ -130,6 +130,10 @@ def test_risk_aware_profiles_stop_behind_a_standing_car_and_reach_a_goal_in_time
     free = lambda xy, heading, speed: np.zeros(heading.shape)  # noqa: E731
     s, v, cost = risk_aware_profiles(free, path, 10.0, tau, (70.0, 75.0), (6.0, 7.0), **kw)
     assert cost[0] < 5.0 and ((s[0, 60:71] >= 70.0 - 1e-6) & (s[0, 60:71] <= 75.0 + 1e-6)).any()
+    # a goal speed interval: the best profile is inside the arc during the interval at a speed inside it
+    s, v, cost = risk_aware_profiles(free, path, 10.0, tau, (70.0, 75.0), (6.0, 7.0), goal_speed=(12.0, 15.0), **kw)
+    at = (s[0, 60:71] >= 70.0 - 1e-6) & (s[0, 60:71] <= 75.0 + 1e-6) & (v[0, 60:71] >= 12.0 - 1e-6)
+    assert cost[0] < 5.0 and at.any()
 
 
 @pytest.mark.parametrize("route_goal, speed", [((110.5, 113.0, -10.5, -8.5), 8.0), ((85, 95, 4.0, 6.5), 6.0)])

@@ -229,6 +229,37 @@ def _first(mask: np.ndarray) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
+def _goal_miss(goal: Any, in_space: np.ndarray, t_abs: np.ndarray, t_rel: np.ndarray, v: np.ndarray,
+               theta: np.ndarray, t_start: float) -> str:
+    """Why states that are in the goal area miss the goal: its time interval, else its speed or heading interval
+    (single-alternative goals; several alternatives are named together)."""
+    t0, t1 = (float(a) - t_start for a in goal.time_interval)
+    span = f"[{t0:.1f}, {t1:.1f}] s"
+    if goal.alternatives:
+        return (f"in the goal area at t = {float(t_rel[_first(in_space)]):.1f} s but never in one of its "
+                f"{len(goal.alternatives)} alternatives (time, velocity, orientation)")
+    during = in_space & (t_rel >= t0 - 1e-6) & (t_rel <= t1 + 1e-6)
+    if not during.any():
+        when = t_rel[in_space]
+        return (f"in the goal area at t = {float(when.min()):.1f}-{float(when.max()):.1f} s but never during its "
+                f"time interval {span}")
+    parts = []
+    if goal.velocity is not None:
+        vs = v[during]
+        lo, hi = (float(a) for a in goal.velocity)
+        if not ((vs >= lo - 1e-9) & (vs <= hi + 1e-9)).any():
+            parts.append(f"speed {float(vs.min()):.2f}-{float(vs.max()):.2f} m/s outside [{lo:.2f}, {hi:.2f}]")
+    if goal.orientation is not None:
+        from ..environment.road import angle_in_interval
+
+        ths = theta[during]
+        if not angle_in_interval(ths, goal.orientation).any():
+            lo, hi = (float(a) for a in goal.orientation)
+            parts.append(f"heading {float(ths.min()):.3f}-{float(ths.max()):.3f} rad outside [{lo:.3f}, {hi:.3f}]")
+    what = "; ".join(parts) or "speed and heading each met, never together"
+    return f"in the goal area during its time interval {span} but with {what}"
+
+
 def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, details: dict,
                 reasons: list[str], scene_bounds: tuple[float, float, float, float]) -> tuple[bool, bool, bool]:
     import shapely
@@ -247,11 +278,7 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
     if not goal_ok:
         in_space = dist <= 1e-9
         if in_space.any():
-            k = _first(in_space)
-            when = float(t_rel[k])
-            reasons.append(f"goal: in the goal area at t = {when:.1f} s but never during its time interval "
-                           f"[{t0 - road.t_start:.1f}, {t1 - road.t_start:.1f}] s (or outside its velocity / "
-                           "orientation limits)")
+            reasons.append("goal: " + _goal_miss(goal, in_space, t_abs, t_rel, v, theta, road.t_start))
         else:
             reasons.append(f"goal: never in the goal region (closest {float(dist.min()):.1f} m, final "
                            f"{float(dist[-1]):.1f} m)")

@@ -475,6 +475,7 @@ def risk_aware_profiles(
     n_keep: int,
     risk_weight: float,
     effort_weight: float,
+    goal_speed: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``n_keep`` best of :func:`profile_family` along ``path`` by a cost that sees the scene's occupancy.
 
@@ -483,8 +484,10 @@ def risk_aware_profiles(
 
         risk_weight * sum_t P_occ(t) dt  +  d_goal^2  +  effort_weight * sum_t a(t)^2 dt
 
-    with ``d_goal`` [m] the smallest distance along the path from ``s(t)`` to ``goal_arc`` over the times of the goal
-    interval (0 without a position goal). Profiles are kept best first, skipping any whose speeds differ from a
+    with ``d_goal^2`` the smallest, over the times of the goal interval, of the squared distance [m] along the path from
+    ``s(t)`` to ``goal_arc`` (0 without a position goal) plus the squared distance [m/s] of the speed ``v(t)`` to
+    ``goal_speed`` (the goal's speed interval, shrunk by a quarter of its width, at most 0.5 m/s, like the goal-region
+    cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). Profiles are kept best first, skipping any whose speeds differ from a
     kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
     """
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
@@ -500,7 +503,12 @@ def risk_aware_profiles(
         if not in_time.any():
             in_time = np.abs(tau - goal_time[1]) == np.abs(tau - goal_time[1]).min()
         d = np.maximum(goal_arc[0] - s[:, in_time], 0.0) + np.maximum(s[:, in_time] - goal_arc[1], 0.0)
-        cost = cost + d.min(axis=1) ** 2
+        miss = d**2
+        if goal_speed is not None:
+            m = min(0.5, 0.25 * (goal_speed[1] - goal_speed[0]))
+            vt = v[:, in_time]
+            miss = miss + (np.maximum(goal_speed[0] + m - vt, 0.0) + np.maximum(vt - goal_speed[1] + m, 0.0)) ** 2
+        cost = cost + miss.min(axis=1)
     acc = np.diff(v, axis=1) / np.maximum(np.diff(tau), 1e-9)
     cost = cost + effort_weight * (acc**2 * np.diff(tau)).sum(axis=1)
     order = np.argsort(cost, kind="stable")
@@ -614,16 +622,20 @@ def fit_reference_parameters(
 
 
 # ------------------------------------------------------------------------------------------------ for a problem
-def _goal_of(problem: Any, radius: float) -> tuple[Any | None, tuple[float, float] | None]:
-    """``(goal shapes, absolute goal time interval or None)`` of the problem's scene."""
+Interval = tuple[float, float]
+
+
+def _goal_of(problem: Any, radius: float) -> tuple[Any | None, Interval | None, Interval | None]:
+    """``(goal shapes, absolute goal time interval or None, goal speed interval or None)`` of the problem's scene."""
     import shapely
 
     road = getattr(problem.scene, "road", None)
     goal = getattr(road, "goal", None)
     if goal is not None:
-        return goal.shapes, tuple(goal.time_interval)
+        speed = getattr(goal, "velocity", None)
+        return goal.shapes, tuple(goal.time_interval), None if speed is None else (float(speed[0]), float(speed[1]))
     gx, gy = problem.scene.goal
-    return shapely.Point(gx, gy).buffer(radius), None
+    return shapely.Point(gx, gy).buffer(radius), None, None
 
 
 def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
@@ -723,7 +735,7 @@ def route_seed_parameters(
     ia = system.acceleration_input
     a_max = 0.9 * min(abs(float(system.input_bounds[0][ia])), abs(float(system.input_bounds[1][ia])))
     horizon = float(tau[-1])
-    shapes, interval = _goal_of(problem, cfg.goal_point_radius)
+    shapes, interval, goal_speed = _goal_of(problem, cfg.goal_point_radius)
     reach = max(sv, v_limits[1]) * horizon + 10.0
     routes = find_routes(graph, (sx, sy), sth, shapes, max_routes=cfg.max_routes,
                          lane_change_cost=cfg.lane_change_cost, reach=reach,
@@ -764,7 +776,7 @@ def route_seed_parameters(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                 rates=tuple(sorted({cfg.acceleration, a_max})), n_speeds=cfg.profile_speeds,
                 switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
-                effort_weight=cfg.effort_weight)
+                effort_weight=cfg.effort_weight, goal_speed=goal_speed)
             s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
             lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
         xy = path_points(route.path, s)  # (P, T, 2)
