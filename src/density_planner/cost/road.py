@@ -12,8 +12,9 @@ negative on the road) there::
 ``phi`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
 everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default
 weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state,
-more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= 0.1 * (beta * h / 2)^2``: 2.5 at
-0.1-m cells, 10 at 0.2 m, with the default ``beta = 100`` cells), so leaving the road never pays for avoiding an
+more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the
+road scenes' ``alpha_C = 1`` (``collision_weight``): 25 at 0.1-m cells, 100 at 0.2 m, 400 at 0.4 m, with the default
+``beta = 100`` cells), so leaving the road never pays for avoiding an
 obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road for goal
 either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
@@ -60,6 +61,11 @@ class RoadCostConfig:
     #: alpha_G of the goal-region cost [1/m^2] (replaces cost.weights.goal on road scenes: the region cost is
     #: zero inside, so a weight that dominates near the goal only decides *whether* the plan ends inside)
     goal_weight: float = 1.0
+    #: alpha_C of the collision term on road scenes [1/m^2] (replaces cost.weights.collision there, None: keep it).
+    #: A collision fails a plan as surely as a missed goal: with the paper's 0.1, two seconds inside a car (J_C ~
+    #: 100 m^2) weighed as much as a 3-m goal miss (10 m^2 times the goal-far factor), and the plans the suite's
+    #: verdict found colliding had P_coll max ~1 (32 of 34)
+    collision_weight: float | None = 1.0
     #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
     #: most), so that plans end inside with room for tracking errors
     goal_margin: float = 0.5
@@ -87,6 +93,8 @@ class RoadCostConfig:
         for name in ("goal_weight", "goal_margin", "goal_time_margin", "goal_velocity_weight",
                      "goal_orientation_weight", "weight", "margin"):
             check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
+        if self.collision_weight is not None:
+            check_positive("cost.road.collision_weight", self.collision_weight, allow_zero=True)
         for name in ("footprint_spacing", "sdf_cell_size"):
             check_positive(f"cost.road.{name}", getattr(self, name))
         if isinstance(self.sdf_max_cells, bool) or not isinstance(self.sdf_max_cells, int) or self.sdf_max_cells < 4:
@@ -190,8 +198,8 @@ def with_road_terms(
     system: Any = None,
 ) -> tuple[list[CostTerm], dict[str, float]]:
     """The cost terms for ``scene`` with the road terms switched in where ``scene.road`` is set: the ``"goal"``
-    term becomes :class:`~density_planner.cost.goal_region.GoalRegionCost` and :class:`RoadBarrierCost` (weight
-    ``config.road.weight``) is added. ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
+    term becomes :class:`~density_planner.cost.goal_region.GoalRegionCost`, the collision weight becomes
+    ``config.road.collision_weight`` and :class:`RoadBarrierCost` (weight ``config.road.weight``) is added. ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
     Scenes without a road get ``terms`` and ``weights`` back unchanged. ``system`` (a
     :class:`~density_planner.systems.base.System`) says where the position, heading and speed are in the state
     (``None``: the car's layout)."""
@@ -216,6 +224,8 @@ def with_road_terms(
         )
         terms = [region if t.name == "goal" else t for t in terms]
         weights["goal"] = rc.goal_weight
+    if rc.collision_weight is not None and "collision" in weights:
+        weights["collision"] = rc.collision_weight
     if rc.barrier and getattr(road, "drivable", None) is not None and rc.weight > 0:
         sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
         if sdf is not None:
