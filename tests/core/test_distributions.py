@@ -157,3 +157,23 @@ def test_paper_mixture_is_cut_to_the_models_state_box():
     assert free.support[0][3] == pytest.approx(-0.3)
     with pytest.raises(ValueError, match="outside the model's state box"):
         paper_gaussian_mixture([0.0, 0.0, 0.3, -1.0, 0.0], half, bounds=(lo, hi))
+
+
+def test_conditioned_law_is_the_truncated_base(gen):
+    """N(0, 1) in 2-D given x0 > 0: the half-normal mean sigma sqrt(2/pi) in x0, acceptance 1/2, density doubled on
+    the event and 0 off it, every sample in it; an (almost) impossible event is refused."""
+    from density_planner.density.distributions import Conditioned
+
+    base = Gaussian([0.0, 0.0], [1.0, 1.0])
+    law = Conditioned(base, lambda x: x[:, 0] > 0, description="x0 > 0", n_estimate=20000)
+    se = math.sqrt(0.25 / 20000)
+    assert abs(law.acceptance - 0.5) < 4 * se
+    assert abs(float(law.mean[0]) - math.sqrt(2 / math.pi)) < 4 * 0.6 / math.sqrt(10000)
+    x = law.sample(5000, gen, dtype=torch.float64)
+    assert x.shape == (5000, 2) and bool((x[:, 0] > 0).all())
+    pts = torch.tensor([[0.5, 0.1], [-0.5, 0.1]], dtype=torch.float64)
+    lp = law.log_prob(pts)
+    assert float(lp[0]) == pytest.approx(float(base.log_prob(pts[:1])[0]) - math.log(law.acceptance))
+    assert lp[1] == -math.inf
+    with pytest.raises(ValueError, match="x0 > 5 a probability of .* cannot be conditioned"):
+        Conditioned(base, lambda x: x[:, 0] > 5, description="x0 > 5")

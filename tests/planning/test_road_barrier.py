@@ -182,3 +182,32 @@ def test_road_edge_barrier_reads_road_users_only_and_occupied_reads_the_edge():
     assert float(occupied.probability(on_edge, k).max) == 1.0
     assert float(users.probability(on_edge, k).max) == 0.0
     assert float(users.probability(behind, k).max) == 1.0
+
+
+def test_initial_law_conditioned_on_the_body_on_the_road():
+    """A start 0.7 m from the kerb (the body's side 0.2 m from it) with a +-0.5-m position error: the scene's
+    initial law puts every draw, and the planner's every proposal sample, with the body inside the drivable area;
+    without the prior a good part of the law lies off the road."""
+    from dataclasses import replace
+
+    from density_planner.density.distributions import Conditioned
+    from density_planner.environment.road import BodyOnRoad
+    from density_planner.planners.density_planner import sample_initial_states
+    from density_planner.planners.problem import PlanningProblem
+
+    scene = road_scene(GoalRegion(shapely.box(140, 0, 150, 3.5), (0.0, 10.0)), start=(10.0, 1.1, 0.0, 6.0))
+    scene = replace(scene, meta={"initial_on_road": True, "initial_error": {"position": 0.5, "heading": 0.05,
+                                                                              "speed": 0.3}})
+    problem = PlanningProblem.from_scene(scene)
+    law = problem.initial_distribution
+    assert isinstance(law, Conditioned) and 0.2 < law.acceptance < 0.95
+    on_road = BodyOnRoad(scene.road.drivable, scene.road.vehicle_length, scene.road.vehicle_width)
+    gen = torch.Generator().manual_seed(0)
+    assert on_road(law.sample(2000, gen, dtype=torch.float64)).all()
+    assert not on_road(law.base.sample(2000, gen, dtype=torch.float64)).all()
+    x0, log_rho0, log_q0 = sample_initial_states(problem, 500, gen, dtype=torch.float64)
+    assert on_road(x0).all() and torch.isfinite(log_rho0).all() and torch.isfinite(log_q0).all()
+    assert float(law.mean[1]) > 1.1  # the prior moves the mean away from the kerb
+    # off: the paper's law
+    plain = PlanningProblem.from_scene(replace(scene, meta={**scene.meta, "initial_on_road": False}))
+    assert not isinstance(plain.initial_distribution, Conditioned)

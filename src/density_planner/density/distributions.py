@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -23,6 +23,7 @@ __all__ = [
     "GaussianMixture",
     "UniformBox",
     "WeightedSamples",
+    "Conditioned",
     "paper_gaussian_mixture",
 ]
 
@@ -257,6 +258,62 @@ class GaussianMixture(InitialDistribution):
         p = (lo + u * (hi - lo)).clamp(1e-15, 1 - 1e-15)
         x = self.means[comp] + self.std[comp] * torch.special.ndtri(p)
         return torch.maximum(torch.minimum(x, self.high), self.low)
+
+
+class Conditioned(InitialDistribution):
+    """``base`` conditioned on an event of the state, ``A = {x : accept(x)}``: ``rho(x) = base(x) 1_A(x) / Z``,
+    ``Z = P_base(A)`` (e.g. the car's initial law given that its body is on the road: a localisation prior combined
+    with the map).
+
+    ``accept(x (N, dim) float64) -> (N,) bool`` must be vectorised. ``Z`` and the mean are Monte-Carlo estimates
+    from ``n_estimate`` draws of ``base`` with a fixed seed (deterministic); sampling is by rejection from ``base``.
+    The support box is ``base``'s.
+
+    Raises:
+        ValueError: ``Z`` below ``min_acceptance`` (the event is (almost) impossible under ``base``; the message
+        names ``description``).
+    """
+
+    def __init__(self, base: InitialDistribution, accept: Callable[[Tensor], Tensor], *, description: str = "",
+                 n_estimate: int = 8192, min_acceptance: float = 1e-3):
+        self.base, self.accept, self.description = base, accept, description
+        self.dim = base.dim
+        draws = base.sample(n_estimate, torch.Generator().manual_seed(0), dtype=torch.float64)
+        ok = self.accepts(draws)
+        self.acceptance = float(ok.double().mean())
+        if self.acceptance < min_acceptance:
+            raise ValueError(f"the initial law gives the event {description or 'accept(x)'} a probability of "
+                             f"{self.acceptance:.2g} (< {min_acceptance:g}): it cannot be conditioned on it")
+        self._log_z = math.log(self.acceptance)
+        self._mean = draws[ok].mean(0)
+
+    def accepts(self, x: Tensor) -> Tensor:
+        """``(N,)`` bool: which states ``x (N, dim)`` lie in the event."""
+        out = torch.as_tensor(self.accept(x.to(torch.float64).cpu().reshape(-1, self.dim)), dtype=torch.bool)
+        return out.reshape(x.shape[:-1]).to(x.device)
+
+    @property
+    def mean(self) -> Tensor:
+        return self._mean
+
+    @property
+    def support(self):
+        return self.base.support
+
+    def _log_prob(self, x):
+        lp = self.base._log_prob(x) - self._log_z
+        return torch.where(self.accepts(x), lp, torch.full_like(lp, -math.inf))
+
+    def _sample(self, n, generator):
+        out, have = [], 0
+        for _ in range(1000):
+            draws = self.base._sample(max(2 * (n - have), int(1.5 * (n - have) / self.acceptance) + 8), generator)
+            draws = draws[self.accepts(draws)]
+            out.append(draws[: n - have])
+            have += out[-1].shape[0]
+            if have >= n:
+                return torch.cat(out)
+        raise RuntimeError("rejection sampling did not finish")  # unreachable for acceptance >= min_acceptance
 
 
 class WeightedSamples(InitialDistribution):

@@ -151,6 +151,10 @@ class CommonRoadSceneConfig:
     #: localisation and automotive-grade heading and speed (docs/environments.md); ``None``: the system's XE0 box
     #: (the paper's: +-1 m, +-0.5 rad, +-0.5 m/s)
     initial_error: tuple[float, float, float] | None = (0.5, 0.05, 0.3)
+    #: the initial law is conditioned on the car's body being inside the drivable area (the localisation error
+    #: combined with the map: a start 0.5 m from the kerb cannot be 0.6 m beyond it), written to
+    #: ``scene.meta["initial_on_road"]``; skipped (logged) when the recorded start itself is off the road
+    initial_on_road: bool = True
     #: a cell counts as off the road only when its centre lies more than this far outside the drivable area [m];
     #: None: half the cell's diagonal, which offsets the grid's quantisation (the body's disc-dilated grid is
     #: conservative by up to a cell) so that a narrow lane stays open at coarse cells; the exact road edge is the
@@ -1004,6 +1008,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         "model_domain": {"model": model, "v_min": v_min, "v_max": v_max, "a_max": a_max},
         "initial_error": None if cfg.initial_error is None else dict(zip(("position", "heading", "speed"),
                                                                           map(float, cfg.initial_error))),
+        "initial_on_road": bool(cfg.initial_on_road),
         "map": {"area": list(area), "cell_size": cell, "shape": [n_slices, nx, ny], "memory_bytes": memory,
                 "region": region_rule},
         "road": road_notes,

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["GoalRegion", "ObstacleTrack", "RoadScene", "angle_in_interval"]
+__all__ = ["GoalRegion", "ObstacleTrack", "RoadScene", "BodyOnRoad", "angle_in_interval", "vehicle_footprints"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -450,3 +450,47 @@ class RoadScene:
             vehicle_width=float(data.get("vehicle_width", 1.8)),
             meta=dict(data.get("meta", {})),
         )
+
+
+def vehicle_footprints(xy: np.ndarray, theta: np.ndarray, length: float, width: float) -> np.ndarray:
+    """The vehicle rectangles ``length x width`` [m] centred at ``xy (T, 2)`` with headings ``theta (T,)`` [rad],
+    as an array of ``T`` shapely polygons (the reference point of the car model is the rectangle's centre, as
+    CommonRoad's)."""
+    import shapely
+
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    theta = np.asarray(theta, dtype=np.float64).reshape(-1)
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    hl, hw = 0.5 * length, 0.5 * width
+    lx = np.array([hl, -hl, -hl, hl, hl])[None, :]
+    ly = np.array([hw, hw, -hw, -hw, hw])[None, :]
+    x = xy[:, :1] + c * lx - s * ly
+    y = xy[:, 1:] + s * lx + c * ly
+    return shapely.polygons(np.stack([x, y], axis=-1))
+
+
+@dataclass(frozen=True, eq=False)
+class BodyOnRoad:
+    """The event "the vehicle's rectangle lies inside the drivable area" as a predicate on states: ``accept(x (N,
+    nx)) -> (N,) bool`` (positions at ``position_indices``, heading at ``heading_index``); the verdict's ``on_road``
+    test at one time (its ``tolerance``, m, grows the drivable area). Used to condition a scene's initial law on the
+    car being on the road (:class:`~density_planner.density.distributions.Conditioned`)."""
+
+    drivable: Any
+    length: float
+    width: float
+    position_indices: tuple[int, int] = (0, 1)
+    heading_index: int = 2
+    tolerance: float = 0.0
+
+    def __post_init__(self) -> None:
+        shapely = _shapely()
+        area = shapely.buffer(self.drivable, self.tolerance) if self.tolerance > 0 else self.drivable
+        shapely.prepare(area)
+        object.__setattr__(self, "_area", area)
+
+    def __call__(self, x: Any) -> np.ndarray:
+        x = np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x, dtype=np.float64)
+        ix, iy = self.position_indices
+        boxes = vehicle_footprints(x[:, [ix, iy]], x[:, self.heading_index], self.length, self.width)
+        return np.asarray(_shapely().covered_by(boxes, self._area), dtype=bool)

@@ -256,8 +256,10 @@ def recentred(dist: Any, mean: Tensor) -> Any:
     """The initial law ``dist`` moved so that its mean is ``mean`` (a :class:`GaussianMixture`: every component and
     the truncation box shifted by the same offset; the shape of the law, i.e. the measurement error law, is
     unchanged)."""
-    from ..density.distributions import GaussianMixture
+    from ..density.distributions import Conditioned, GaussianMixture
 
+    if isinstance(dist, Conditioned):  # the road prior holds at the scene's start only
+        dist = dist.base
     if not isinstance(dist, GaussianMixture):
         raise ValueError(f"re-centring needs a GaussianMixture initial law, got {type(dist).__name__}")
     delta = mean.to(torch.float64).reshape(-1) - dist.mean.to(torch.float64)

@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from ..environment.road import vehicle_footprints
+
 __all__ = ["VerdictConfig", "Verdict", "judge", "judge_plan", "plan_inputs", "parts_table", "vehicle_footprints",
            "record_verdict", "VERDICT_PARTS"]
 
@@ -120,24 +122,6 @@ def _json_value(v: Any) -> Any:
     if isinstance(v, (list, tuple)):
         return [_json_value(x) for x in v]
     return v
-
-
-# ------------------------------------------------------------------------------------------------ footprint
-def vehicle_footprints(xy: np.ndarray, theta: np.ndarray, length: float, width: float) -> np.ndarray:
-    """The vehicle rectangles ``length x width`` [m] centred at ``xy (T, 2)`` with headings ``theta (T,)`` [rad],
-    as an array of ``T`` shapely polygons (the reference point of the car model is the rectangle's centre, as
-    CommonRoad's)."""
-    import shapely
-
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    theta = np.asarray(theta, dtype=np.float64).reshape(-1)
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    hl, hw = 0.5 * length, 0.5 * width
-    lx = np.array([hl, -hl, -hl, hl, hl])[None, :]
-    ly = np.array([hw, hw, -hw, -hw, hw])[None, :]
-    x = xy[:, :1] + c * lx - s * ly
-    y = xy[:, 1:] + s * lx + c * ly
-    return shapely.polygons(np.stack([x, y], axis=-1))
 
 
 def _footprint_size(scene: Any, config: VerdictConfig, system: Any = None) -> tuple[float, float]:

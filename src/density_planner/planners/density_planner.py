@@ -129,15 +129,30 @@ def sample_initial_states(
     """``n`` initial states with their log-densities under the initial law and under the proposal.
 
     Returns ``(x0 (n, nx), log_rho0 (n,), log_q0 (n,))``. With ``proposal="support"`` the states are uniform on
-    the support box of the initial distribution (falls back to the distribution itself when it has none).
+    the support box of the initial distribution (falls back to the distribution itself when it has none), within its
+    event for a conditioned law (:class:`~density_planner.density.distributions.Conditioned`: rejection).
     """
     dist = problem.initial_distribution
     support = dist.support if proposal == "support" else None
     if support is not None:
         lo, hi = support
-        u = torch.rand(n, dist.dim, dtype=torch.float64, generator=generator)
-        x0 = (lo + u * (hi - lo)).to(dtype=dtype, device=device)
-        log_q0 = torch.full((n,), -float(torch.log(hi - lo).sum()), dtype=dtype, device=device)
+        accepts = getattr(dist, "accepts", None)  # a conditioned law: the proposal is the box within its event
+        u = torch.rand(n if accepts is None else 4 * n, dist.dim, dtype=torch.float64, generator=generator)
+        x = lo + u * (hi - lo)
+        log_vol = float(torch.log(hi - lo).sum())
+        if accepts is not None:
+            keep = accepts(x)
+            for _ in range(100):
+                if int(keep.sum()) >= n:
+                    break
+                more = lo + torch.rand(4 * n, dist.dim, dtype=torch.float64, generator=generator) * (hi - lo)
+                x, keep = torch.cat([x, more]), torch.cat([keep, accepts(more)])
+            log_vol += math.log(max(float(keep.double().mean()), 1e-12))  # uniform on box and event
+            x = x[keep][:n]
+            if x.shape[0] < n:
+                raise RuntimeError("the initial law's event is too rare in its support box to sample the proposal")
+        x0 = x.to(dtype=dtype, device=device)
+        log_q0 = torch.full((n,), -log_vol, dtype=dtype, device=device)
         log_rho0 = dist.log_prob(x0)
     else:
         x0 = dist.sample(n, generator, dtype=dtype, device=device)

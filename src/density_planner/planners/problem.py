@@ -24,7 +24,7 @@ from ..risk.collision import CollisionModel, RiskConfig, collision_grid
 from ..systems.base import System
 from ..systems.registry import make_system
 
-__all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON", "initial_error_box"]
+__all__ = ["PlanningProblem", "PlanningConfig", "DEFAULT_HORIZON", "initial_error_box", "initial_law_on_road"]
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +118,29 @@ class PlanningConfig:
         return PiecewiseConstantInputs(n, float(self.segment_duration), float(self.dt), float(self.plan_dt))
 
 
+def initial_law_on_road(scene: Scene, system: System, dist: InitialDistribution) -> InitialDistribution:
+    """``dist`` conditioned on the system's body lying inside the scene's drivable area
+    (:class:`~density_planner.density.distributions.Conditioned` with
+    :class:`~density_planner.environment.road.BodyOnRoad`) when ``scene.meta["initial_on_road"]`` is true and the
+    scene has a road; ``dist`` itself otherwise, or (logged) when the law gives the event less than 1 % (a recorded
+    start off the road)."""
+    road = getattr(scene, "road", None)
+    if not scene.meta.get("initial_on_road") or road is None or road.drivable is None:
+        return dist
+    if system.heading_index is None:
+        return dist
+    from ..density.distributions import Conditioned
+    from ..environment.road import BodyOnRoad
+
+    accept = BodyOnRoad(road.drivable, road.vehicle_length, road.vehicle_width, tuple(system.position_indices),
+                        system.heading_index)
+    try:
+        return Conditioned(dist, accept, description="body on the road", min_acceptance=0.01)
+    except ValueError as exc:
+        log.warning("scene %s: initial law not conditioned on the road: %s", scene.name, exc)
+        return dist
+
+
 def initial_error_box(scene: Scene, system: System) -> tuple[float, ...]:
     """Half-widths (``system.nx``) of the initial-error box of a plan on ``scene``: the system's XE0 box
     (``system.initial_error_max``), with the position, heading and speed entries replaced by the scene's measurement
@@ -190,7 +213,8 @@ class PlanningProblem:
     ) -> PlanningProblem:
         """The paper's default problem: its 5-component Gaussian mixture on the initial-error box
         (:func:`initial_error_box`: the system's XE0 box, with the scene's own position / heading / speed errors where
-        it gives them) around the scene start (``system.state_from_pose(*scene.start)``), drawn with ``seed``. The
+        it gives them) around the scene start (``system.state_from_pose(*scene.start)``), drawn with ``seed``, and
+        conditioned on the body being on the road where the scene asks for it (:func:`initial_law_on_road`). The
         horizon comes from ``parameterization`` if given, else from ``planning`` (default :class:`PlanningConfig`:
         the scene's suggestion or 10 s)."""
         check_seed("seed", seed)
@@ -198,6 +222,7 @@ class PlanningProblem:
         start = system.state_from_pose(*scene.start)
         dist = paper_gaussian_mixture(start, initial_error_box(scene, system), torch.Generator().manual_seed(seed),
                                       bounds=system.state_bounds)
+        dist = initial_law_on_road(scene, system, dist)
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
         return cls(scene, dist, system, parameterization, risk or RiskConfig())
