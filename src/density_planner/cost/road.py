@@ -14,8 +14,8 @@ everywhere beyond, so a plan deep off the road still gets a gradient back to it 
 weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state,
 more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the
 road scenes' ``alpha_C = 10`` (``collision_weight``): 250 at 0.1-m cells, 1000 at 0.2 m, with the default ``beta =
-100`` cells; at 0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so leaving the road never pays for avoiding an
-obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
+100`` cells; at 0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so
+leaving the road never pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road for goal
 either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
@@ -200,7 +200,8 @@ def with_road_terms(
 ) -> tuple[list[CostTerm], dict[str, float]]:
     """The cost terms for ``scene`` with the road terms switched in where ``scene.road`` is set: the ``"goal"``
     term becomes :class:`~density_planner.cost.goal_region.GoalRegionCost`, the collision weight becomes
-    ``config.road.collision_weight`` and :class:`RoadBarrierCost` (weight ``config.road.weight``) is added. ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
+    ``config.road.collision_weight`` and :class:`RoadBarrierCost` (weight ``config.road.weight``) is added.
+    ``config`` is the :class:`~density_planner.cost.composite.CostConfig`.
     Scenes without a road get ``terms`` and ``weights`` back unchanged. ``system`` (a
     :class:`~density_planner.systems.base.System`) says where the position, heading and speed are in the state
     (``None``: the car's layout)."""

@@ -487,8 +487,8 @@ def risk_aware_profiles(
     with ``d_goal^2`` the smallest, over the times of the goal interval, of the squared distance [m] along the path from
     ``s(t)`` to ``goal_arc`` (0 without a position goal) plus the squared distance [m/s] of the speed ``v(t)`` to
     ``goal_speed`` (the goal's speed interval, shrunk by a quarter of its width, at most 0.5 m/s, like the goal-region
-    cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). Profiles are kept best first, skipping any whose speeds differ from a
-    kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
+    cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). Profiles are kept best first, skipping any whose
+    speeds differ from a kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
     """
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
     s = _integrate(v, tau)
