@@ -15,9 +15,9 @@ weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.1
 more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the
 road scenes' ``alpha_C = 10`` (``collision_weight``): 250 at 0.1-m cells, 1000 at 0.2 m, with the default ``beta =
 100`` cells; at 0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so
-leaving the road never pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G =
-1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road for goal
-either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+leaving the road never pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's
+pull (``2 alpha_G d`` per m, ``alpha_G = 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the
+optimiser does not trade road for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
 into it by more than ``margin`` between two points.
 
