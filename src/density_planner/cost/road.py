@@ -10,16 +10,16 @@ negative on the road) there::
     J_R = sum_{i,k} w_i(t_k) sum_{q in outline} phi(sdf(q_i(t_k)) + margin),   phi(s) = s_+ + s_+^2 / (1 m)
 
 ``phi`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
-everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default
-weight ``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state,
-more than any one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the
-road scenes' ``alpha_C = 10`` (``collision_weight``): 250 at 0.1-m cells, 1000 at 0.2 m, with the default ``beta =
-100`` cells; at 0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so
-leaving the road never pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's
-pull (``2 alpha_G d`` per m, ``alpha_G = 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the
-optimiser does not trade road for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
-drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges
-into it by more than ``margin`` between two points.
+everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default weight
+``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state, more than any
+one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the road scenes'
+``alpha_C = 10`` (``collision_weight``): 250 at 0.1-m cells, 1000 at 0.2 m, with the default ``beta = 100`` cells; at
+0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so leaving the road never
+pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per
+m, ``alpha_G = 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road
+for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges into it
+by more than ``margin`` between two points.
 
 Why the default spacing of 0.5 m (26 points on a 4.5 x 1.8 m car) and not fewer: between two outline points
 ``s`` apart, a curved road edge of radius ``R`` can reach ``s^2 / (8 R)`` into the rectangle (0.03 m at ``s = 1``

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -265,8 +266,9 @@ class Conditioned(InitialDistribution):
     ``Z = P_base(A)`` (e.g. the car's initial law given that its body is on the road: a localisation prior combined
     with the map).
 
-    ``accept(x (N, dim) float64) -> (N,) bool`` must be vectorised. ``Z`` and the mean are Monte-Carlo estimates
-    from ``n_estimate`` draws of ``base`` with a fixed seed (deterministic); sampling is by rejection from ``base``.
+    ``accept(x (N, dim) float64) -> (N,) bool`` (tensor or array) must be vectorised. ``Z`` and the mean are
+    Monte-Carlo estimates from ``n_estimate`` draws of ``base`` with a fixed seed (deterministic); sampling is by
+    rejection from ``base``.
     The support box is ``base``'s.
 
     Raises:
@@ -274,7 +276,7 @@ class Conditioned(InitialDistribution):
         names ``description``).
     """
 
-    def __init__(self, base: InitialDistribution, accept: Callable[[Tensor], Tensor], *, description: str = "",
+    def __init__(self, base: InitialDistribution, accept: Callable[[Tensor], Any], *, description: str = "",
                  n_estimate: int = 8192, min_acceptance: float = 1e-3):
         self.base, self.accept, self.description = base, accept, description
         self.dim = base.dim

@@ -482,6 +482,7 @@ class BodyOnRoad:
     position_indices: tuple[int, int] = (0, 1)
     heading_index: int = 2
     tolerance: float = 0.0
+    _area: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         shapely = _shapely()

@@ -132,8 +132,8 @@ def initial_law_on_road(scene: Scene, system: System, dist: InitialDistribution)
     from ..density.distributions import Conditioned
     from ..environment.road import BodyOnRoad
 
-    accept = BodyOnRoad(road.drivable, road.vehicle_length, road.vehicle_width, tuple(system.position_indices),
-                        system.heading_index)
+    ix, iy = system.position_indices
+    accept = BodyOnRoad(road.drivable, road.vehicle_length, road.vehicle_width, (ix, iy), system.heading_index)
     try:
         return Conditioned(dist, accept, description="body on the road", min_acceptance=0.01)
     except ValueError as exc:
@@ -220,9 +220,9 @@ class PlanningProblem:
         check_seed("seed", seed)
         system = system or make_system()
         start = system.state_from_pose(*scene.start)
-        dist = paper_gaussian_mixture(start, initial_error_box(scene, system), torch.Generator().manual_seed(seed),
-                                      bounds=system.state_bounds)
-        dist = initial_law_on_road(scene, system, dist)
+        mixture = paper_gaussian_mixture(start, initial_error_box(scene, system),
+                                         torch.Generator().manual_seed(seed), bounds=system.state_bounds)
+        dist = initial_law_on_road(scene, system, mixture)
         if parameterization is None:
             parameterization = (planning or PlanningConfig()).parameterization(scene)
         return cls(scene, dist, system, parameterization, risk or RiskConfig())
