@@ -209,11 +209,11 @@ class _DesiredPositionMemo:
     """
 
     #: no memo for grids with more cells than this (the mask alone takes this many bytes; the table is allocated
-    #: uninitialised, so only the pages of visited cells become resident). Above the 67M cells of the default
-    #: CommonRoad grid budget (``commonroad.memory_budget_gib = 0.25`` of float32): the suite's large urban
+    #: uninitialised, so only the pages of visited cells become resident). The 268M cells of the default
+    #: CommonRoad grid budget (``commonroad.memory_budget_gib = 1`` of float32): the suite's large urban
     #: scenes sit at that budget, and without the memo their collision term took 20x longer (0.22 s instead
     #: of 0.01 s per stage-2 iteration on USA_Lanker-2_20)
-    MAX_CELLS = 1 << 27
+    MAX_CELLS = 1 << 28
 
     def __init__(self, grid: OccupancyGrid, beta: float, plateau_scales: tuple[int, ...]):
         self.grid = grid
