@@ -528,11 +528,10 @@ class LearnedDensity(DensityPredictor):
         own horizon or a longer one of whole segments, which it covers by chaining windows of its own horizon
         (:meth:`windows`)."""
         a, par = self.architecture, parameterization
-        trained_seg = (a.n_times - 1) * a.dt / a.n_segments
+        trained = (a.n_times - 1) * a.dt
         if (not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6)
-                or not math.isclose(par.segment_duration, trained_seg, rel_tol=1e-6)
+                or not math.isclose(par.segment_duration, trained / a.n_segments, rel_tol=1e-6)
                 or par.n_segments < a.n_segments):
-            trained = (a.n_times - 1) * a.dt
             return (
                 f"the learned density predictor {self.name!r} is trained for a {trained:g}-s horizon ({a.n_times} "
                 f"points of {a.dt:g} s, {a.n_segments} segments; longer horizons of whole segments are chained); "
@@ -612,29 +611,26 @@ class LearnedDensity(DensityPredictor):
         p = next(self.model.parameters())
         if p.dtype != dtype or p.device != device:
             self.model = self.model.to(device=device, dtype=dtype)
+        # windows of the trained horizon (see windows(); one for a reference of that horizon), each starting from
+        # the prediction at its first segment
         par, size = reference.parameterization, self.architecture.n_segments
-        if par.n_segments == size:
-            xe, log_ratio = self._window(x0, reference.start, reference.params, reference.x_plan)
-        else:  # chained windows (see windows()): each starts from the prediction at its first segment
-            per_seg = par.steps_per_segment // par.plan_stride  # planning points per segment
-            x_start, log_start = x0, torch.zeros_like(x0[..., 0])
-            xs, logs, prev, covered = [], [], None, 0
-            for first in self.windows(par.n_segments):
-                k0 = first * per_seg
-                if prev is not None:  # the previous window's prediction at this window's start
-                    px, plog, pk0 = prev
-                    x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
-                ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
-                xe, lr = self._window(x_start, ref_x[..., 0, :], reference.params[..., first:first + size], ref_x)
-                wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
-                keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
-                xs.append(wx[..., keep:, :])
-                logs.append(wlog[..., keep:])
-                prev, covered = (wx, wlog, k0), first + size
-            x, log_ratio = torch.cat(xs, dim=-2), torch.cat(logs, dim=-1)
-            return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
-                                     log_rho0=log_rho0)
-        x = reference.x_plan.unsqueeze(-3) + xe
+        per_seg = par.steps_per_segment // par.plan_stride  # planning points per segment
+        x_start, log_start = x0, torch.zeros_like(x0[..., 0])
+        xs, logs, prev, covered = [], [], None, 0
+        for first in self.windows(par.n_segments):
+            k0 = first * per_seg
+            if prev is not None:  # the previous window's prediction at this window's start
+                px, plog, pk0 = prev
+                x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
+            ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
+            xe, lr = self._window(x_start, ref_x[..., 0, :], reference.params[..., first:first + size], ref_x)
+            wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
+            keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
+            xs.append(wx[..., keep:, :])
+            logs.append(wlog[..., keep:])
+            prev, covered = (wx, wlog, k0), first + size
+        x = xs[0] if len(xs) == 1 else torch.cat(xs, dim=-2)
+        log_ratio = logs[0] if len(logs) == 1 else torch.cat(logs, dim=-1)
         return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
                                  log_rho0=log_rho0)
 

@@ -49,6 +49,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
+import weakref
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -500,11 +501,15 @@ def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, 
     return ~shapely.intersects_xy(road, gx, gy)
 
 
+#: off-road masks per road scene and grid geometry (:func:`offroad_mask`; as ``road_sdf``'s cache)
+_OFFROAD_MASKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def offroad_mask(scene: Scene) -> torch.Tensor | None:
     """``(NX, NY)`` bool tensor of the scene grid's cells that its static map marks off the road (as imported:
-    :func:`offroad_cells` with the scene's ``offroad_margin``), cached on the grid; ``None`` for a scene without a
-    road or one imported with ``offroad_occupied = false`` (its grid holds no road edge). Cached on the road per grid
-    geometry (the online windows share it)."""
+    :func:`offroad_cells` with the scene's ``offroad_margin``); ``None`` for a scene without a road or one imported
+    with ``offroad_occupied = false`` (its grid holds no road edge). Computed once per road scene and grid geometry
+    (the online windows share it)."""
     road = scene.road
     if road is None or road.drivable is None:
         return None
@@ -513,11 +518,11 @@ def offroad_mask(scene: Scene) -> torch.Tensor | None:
         return None
     _, nx, ny = scene.grid.shape
     key = (scene.grid.origin, scene.grid.cell_size, nx, ny, cfg.get("offroad_margin"))
-    cache = road.__dict__.setdefault("_offroad_masks", {})
-    if key not in cache:
-        cache[key] = torch.from_numpy(offroad_cells(road.drivable, scene.grid.origin, scene.grid.cell_size, (nx, ny),
-                                                    cfg.get("offroad_margin")))
-    return cache[key]
+    per_road = _OFFROAD_MASKS.setdefault(road, {})
+    if key not in per_road:
+        per_road[key] = torch.from_numpy(offroad_cells(road.drivable, scene.grid.origin, scene.grid.cell_size,
+                                                       (nx, ny), cfg.get("offroad_margin")))
+    return per_road[key]
 
 
 def static_map(

@@ -213,8 +213,8 @@ def _first(mask: np.ndarray) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
-def _goal_miss(goal: Any, in_space: np.ndarray, t_abs: np.ndarray, t_rel: np.ndarray, v: np.ndarray,
-               theta: np.ndarray, t_start: float) -> str:
+def _goal_miss(goal: Any, in_space: np.ndarray, t_rel: np.ndarray, v: np.ndarray, theta: np.ndarray,
+               t_start: float) -> str:
     """Why states that are in the goal area miss the goal: its time interval, else its speed or heading interval
     (single-alternative goals; several alternatives are named together)."""
     t0, t1 = (float(a) - t_start for a in goal.time_interval)
@@ -262,7 +262,7 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
     if not goal_ok:
         in_space = dist <= 1e-9
         if in_space.any():
-            reasons.append("goal: " + _goal_miss(goal, in_space, t_abs, t_rel, v, theta, road.t_start))
+            reasons.append("goal: " + _goal_miss(goal, in_space, t_rel, v, theta, road.t_start))
         else:
             reasons.append(f"goal: never in the goal region (closest {float(dist.min()):.1f} m, final "
                            f"{float(dist[-1]):.1f} m)")
