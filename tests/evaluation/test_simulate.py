@@ -152,3 +152,42 @@ def test_mpc_execution_uses_plan_from():
     assert run.states.shape == (21, 5)
     assert run.planned_inputs.shape == (20, 2) and torch.equal(run.planned_inputs, run.applied_inputs)
     assert run.step_times.shape == (20,) and run.offline_time == 0.0
+
+
+def test_executed_vehicle_stops_instead_of_reversing():
+    """A car ahead of a reference that brakes to rest: the model's flow (``plant=False``, what the density follows)
+    carries it backwards, the executed vehicle holds at v = 0 and agrees with the model until its speed reaches 0."""
+    from density_planner.density.liouville import simulate_closed_loop
+
+    problem = _problem()
+    car = problem.system
+    params = torch.zeros(2, 10)
+    params[1, 0] = -3.0  # 3 m/s -> rest in 1 s, then stay
+    ref = make_reference(car, problem.reference_start(), params, problem.parameterization)
+    x0 = torch.tensor([[0.0, -19.5, math.pi / 2, 3.3, 0.0]], dtype=ref.x.dtype)
+    cfg = LiouvilleConfig()
+    _, model = simulate_closed_loop(car, CarTrackingController(), x0, ref, config=cfg)
+    executed = track_reference(car, CarTrackingController(), ref, x0, config=cfg)
+    v_model, v_exec = model[0, :, 3], executed[0, :, 3]
+    assert float(v_model.min()) < -0.1  # the case exists: the unconstrained model reverses
+    assert float(v_exec.min()) == 0.0
+    first_stop = int(torch.nonzero(v_model < 0)[0])
+    torch.testing.assert_close(executed[0, :first_stop], model[0, :first_stop])
+    # at rest it stays where it stopped
+    torch.testing.assert_close(executed[0, first_stop:, :2], executed[0, first_stop:first_stop + 1, :2].expand(
+        executed.shape[1] - first_stop, 2))
+
+
+def test_standstill_only_for_vehicles_that_cannot_reverse():
+    car = KinematicCar()
+    x = torch.tensor([[1.0, 2.0, 0.3, -0.2, 0.01], [1.0, 2.0, 0.3, 0.5, 0.01]], dtype=torch.float64)
+    out = car.standstill(x)
+    assert car.standstill_index == 3
+    torch.testing.assert_close(out[:, 3], torch.tensor([0.0, 0.5], dtype=torch.float64))
+    torch.testing.assert_close(out[:, [0, 1, 2, 4]], x[:, [0, 1, 2, 4]])
+    from density_planner.systems.linear import LinearSystem
+
+    point = LinearSystem([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, 0, 0], [0, 0, 0, 0]], [[0, 0], [0, 0], [1, 0], [0, 1]])
+    assert point.standstill_index is None
+    z = torch.tensor([[0.0, 0.0, -1.0, -1.0]])
+    assert torch.equal(point.standstill(z), z)

@@ -81,10 +81,11 @@ class NumpyC3M:
         return isinstance(system, KinematicCar)
 
     def track(self, x: np.ndarray, x_refs: np.ndarray, u_refs: np.ndarray, dt: float,
-              times: list[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+              times: list[float] | None = None, standstill: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Explicit-Euler closed loop of the car (state ``p_x, p_y, theta, v, theta_bias``, heading-biased
         measurement) over the references ``x_refs (K, 5)``, ``u_refs (K, 2)`` from ``x (5,)``: returns the final
-        state and the first applied input; appends each controller evaluation's wall time to ``times``."""
+        state and the first applied input; appends each controller evaluation's wall time to ``times``.
+        ``standstill``: hold the speed at 0 after every step (the plant of ``System.standstill``)."""
         import time
 
         xn = np.array(x, dtype=np.float64)
@@ -98,6 +99,8 @@ class NumpyC3M:
             if u_first is None:
                 u_first = u
             xn = xn + dt * np.array([xn[3] * math.cos(xn[2]), xn[3] * math.sin(xn[2]), u[0], u[1], 0.0])
+            if standstill and xn[3] < 0:
+                xn[3] = 0.0
         if u_first is None:
             raise ValueError("x_refs must hold at least one step")
         return xn, u_first

@@ -74,8 +74,13 @@ def _integrate(
     config: LiouvilleConfig,
     with_density: bool,
     all_steps: bool,
+    plant: bool = False,
 ) -> tuple[Tensor, list[list[Tensor]]]:
-    """Integrate ``y0 = (x0, [log_rho0])`` over the reference horizon; returns the saved times and states."""
+    """Integrate ``y0 = (x0, [log_rho0])`` over the reference horizon; returns the saved times and states.
+    ``plant`` (states only): the executed vehicle, held at rest (:meth:`System.standstill`) at every stage and
+    after every step."""
+    if plant and with_density:
+        raise ValueError("the plant's standstill is not a smooth flow: no density along it")
     integrator = get_integrator(config.integrator)
     horizon = reference.n_steps * reference.dt
     n_steps_f = horizon / config.dt
@@ -95,6 +100,11 @@ def _integrate(
         def func(y, x_ref, u_ref):
             dx, div = closed_loop.rhs_and_divergence(y[0], x_ref, u_ref, method)
             return dx, -div
+    elif plant:  # the stages see the held state too: a car at rest does not creep backwards within a step
+        hold = closed_loop.system.standstill
+
+        def func(y, x_ref, u_ref):
+            return (closed_loop.rhs(hold(y[0]), x_ref, u_ref),)
     else:
         def func(y, x_ref, u_ref):
             return (closed_loop.rhs(y[0], x_ref, u_ref),)
@@ -103,6 +113,8 @@ def _integrate(
     y = y0
     for n in range(n_steps):
         y = integrator.step(func, y, x_ref_st[n], u_ref_st[n], config.dt)
+        if plant:
+            y = (closed_loop.system.standstill(y[0]),)
         if (n + 1) % save_every == 0:
             for store, v in zip(saved, y):
                 store.append(v)
@@ -119,15 +131,18 @@ def simulate_closed_loop(
     *,
     config: LiouvilleConfig | None = None,
     all_steps: bool = False,
+    plant: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Closed-loop trajectories of the true initial states ``x0 (*batch, N, nx)`` tracking ``reference``.
 
     Returns ``(t (T,), x (*batch, N, T, nx))`` on the output grid (every integration step if ``all_steps``).
-    Use ``LiouvilleConfig(integrator="euler", dt=0.01)`` for the paper's scheme.
+    Use ``LiouvilleConfig(integrator="euler", dt=0.01)`` for the paper's scheme. ``plant=True`` simulates the
+    executed vehicle: after every step its physical limits hold (:meth:`System.standstill`: a braking car stops
+    instead of reversing); ``False`` (default) is the model's flow, the one the density propagation follows.
     """
     config = config or LiouvilleConfig()
     x0 = _check_inputs(system, x0, reference)
-    t, saved = _integrate(ClosedLoop(system, controller), (x0,), reference, config, False, all_steps)
+    t, saved = _integrate(ClosedLoop(system, controller), (x0,), reference, config, False, all_steps, plant)
     return t, torch.stack(saved[0], dim=-2)
 
 

@@ -20,7 +20,8 @@
    steering rate of ``brake_steer``, the one with the smallest nominal collision probability) when that is safer
    than the previous reference (an ended reference is always replaced). Every fallback is recorded with its
    reason.
-4. The controller tracks the newest reference (explicit Euler at ``evaluation.dt``, one state, as on the car).
+4. The controller tracks the newest reference (explicit Euler at ``evaluation.dt``, one state, as on the car;
+   a braking car stops instead of reversing: :meth:`System.standstill`).
    The run ends when the goal's time interval has ended, or earlier when the vehicle is inside the goal region
    during it (road scenes); scenes without a goal region run for ``duration`` (default: the planning horizon).
 5. The executed trajectory is judged against the ground truth (:func:`~density_planner.evaluation.verdict.judge`:
@@ -614,7 +615,8 @@ def drive(
         if fast is not None:  # torch-free closed loop (control/fast.py)
             assert active.x_ref_np is not None and active.u_ref_np is not None  # set with fast (activate)
             xn, u_np = fast.track(x.detach().cpu().double().numpy(), active.x_ref_np[offset:offset + per_plan],
-                                  active.u_ref_np[offset:offset + per_plan], dt, ctrl_times)
+                                  active.u_ref_np[offset:offset + per_plan], dt, ctrl_times,
+                                  standstill=system.standstill_index is not None)
             u_first = torch.from_numpy(u_np)
             x = torch.from_numpy(xn).to(dtype=dtype, device=device)
         else:
@@ -626,7 +628,7 @@ def drive(
                     ctrl_times.append(time.perf_counter() - tc)
                     if u_first is None:
                         u_first = u[0]
-                    x = x + dt * system.f(x[None], u)[0]
+                    x = system.standstill(x + dt * system.f(x[None], u)[0])
         assert u_first is not None  # per_plan >= 1 steps ran
         inputs.append(u_first.detach().cpu().numpy().astype(np.float64))
         step_times.append(float(sum(ctrl_times[-per_plan:])) + step_extra)

@@ -120,7 +120,8 @@ def run_receding(planner: StepwisePlanner, problem: PlanningProblem, true_state:
             step = planner.solve(system.measure(x) if cfg.biased_measurement else x, h)
             run.steps.append(step)
             u = torch.as_tensor(step.input, dtype=torch.float64)
-            x = system.rollout(x, u.expand(cfg.substeps, system.nu), h_sub)[-1]
+            for _ in range(cfg.substeps):  # the plant: a braking car stops (System.standstill)
+                x = system.standstill(system.rollout(x, u[None], h_sub)[-1])
             run.states.append(x)
             run.inputs.append(u)
             if not bool(torch.isfinite(x).all()):

@@ -108,10 +108,11 @@ def track_reference(
     all_steps: bool = False,
 ) -> Tensor:
     """Closed-loop trajectories ``(N, T, nx)`` of the true initial states ``x0 (N, nx)`` tracking ``reference``
-    (batch shape ``()``); one batched call for all states."""
+    (batch shape ``()``); one batched call for all states. The executed vehicle: its physical limits hold
+    (``plant=True`` of :func:`simulate_closed_loop`)."""
     if reference.batch_shape != ():
         raise ValueError(f"reference must be a single trajectory (batch shape ()), got {tuple(reference.batch_shape)}")
-    _, x = simulate_closed_loop(system, controller, x0, reference, config=config, all_steps=all_steps)
+    _, x = simulate_closed_loop(system, controller, x0, reference, config=config, all_steps=all_steps, plant=True)
     return x
 
 

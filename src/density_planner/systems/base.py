@@ -125,6 +125,27 @@ class System(ABC):
         h, v = self.headings(x.detach()), self.speeds(x.detach())
         return px, py, 0.0 if h is None else float(h), 0.0 if v is None else float(v)
 
+    @property
+    def standstill_index(self) -> int | None:
+        """Index of the speed that :meth:`standstill` holds at 0 (``None``: the system can reverse or has no
+        speed state)."""
+        i = self.speed_index
+        return None if i is None or float(self.state_bounds[0][i]) < 0 else i
+
+    def standstill(self, x: Tensor) -> Tensor:
+        """The plant's hold at rest: states ``x (..., nx)`` with a negative speed set to 0, for a vehicle that
+        cannot reverse (a speed state whose box starts at 0 or above). A braking vehicle stops and stays stopped;
+        the model ``x' = f(x, u)`` alone would carry it backwards when its controller brakes at low speed.
+
+        Simulations of the *executed* vehicle (:func:`~density_planner.density.simulate_closed_loop` with
+        ``plant=True``, the online runner) apply it after every integration step; the density propagation does
+        not (it is the model's flow, whose Liouville equation needs a smooth field). Identity for systems without
+        a speed state or with reverse speeds in their box."""
+        i = self.standstill_index
+        if i is None:
+            return x
+        return x.index_copy(-1, torch.tensor([i], device=x.device), x[..., i:i + 1].clamp(min=0.0))
+
     def nominal_state(self, x: Tensor) -> Tensor:
         """``x (..., nx)`` with the states a plan cannot know (:attr:`hidden_states`, e.g. a measurement bias) at 0:
         the start of the reference, i.e. of the nominal trajectory."""
