@@ -170,3 +170,15 @@ def test_within_model_judges_applied_inputs_against_the_actuators():
     v_in = judge(scene, x, inside, system=car, dt=0.1)
     v_out = judge(scene, x, outside, system=car, dt=0.1)
     assert v_in.within_model and not v_out.within_model
+
+
+def test_goal_miss_names_every_visit_of_the_goal_area():
+    from density_planner.evaluation.verdict import _spans
+
+    t = np.arange(60) * 0.1
+    mask = np.zeros(60, dtype=bool)
+    mask[0:15] = mask[33:59] = True  # leaves the goal area at 1.5 s, back from 3.3 s: misses an interval at 3.0 s
+    assert _spans(mask, t) == "0.0-1.4, 3.3-5.8"
+    mask[:] = False
+    mask[[1, 3, 5, 7, 59]] = True
+    assert _spans(mask, t) == "0.1-0.1, 0.3-0.3, 0.5-0.5 and 2 more"

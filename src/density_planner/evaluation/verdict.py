@@ -213,6 +213,14 @@ def _first(mask: np.ndarray) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
+def _spans(mask: np.ndarray, t: np.ndarray, most: int = 3) -> str:
+    """The runs of ``mask`` as times ``"0.0-1.4, 3.3-5.8"`` (the first ``most``, then how many more)."""
+    k = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    runs = [f"{float(t[a]):.1f}-{float(t[b - 1]):.1f}" for a, b in zip(k[::2], k[1::2])]
+    more = f" and {len(runs) - most} more" if len(runs) > most else ""
+    return ", ".join(runs[:most]) + more
+
+
 def _goal_miss(goal: Any, in_space: np.ndarray, t_rel: np.ndarray, v: np.ndarray, theta: np.ndarray,
                t_start: float) -> str:
     """Why states that are in the goal area miss the goal: its time interval, else its speed or heading interval
@@ -224,9 +232,7 @@ def _goal_miss(goal: Any, in_space: np.ndarray, t_rel: np.ndarray, v: np.ndarray
                 f"{len(goal.alternatives)} alternatives (time, velocity, orientation)")
     during = in_space & (t_rel >= t0 - 1e-6) & (t_rel <= t1 + 1e-6)
     if not during.any():
-        when = t_rel[in_space]
-        return (f"in the goal area at t = {float(when.min()):.1f}-{float(when.max()):.1f} s but never during its "
-                f"time interval {span}")
+        return f"in the goal area at t = {_spans(in_space, t_rel)} s but never during its time interval {span}"
     parts = []
     if goal.velocity is not None:
         vs = v[during]
