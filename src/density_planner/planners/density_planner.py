@@ -85,6 +85,12 @@ class DensityPlannerConfig:
     reference_weight: float = 10.0
     #: in stage 2, return the iterate with the lowest cost (True) or the last one (False, paper)
     keep_best: bool = True
+    #: backtracking in both stages (:mod:`.optim`): a candidate whose cost exceeds ``backtrack_factor`` times its
+    #: best so far (under the same terms) plus ``backtrack_slack`` returns to its best parameters with half the
+    #: step size; 0 = off (paper). Measured on the CommonRoad suite: docs/planner.md
+    backtrack_factor: float = 2.0
+    #: absolute slack of that test [cost units, m^2 for the goal], so that costs near 0 do not trigger it
+    backtrack_slack: float = 0.1
     #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
     #: states (True), or on the samples it was optimised on (False, paper: optimistic, the plan is fitted to them)
     fresh_evaluation_samples: bool = True
@@ -112,6 +118,10 @@ class DensityPlannerConfig:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if not math.isfinite(self.reference_weight) or self.reference_weight < 0:
             raise ValueError(f"reference_weight must be a finite number >= 0, got {self.reference_weight!r}")
+        if not (self.backtrack_factor == 0 or (math.isfinite(self.backtrack_factor) and self.backtrack_factor > 1)):
+            raise ValueError(f"backtrack_factor must be 0 (off) or a finite number > 1, got {self.backtrack_factor!r}")
+        if not math.isfinite(self.backtrack_slack) or self.backtrack_slack < 0:
+            raise ValueError(f"backtrack_slack must be a finite number >= 0, got {self.backtrack_slack!r}")
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
         check_choice("weighting", self.weighting, ("density", "mass"))
         check_seed("seed", self.seed)
@@ -271,6 +281,7 @@ class DensityPlanner(Planner):
         coll_on[:n_seeds] = True
         totals = []
         per_candidate: dict[str, list[Tensor]] = {}
+        backtracker = _Backtracker(params, cfg.backtrack_factor, cfg.backtrack_slack)
         with self._bar(cfg.epochs_init, "stage 1 (initialisation)") as bar:
             for it in range(cfg.epochs_init):
                 p = params.detach().requires_grad_(True)
@@ -284,14 +295,19 @@ class DensityPlanner(Planner):
                 if it == cfg.epochs_init - 1:
                     break
                 (grad,) = torch.autograd.grad(cost.total.sum(), p)
-                newly_bounds = ~bounds_on & (cost.terms["goal"].detach() < cfg.cost.goal_close_threshold)
-                newly_coll = (bounds_on | newly_bounds) & ~coll_on & (cost.terms["bounds"].detach() == 0)
+                back = backtracker.observe(cost.total.detach(), params)
+                # a candidate sent back does not switch terms on the strength of the iterate it leaves
+                newly_bounds = ~back & ~bounds_on & (cost.terms["goal"].detach() < cfg.cost.goal_close_threshold)
+                newly_coll = ~back & (bounds_on | newly_bounds) & ~coll_on & (cost.terms["bounds"].detach() == 0)
                 switched = newly_bounds | newly_coll
                 if bool(switched.any()):
                     opt.reset(switched)
+                    backtracker.forget(switched)  # a new objective: its best starts afresh
                 bounds_on |= newly_bounds
                 coll_on |= newly_coll
-                opt.step(grad)
+                if bool(back.any()):
+                    opt.backtrack(back, backtracker.best_params)
+                opt.step(grad, mask=~back)
         # select with every term on (the objective the second stage continues with)
         with torch.no_grad():
             x_plan, u_plan = plan_grid_reference(system, start, params, par)
@@ -302,6 +318,7 @@ class DensityPlanner(Planner):
         for k, vals in per_candidate.items():
             history[k] = [float(v[best]) for v in vals]
         history["candidates_with_collision_term"] = [float(coll_on.sum())]
+        history["backtracks"] = [float(backtracker.count)]
         if n_seeds:
             history["seed_candidates"] = [float(n_seeds)]
             history["seed_seconds"] = [t_seed]
@@ -338,6 +355,8 @@ class DensityPlanner(Planner):
                           scale=self._step_scale(problem))
         history: dict[str, list[float]] = {}
         best: tuple[float, Tensor | None, Reference | None, DensityTrajectory | None] = (math.inf, None, None, None)
+        backtracker = _Backtracker(p, cfg.backtrack_factor, cfg.backtrack_slack)
+        backtracks = 0
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
@@ -355,7 +374,13 @@ class DensityPlanner(Planner):
                 if it == cfg.epochs_density - 1:
                     break
                 (grad,) = torch.autograd.grad(cost.total.sum(), pv)
-                opt.step(grad.unsqueeze(0))
+                back = backtracker.observe(cost.total.detach(), p)
+                if bool(back.any()):
+                    opt.backtrack(back, backtracker.best_params)
+                    backtracks += 1
+                else:
+                    opt.step(grad.unsqueeze(0))
+        history["backtracks"] = [float(backtracks)]
         return best, history, (x0, log_rho0, log_q0), slices
 
     #: terms of the reference's own cost added in stage 2 (:attr:`DensityPlannerConfig.reference_weight`)
@@ -457,6 +482,35 @@ class DensityPlanner(Planner):
             iterations={"stage1": it1, "stage2": self.config.epochs_density},
             extras=extras,
         )
+
+
+class _Backtracker:
+    """The best cost and parameters of every candidate so far, and which candidates to send back to them
+    (``DensityPlannerConfig.backtrack_factor``; :meth:`BatchedAdam.backtrack`)."""
+
+    def __init__(self, params: Tensor, factor: float, slack: float):
+        self.factor, self.slack = float(factor), float(slack)
+        self.best = torch.full(params.shape[:1], math.inf, dtype=params.dtype, device=params.device)
+        self.best_params = params.detach().clone()
+        self.count = 0
+
+    def observe(self, total: Tensor, params: Tensor) -> Tensor:
+        """Record ``total (M,)`` at ``params (M, ...)`` (the point it was evaluated at); returns the candidates to
+        send back (bool ``(M,)``, all False when backtracking is off)."""
+        total = torch.nan_to_num(total.detach(), nan=math.inf)
+        better = total < self.best
+        self.best = torch.where(better, total, self.best)
+        mask = better.reshape(-1, *([1] * (params.ndim - 1)))
+        self.best_params = torch.where(mask, params.detach(), self.best_params)
+        if self.factor <= 0:
+            return torch.zeros_like(better)
+        back = torch.isfinite(self.best) & (total > self.best + (self.factor - 1) * self.best.abs() + self.slack)
+        self.count += int(back.sum())
+        return back
+
+    def forget(self, mask: Tensor) -> None:
+        """Candidates whose objective changed: their best starts afresh at their next evaluation."""
+        self.best = torch.where(mask, torch.full_like(self.best, math.inf), self.best)
 
 
 @register_planner("density", "two-stage gradient density planner (paper §IV-D)", section="density_planner",
