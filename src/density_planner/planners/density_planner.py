@@ -308,12 +308,16 @@ class DensityPlanner(Planner):
                 if bool(back.any()):
                     opt.backtrack(back, backtracker.best_params)
                 opt.step(grad, mask=~back)
-        # select with every term on (the objective the second stage continues with)
+        # select with every term on (the objective the second stage continues with), each candidate at its last
+        # iterate or at its best one (which backtracking kept), whichever is lower
         with torch.no_grad():
-            x_plan, u_plan = plan_grid_reference(system, start, params, par)
+            both = torch.cat([params, backtracker.best_params])
+            x_plan, u_plan = plan_grid_reference(system, start, both, par)
             final = objective(CostInputs.single(x_plan, u_plan, slices))
         total = torch.nan_to_num(final.total, nan=math.inf)
         best = int(torch.argmin(total))
+        chosen = both[best]
+        best = best % m  # the candidate (its history below)
         history = {"total": [float(t[best]) for t in totals]}
         for k, vals in per_candidate.items():
             history[k] = [float(v[best]) for v in vals]
@@ -323,8 +327,8 @@ class DensityPlanner(Planner):
             history["seed_candidates"] = [float(n_seeds)]
             history["seed_seconds"] = [t_seed]
             history["best_is_seed"] = [float(best < n_seeds)]
-        log.info("stage 1: best candidate %d of %d, full cost %.4g", best, m, float(total[best]))
-        return params[best].detach().clone(), history, cfg.epochs_init
+        log.info("stage 1: best candidate %d of %d, full cost %.4g", best, m, float(total.min()))
+        return chosen.detach().clone(), history, cfg.epochs_init
 
     # ------------------------------------------------------------------ stage 2
     def _predict(self, predictor: DensityPredictor, problem: PlanningProblem, params: Tensor, x0: Tensor,
