@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..checks import check_choice, check_seed
 from ..control.reference import Reference, make_reference, plan_grid_reference
-from ..cost.composite import CostBreakdown, CostConfig, build_cost
+from ..cost.composite import CostBreakdown, CostConfig, WeightedCost, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
 from ..risk.collision import CollisionReport
@@ -351,6 +351,7 @@ class DensityPlanner(Planner):
         low, high = self._bounds(problem)
         objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
                                system=problem.system, risk=problem.risk)
+        on_samples = self._sample_objective(objective)
         slices = self._slices(problem)
         x0, log_rho0, log_q0 = sample_initial_states(problem, cfg.n_samples, generator, cfg.sample_proposal,
                                                      dtype=self.dtype, device=self.device)
@@ -369,7 +370,7 @@ class DensityPlanner(Planner):
                 ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0,
                                           states_only=cfg.weighting == "mass")
                 cost = self._with_reference(problem, objective, ref, slices,
-                                            objective(self._inputs(ref, traj, log_q0, slices)))
+                                            on_samples(self._inputs(ref, traj, log_q0, slices)))
                 self._record(history, cost.select(0))
                 total = float(cost.total.detach()[0])
                 if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
@@ -386,6 +387,13 @@ class DensityPlanner(Planner):
                     opt.step(grad.unsqueeze(0))
         history["backtracks"] = [float(backtracks)]
         return best, history, (x0, log_rho0, log_q0), slices
+
+    def _sample_objective(self, objective: WeightedCost) -> WeightedCost:
+        """``objective`` with the road barrier's weight on sample clouds (``cost.road.sample_weight``)."""
+        w = self.config.cost.road.sample_weight
+        if w is None or "road" not in objective.weights:
+            return objective
+        return WeightedCost(list(objective.terms.values()), {**objective.weights, "road": w})
 
     #: terms of the reference's own cost added in stage 2 (:attr:`DensityPlannerConfig.reference_weight`)
     REFERENCE_TERMS = ("goal", "collision", "road", "bounds")
@@ -413,8 +421,8 @@ class DensityPlanner(Planner):
     def evaluate(self, problem: PlanningProblem, ref: Reference, traj: DensityTrajectory, log_q0: Tensor,
                  slices: Tensor) -> tuple[dict[str, float], CollisionReport]:
         """Reported cost (no goal-far factor) and collision probability of a predicted sample cloud."""
-        report_cost = build_cost(problem.scene, self.config.cost, optimisation=False, device=self.device,
-                                 system=problem.system, risk=problem.risk)
+        report_cost = self._sample_objective(build_cost(problem.scene, self.config.cost, optimisation=False,
+                                                        device=self.device, system=problem.system, risk=problem.risk))
         with torch.no_grad():
             cost = report_cost(self._inputs(ref, traj, log_q0, slices)).select(0).to_dict()
             coll = problem.collision(self.device).probability(
