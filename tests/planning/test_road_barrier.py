@@ -112,6 +112,29 @@ def test_build_cost_barrier_on_road_scene():
     assert cost.weights["road"] == CostConfig().road.weight
 
 
+def test_density_planner_weighs_the_sample_cloud_with_the_sample_weight():
+    """Stage 2 and the reported cost read the cloud's barrier at ``cost.road.sample_weight``; the reference keeps
+    ``cost.road.weight`` (times ``reference_weight``); ``None`` keeps one weight for both."""
+    from dataclasses import replace
+
+    from density_planner.cost.road import RoadCostConfig
+    from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
+
+    goal = GoalRegion(shapely.box(85, 0.5, 95, 3.0), (9.0, 10.0))
+    cost = build_cost(road_scene(goal), CostConfig())
+    x = _poses([[20, 1.75, 0.0], [20, 12.0, 0.0]]).float()
+    inp = CostInputs.single(x[:, None, :].expand(2, 11, 5).contiguous(), torch.zeros(2, 10, 2))
+    for sample_weight in (7.0, None):
+        cfg = DensityPlannerConfig(cost=replace(CostConfig(), road=RoadCostConfig(sample_weight=sample_weight)))
+        on_samples = DensityPlanner(predictor=None, config=cfg)._sample_objective(cost)  # type: ignore[arg-type]
+        w = cost.weights["road"] if sample_weight is None else sample_weight
+        assert on_samples.weights["road"] == w and cost.weights["road"] == RoadCostConfig().weight
+        a, b = on_samples(inp), cost(inp)
+        torch.testing.assert_close(a.total - b.total, (w - cost.weights["road"]) * b.terms["road"])
+    with pytest.raises(ValueError, match="sample_weight"):
+        RoadCostConfig(sample_weight=-1.0)
+
+
 def test_active_subset_call_equals_the_dense_sum_with_gradients():
     """J_R evaluates only the states near the edge on the autograd graph: same value and gradients as the dense
     sum over every state (x and the weights)."""

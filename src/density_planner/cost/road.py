@@ -17,7 +17,11 @@ one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (bet
 0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so leaving the road never
 pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per
 m, ``alpha_G = 1``, times the goal-far factor 10 while far: 500 per m at 25 m), so the optimiser does not trade road
-for goal either. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
+for goal either. That holds for a single trajectory (stage 1's candidates, stage 2's reference at
+``reference_weight`` times ``alpha_R``); on the density planner's stage-2 sample cloud the barrier has its own,
+smaller weight ``sample_weight`` (300): there it is an expected depth over the edge, a risk traded against the
+collision and goal terms, because the initial uncertainty puts part of the cloud over the kerb of a narrow street
+whatever the reference does. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
 drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges into it
 by more than ``margin`` between two points.
 
