@@ -21,9 +21,11 @@ for goal either. That holds for a single trajectory (stage 1's candidates, stage
 ``reference_weight`` times ``alpha_R``); on the density planner's stage-2 sample cloud the barrier has its own,
 smaller weight ``sample_weight`` (300): there it is an expected depth over the edge, a risk traded against the
 collision and goal terms, because the initial uncertainty puts part of the cloud over the kerb of a narrow street
-whatever the reference does. The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the
-drivable area): corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges into it
-by more than ``margin`` between two points.
+whatever the reference does.
+
+The outline test is the sampled form of the verdict's ``on_road`` (the rectangle covered by the drivable area):
+corners and side points inside by ``margin`` imply the rectangle inside unless the edge bulges into it by more than
+``margin`` between two points.
 
 Why the default spacing of 0.5 m (26 points on a 4.5 x 1.8 m car) and not fewer: between two outline points
 ``s`` apart, a curved road edge of radius ``R`` can reach ``s^2 / (8 R)`` into the rectangle (0.03 m at ``s = 1``
