@@ -181,3 +181,14 @@ def test_validation(probs, kwargs, match):
 def test_numpy_and_integer_input_become_float32():
     grid = OccupancyGrid(np.ones((2, 3, 3), dtype=np.int64), origin=(0, 0), cell_size=1)
     assert grid.probs.dtype == torch.float32 and grid.cell_size == 1.0
+
+
+def test_drop_caches_forgets_derived_grids_and_recomputes_them_equal():
+    g = torch.Generator().manual_seed(0)
+    grid = OccupancyGrid(torch.rand(3, 6, 5, generator=g), origin=(0.0, 0.0), cell_size=0.5)
+    first = grid.gradient()
+    assert grid.gradient() is first  # cached
+    grid.drop_caches()
+    again = grid.gradient()
+    assert again is not first
+    torch.testing.assert_close(again, first)

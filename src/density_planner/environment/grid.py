@@ -76,6 +76,12 @@ class OccupancyGrid:
     t0: float = 0.0
     _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
+    def drop_caches(self) -> None:
+        """Forget what was derived from this grid and kept on it (its gradient, the road users' grid, the body's
+        dilated grids): each is a full-size copy, recomputed on the next use. Long runs that plan on many grids
+        (``drive``) call it when a grid's plan is done."""
+        self._cache.clear()
+
     def __post_init__(self) -> None:
         probs = self.probs
         if isinstance(probs, np.ndarray):

@@ -496,6 +496,7 @@ def drive(
                               reason=f"the initial plan failed: {initial_plan.message or initial_plan.status.value}",
                               previous_p_coll=p_b))
     snapshot(t_start, prediction.window(t_start, horizon), system.positions(torch.from_numpy(x_init)).numpy())
+    scene.grid.drop_caches()  # the initial plan's derived grids (the replans plan on their own windows)
 
     states = [x.detach().cpu().numpy().astype(np.float64)]
     inputs: list[np.ndarray] = []
@@ -603,6 +604,7 @@ def drive(
             if progress is not None:
                 progress(t, rec)
             snapshot(t, grid_t, system.positions(x).detach().cpu().numpy())
+            grid_t.drop_caches()  # its derived full-size grids are not needed after this replan
         # -- track the active reference for one planning step (per_plan integration steps, one state)
         offset = active.step_at(t, dt)
         if offset + per_plan > active.x_ref.shape[0]:  # the reference ended (long fallback): brake from here
