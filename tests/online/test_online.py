@@ -144,6 +144,11 @@ def test_failed_replans_fall_back_and_are_recorded(setup):
         assert "injected failure" in r.reason
     # with the previous reference kept throughout, the executed run equals tracking the offline plan
     assert res.states.shape == (21, car.nx)
+    # the figure data are copies: a view would keep each replan's whole window grid alive (a grid per replan)
+    assert len(res.snapshots) == 4
+    for snap in res.snapshots:
+        for key in ("occupancy", "swept"):
+            assert snap[key].flags["OWNDATA"], key
     # unsafe threshold 0: every kept reference is judged unsafe; braking replaces it only where it is safer
     cfg0 = dataclasses.replace(cfg, unsafe_p_coll=0.0)
     res0 = drive(scene, failing, ctrl, system=car, config=cfg0, initial_plan=plan, distribution_seed=0)
