@@ -177,3 +177,16 @@ def test_conditioned_law_is_the_truncated_base(gen):
     assert lp[1] == -math.inf
     with pytest.raises(ValueError, match="x0 > 5 a probability of .* cannot be conditioned"):
         Conditioned(base, lambda x: x[:, 0] > 5, description="x0 > 5")
+
+
+def test_rejection_sample_keeps_the_first_accepted_and_counts_the_acceptance():
+    from density_planner.density.distributions import rejection_sample
+
+    stream = iter(torch.arange(100.0).reshape(-1, 1).split(10))
+    x, acc = rejection_sample(lambda k: next(stream), lambda d: d[:, 0] % 2 == 0, 12, lambda missing: 10,
+                              max_rounds=5, what="even numbers")
+    assert x[:, 0].tolist() == [0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 22.0]
+    assert acc == pytest.approx(15 / 30)  # three batches of 10 drawn, 15 accepted
+    with pytest.raises(RuntimeError, match="rejection sampling of nothing did not finish: 0 of 3 in 20 draws"):
+        rejection_sample(lambda k: torch.zeros(k, 1), lambda d: d[:, 0] > 0, 3, lambda missing: 10, max_rounds=2,
+                         what="nothing")

@@ -26,6 +26,7 @@ __all__ = [
     "WeightedSamples",
     "Conditioned",
     "paper_gaussian_mixture",
+    "rejection_sample",
 ]
 
 _LOG_2PI = math.log(2 * math.pi)
@@ -307,15 +308,27 @@ class Conditioned(InitialDistribution):
         return torch.where(self.accepts(x), lp, torch.full_like(lp, -math.inf))
 
     def _sample(self, n, generator):
-        out, have = [], 0
-        for _ in range(1000):
-            draws = self.base._sample(max(2 * (n - have), int(1.5 * (n - have) / self.acceptance) + 8), generator)
-            draws = draws[self.accepts(draws)]
-            out.append(draws[: n - have])
-            have += out[-1].shape[0]
-            if have >= n:
-                return torch.cat(out)
-        raise RuntimeError("rejection sampling did not finish")  # unreachable for acceptance >= min_acceptance
+        x, _ = rejection_sample(lambda k: self.base._sample(k, generator), self.accepts, n,
+                                lambda missing: max(2 * missing, int(1.5 * missing / self.acceptance) + 8),
+                                max_rounds=1000, what=f"the initial law given {self.description or 'its event'}")
+        return x  # max_rounds is unreachable for acceptance >= min_acceptance
+
+
+def rejection_sample(propose: Callable[[int], Tensor], accepts: Callable[[Tensor], Tensor], n: int,
+                     batch: Callable[[int], int], *, max_rounds: int, what: str) -> tuple[Tensor, float]:
+    """The first ``n`` proposals ``propose(k) -> (k, dim)`` that ``accepts (k, dim) -> (k,) bool`` keeps, drawing
+    ``batch(missing)`` at a time, and the accepted fraction of all draws. Raises ``RuntimeError`` (naming
+    ``what``) when ``max_rounds`` draws are not enough."""
+    out, have, drawn = [], 0, 0
+    for _ in range(max_rounds):
+        draws = propose(batch(n - have))
+        drawn += draws.shape[0]
+        draws = draws[accepts(draws)]
+        have += draws.shape[0]
+        out.append(draws)
+        if have >= n:
+            return torch.cat(out)[:n], have / drawn
+    raise RuntimeError(f"rejection sampling of {what} did not finish: {have} of {n} in {drawn} draws")
 
 
 class WeightedSamples(InitialDistribution):

@@ -38,6 +38,7 @@ from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, WeightedCost, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
+from ..density.distributions import rejection_sample
 from ..risk.collision import CollisionReport
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
@@ -147,20 +148,17 @@ def sample_initial_states(
     if support is not None:
         lo, hi = support
         accepts = getattr(dist, "accepts", None)  # a conditioned law: the proposal is the box within its event
-        u = torch.rand(n if accepts is None else 4 * n, dist.dim, dtype=torch.float64, generator=generator)
-        x = lo + u * (hi - lo)
+
+        def uniform(k: int) -> Tensor:
+            return lo + torch.rand(k, dist.dim, dtype=torch.float64, generator=generator) * (hi - lo)
+
         log_vol = float(torch.log(hi - lo).sum())
-        if accepts is not None:
-            keep = accepts(x)
-            for _ in range(100):
-                if int(keep.sum()) >= n:
-                    break
-                more = lo + torch.rand(4 * n, dist.dim, dtype=torch.float64, generator=generator) * (hi - lo)
-                x, keep = torch.cat([x, more]), torch.cat([keep, accepts(more)])
-            log_vol += math.log(max(float(keep.double().mean()), 1e-12))  # uniform on box and event
-            x = x[keep][:n]
-            if x.shape[0] < n:
-                raise RuntimeError("the initial law's event is too rare in its support box to sample the proposal")
+        if accepts is None:
+            x = uniform(n)
+        else:
+            x, acceptance = rejection_sample(uniform, accepts, n, lambda missing: 4 * n, max_rounds=101,
+                                             what="the proposal within the initial law's event (its support box)")
+            log_vol += math.log(max(acceptance, 1e-12))  # uniform on box and event
         x0 = x.to(dtype=dtype, device=device)
         log_q0 = torch.full((n,), -log_vol, dtype=dtype, device=device)
         log_rho0 = dist.log_prob(x0)
@@ -361,7 +359,6 @@ class DensityPlanner(Planner):
         history: dict[str, list[float]] = {}
         best: tuple[float, Tensor | None, Reference | None, DensityTrajectory | None] = (math.inf, None, None, None)
         backtracker = _Backtracker(p, cfg.backtrack_factor, cfg.backtrack_slack)
-        backtracks = 0
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
@@ -382,10 +379,9 @@ class DensityPlanner(Planner):
                 back = backtracker.observe(cost.total.detach(), p)
                 if bool(back.any()):
                     opt.backtrack(back, backtracker.best_params)
-                    backtracks += 1
                 else:
                     opt.step(grad.unsqueeze(0))
-        history["backtracks"] = [float(backtracks)]
+        history["backtracks"] = [float(backtracker.count)]
         return best, history, (x0, log_rho0, log_q0), slices
 
     def _sample_objective(self, objective: WeightedCost) -> WeightedCost:
