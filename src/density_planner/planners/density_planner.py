@@ -88,7 +88,8 @@ class DensityPlannerConfig:
     keep_best: bool = True
     #: backtracking in both stages (:mod:`.optim`): a candidate whose cost exceeds ``backtrack_factor`` times its
     #: best so far (under the same terms) plus ``backtrack_slack`` returns to its best parameters with half the
-    #: step size; 0 = off (paper). Measured on the CommonRoad suite: docs/planner.md
+    #: step size; 0 = off (the paper's plain Adam; stage 1 still picks each candidate's best iterate). Measured on
+    #: the CommonRoad suite: docs/planner.md
     backtrack_factor: float = 2.0
     #: absolute slack of that test [cost units, m^2 for the goal], so that costs near 0 do not trigger it
     backtrack_slack: float = 0.1
