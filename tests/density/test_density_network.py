@@ -257,12 +257,41 @@ def test_reference_grid_mismatch_is_rejected():
 
     pred = LearnedDensity(tiny_net("trajectory"))
     car = KinematicCar()
-    for par in (PiecewiseConstantInputs(n_segments=5), PiecewiseConstantInputs(n_segments=20, segment_duration=0.5),
+    for par in (PiecewiseConstantInputs(n_segments=20, segment_duration=0.5),
                 PiecewiseConstantInputs(n_segments=12, plan_dt=0.2)):
         ref = make_reference(car, torch.tensor(START), torch.zeros(2, par.n_segments), par)
         with pytest.raises(ValueError, match="trained for a 10-s horizon.*--density exact"):
             pred.predict(ref.start + torch.zeros(4, 5), torch.zeros(4), ref)
     assert pred.mismatch(PiecewiseConstantInputs(n_segments=17)) is None  # whole 1-s segments: chained
+    assert pred.mismatch(PiecewiseConstantInputs(n_segments=4)) is None  # fewer: one padded window
+
+
+@pytest.mark.parametrize("n_segments", [1, 4, 9])
+def test_shorter_reference_is_the_padded_window_cut_to_its_horizon(n_segments):
+    """A horizon shorter than the trained one: the network's 10-s prediction along the reference's parameters
+    followed by zero inputs, cut to the reference's own points (and differentiable w.r.t. its parameters)."""
+    from density_planner.control.reference import PiecewiseConstantInputs
+
+    pred = LearnedDensity(tiny_net("trajectory", dtype=torch.float64))
+    car = KinematicCar()
+    g = torch.Generator().manual_seed(5)
+    params = torch.rand(2, 2, n_segments, generator=g, dtype=torch.float64) - 0.5
+    start = torch.tensor(START, dtype=torch.float64).expand(2, 5)
+    short = make_reference(car, start, params, PiecewiseConstantInputs(n_segments=n_segments))
+    x0 = short.start.unsqueeze(-2) + 0.3 * (torch.rand(2, 6, 5, generator=g, dtype=torch.float64) - 0.5)
+    log_rho0 = torch.randn(2, 6, generator=g, dtype=torch.float64)
+    out = pred.predict(x0, log_rho0, short)
+    n = 10 * n_segments + 1
+    assert out.x.shape == (2, 6, n, 5) and out.log_rho.shape == (2, 6, n)
+    assert torch.allclose(out.t, short.t_plan)
+    padded = torch.cat([params, params.new_zeros(2, 2, 10 - n_segments)], dim=-1)
+    full = pred.predict(x0, log_rho0, make_reference(car, start, padded))
+    torch.testing.assert_close(out.x, full.x[..., :n, :])
+    torch.testing.assert_close(out.log_rho, full.log_rho[..., :n])
+    p = params.clone().requires_grad_(True)
+    ref = make_reference(car, start, p, PiecewiseConstantInputs(n_segments=n_segments))
+    pred.predict(x0, log_rho0, ref).x[..., -1, :2].sum().backward()
+    assert torch.isfinite(p.grad).all() and p.grad[..., -1].abs().sum() > 0
 
 
 def test_window_starts_cover_the_horizon_without_padding():

@@ -525,16 +525,16 @@ class LearnedDensity(DensityPredictor):
         """Why this predictor cannot predict along references of ``parameterization`` (a
         :class:`~density_planner.control.reference.PiecewiseConstantInputs`), or ``None`` when it can. A network
         never extrapolates in time: it serves the planning step and segment length it was trained for, over its
-        own horizon or a longer one of whole segments, which it covers by chaining windows of its own horizon
-        (:meth:`windows`)."""
+        own horizon, a shorter one of whole segments (one window with padded inputs, :meth:`_padded_window`) or a
+        longer one, which it covers by chaining windows of its own horizon (:meth:`windows`)."""
         a, par = self.architecture, parameterization
         trained = (a.n_times - 1) * a.dt
         if (not math.isclose(par.plan_dt, a.dt, rel_tol=1e-6)
-                or not math.isclose(par.segment_duration, trained / a.n_segments, rel_tol=1e-6)
-                or par.n_segments < a.n_segments):
+                or not math.isclose(par.segment_duration, trained / a.n_segments, rel_tol=1e-6)):
             return (
                 f"the learned density predictor {self.name!r} is trained for a {trained:g}-s horizon ({a.n_times} "
-                f"points of {a.dt:g} s, {a.n_segments} segments; longer horizons of whole segments are chained); "
+                f"points of {a.dt:g} s, {a.n_segments} segments; other horizons of whole segments are padded or "
+                f"chained); "
                 f"this plan has {par.horizon:g} s ({par.n_plan} points of {par.plan_dt:g} s, {par.n_segments} "
                 f"segments of {par.segment_duration:g} s)"
             )
@@ -615,6 +615,10 @@ class LearnedDensity(DensityPredictor):
         # the prediction at its first segment
         par, size = reference.parameterization, self.architecture.n_segments
         per_seg = par.steps_per_segment // par.plan_stride  # planning points per segment
+        if par.n_segments < size:  # a shorter reference: one window, padded (see _padded_window)
+            xe, lr = self._padded_window(x0, reference, size, per_seg)
+            return DensityTrajectory(t=reference.t_plan, x=reference.x_plan.unsqueeze(-3) + xe,
+                                     log_rho=log_rho0.unsqueeze(-1) + lr, log_rho0=log_rho0)
         x_start, log_start = x0, torch.zeros_like(x0[..., 0])
         xs, logs, prev, covered = [], [], None, 0
         for first in self.windows(par.n_segments):
@@ -633,6 +637,23 @@ class LearnedDensity(DensityPredictor):
         log_ratio = logs[0] if len(logs) == 1 else torch.cat(logs, dim=-1)
         return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
                                  log_rho0=log_rho0)
+
+    def _padded_window(self, x0: Tensor, reference: Reference, size: int, per_seg: int) -> tuple[Tensor, Tensor]:
+        """Errors and log-density ratios over a reference of fewer segments than the trained ``size``: the window
+        reads the reference's parameters followed by zero inputs (the mode of the training references' inputs,
+        which are clamped normal draws) and predicts its whole horizon, of which the reference's own points are kept. The closed loop is
+        causal (the state at ``t`` does not depend on inputs after ``t``), so the padding changes nothing the exact
+        flow would predict; the network learned that from references whose later inputs are independent of the
+        earlier ones (measured: ``tests/density/test_network.py``). Reference headings past the end (they only turn
+        the discarded outputs into the world frame) repeat the last one."""
+        par = reference.parameterization
+        n = par.n_plan
+        params = reference.params
+        pad = params.new_zeros(*params.shape[:-1], size - par.n_segments)
+        x_plan = reference.x_plan
+        tail = x_plan[..., -1:, :].expand(*x_plan.shape[:-2], size * per_seg + 1 - n, x_plan.shape[-1])
+        xe, lr = self._window(x0, x_plan[..., 0, :], torch.cat([params, pad], dim=-1), torch.cat([x_plan, tail], -2))
+        return xe[..., :n, :], lr[..., :n]
 
     def _window(self, x0: Tensor, start: Tensor, params: Tensor, x_plan: Tensor) -> tuple[Tensor, Tensor]:
         """Errors ``(*batch, N, T, nx)`` and log-density ratios ``(*batch, N, T)`` over one trained horizon from

@@ -117,8 +117,9 @@ class CommonRoadSceneConfig:
     n_slices: int = 0
     #: time between slices [s]
     dt: float = 0.1
-    #: the grid covers at least this long [s] (the planners' horizon today is 10 s)
-    min_duration: float = 10.0
+    #: the grid covers at least this long [s] (the planners' horizon follows the goal's time interval; one 1-s
+    #: segment at least)
+    min_duration: float = 1.0
     #: cap on the horizon [s] (the horizon follows the end of the goal's time interval)
     max_horizon: float = 20.0
     #: finest cell edge [m]; coarser when the grid would exceed ``memory_budget_gib``
@@ -865,7 +866,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         area = (a0, a1, a2, a3)
         region_rule = "configured area"
     elif start is not None and not cfg.sample_start_goal:
-        span = (n_slices - 1) * cfg.dt  # the grid's duration (>= the horizon: today's planners plan min_duration)
+        span = (n_slices - 1) * cfg.dt  # the grid's duration (the horizon in whole seconds, >= min_duration)
         reach = reach_distance(start[3], v_max, a_max, span)
         disc = shapely.Point(start[0], start[1]).buffer(reach + cfg.area_margin, quad_segs=16)
         parts = [disc.intersection(drivable.buffer(cfg.area_margin)), shapely.Point(start[0], start[1])]

@@ -41,14 +41,16 @@ class PlanningConfig:
     The horizon is ``horizon`` when given (explicit configuration wins); else the scene's suggestion
     ``scene.meta["horizon"]`` [s from the plan's start] (e.g. the end of a CommonRoad goal's time interval),
     rounded up to whole segments and clamped to ``[min_horizon, max_horizon]`` and to the scene's time span; else
-    :data:`DEFAULT_HORIZON` (10 s, the paper). ``min_horizon`` is 10 s: the shipped learned density predictors are
-    trained for 10 s of 1-s segments at 0.1 s, and a goal whose time interval ends earlier is met inside the 10-s
-    plan (the goal-region cost is zero during its interval). ``max_horizon`` is 20 s (the CommonRoad suite's goals
-    end up to 20.4 s after the start): a learned predictor covers a longer horizon of whole 1-s segments by chaining
-    windows of its own 10 s (:meth:`~density_planner.density.network.LearnedDensity.windows`; measured as accurate
-    as the first window, docs/density.md). For another segment length or planning step the planner falls back to
-    exact Liouville (logged warning; minutes per plan instead of seconds) or, when a learned predictor is named
-    explicitly, refuses with an error. A goal that starts later than ``max_horizon`` cannot be reached.
+    :data:`DEFAULT_HORIZON` (10 s, the paper). A CommonRoad plan thus ends with its goal's time interval, as the
+    benchmark's solutions do: what follows is neither planned nor judged (``min_horizon`` = 1 s, one segment).
+    The shipped learned density predictors are trained for 10 s of 1-s segments at 0.1 s; a shorter horizon is one
+    window whose inputs after the horizon are zero, cut to the horizon (the closed loop is causal; measured as
+    accurate as the window's own inputs, docs/density.md), a longer one chains windows of 10 s
+    (:meth:`~density_planner.density.network.LearnedDensity.windows`; measured as accurate as the first window).
+    ``max_horizon`` is 20 s (the CommonRoad suite's goals end up to 20.4 s after the start). For another segment
+    length or planning step the planner falls back to exact Liouville (logged warning; minutes per plan instead of
+    seconds) or, when a learned predictor is named explicitly, refuses with an error. A goal that starts later than
+    ``max_horizon`` cannot be reached.
     """
 
     #: planning horizon [s], a whole number of segments (None: the scene's suggestion, else 10 s)
@@ -56,8 +58,9 @@ class PlanningConfig:
     #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped); above 10 s the
     #: learned predictors chain windows of their 10 s
     max_horizon: float = 20.0
-    #: floor of a horizon suggested by the scene [s] (a goal that ends earlier is met inside the longer plan)
-    min_horizon: float = DEFAULT_HORIZON
+    #: floor of a horizon suggested by the scene [s] (a plan ends with its goal's time interval: one segment at
+    #: least)
+    min_horizon: float = 1.0
     #: duration of one piecewise-constant segment of the reference inputs [s]
     segment_duration: float = 1.0
     #: step of the planning grid on which costs, risks and metrics are evaluated [s]
