@@ -161,12 +161,13 @@ def test_horizon_configuration_and_scene_suggestion():
     assert PlanningConfig(horizon=5.0).parameterization(scene).n_segments == 5
     par = PlanningConfig(horizon=6.0, segment_duration=0.5).parameterization(scene)
     assert par.n_segments == 12 and par.n_plan == 61
-    # default: at least the learned predictors' 10 s (earlier goals are met inside the plan), at most 20 s and the
-    # scene's span (the learned predictors chain windows of their 10 s)
-    assert PlanningConfig().parameterization(scene_at(0.0, horizon=7.3)).horizon == 10.0
+    # default: the scene's suggestion in whole segments (a plan ends with the goal's time interval), at most 20 s
+    # and the scene's span (the learned predictors pad or chain windows of their 10 s)
+    assert PlanningConfig().parameterization(scene_at(0.0, horizon=7.3)).horizon == 8.0
+    assert PlanningConfig().parameterization(scene_at(0.0, horizon=0.4)).horizon == 1.0  # one segment at least
     assert PlanningConfig().parameterization(scene_at(0.0, horizon=12.2)).horizon == 13.0
     assert PlanningConfig().parameterization(scene_at(0.0, horizon=40.0)).horizon == 15.0  # the scene's span
-    assert PlanningConfig(min_horizon=1.0).parameterization(scene_at(0.0, horizon=7.3)).horizon == 8.0  # whole segments
+    assert PlanningConfig(min_horizon=10.0).parameterization(scene_at(0.0, horizon=7.3)).horizon == 10.0
     assert PlanningConfig(max_horizon=12.0).parameterization(scene_at(0.0, horizon=40.0)).horizon == 12.0
     assert PlanningConfig(max_horizon=40.0).parameterization(scene_at(0.0, horizon=40.0)).horizon == 15.0  # span
     assert PlanningConfig(horizon=4.0).parameterization(scene_at(0.0, horizon=7.3)).horizon == 4.0  # explicit wins
@@ -191,7 +192,10 @@ def test_learned_predictor_refused_or_replaced_for_other_horizons(caplog):
     from density_planner.systems.car import KinematicCar
 
     car, ctrl = KinematicCar(), load_controller("c3m")
-    par = PlanningConfig(horizon=5.0).parameterization()
+    # a shorter horizon of whole 1-s segments is served (one padded window), another segment length is not
+    assert not isinstance(load_predictor(None, car, ctrl, parameterization=PlanningConfig(horizon=5.0)
+                                         .parameterization()), ExactLiouville)
+    par = PlanningConfig(horizon=5.0, segment_duration=0.5).parameterization()
     with pytest.raises(ValueError, match=r"trained for a 10-s horizon.*this plan has 5 s.*--density exact"):
         load_predictor("trajectory", car, ctrl, parameterization=par)
     with caplog.at_level(logging.WARNING):
@@ -202,6 +206,6 @@ def test_learned_predictor_refused_or_replaced_for_other_horizons(caplog):
     # the planner itself refuses a learned predictor for another horizon (no silent extrapolation)
     from density_planner.planners.density_planner import DensityPlanner
 
-    problem = PlanningProblem.from_scene(scene_at(0.0), planning=PlanningConfig(horizon=5.0))
+    problem = PlanningProblem.from_scene(scene_at(0.0), planning=PlanningConfig(horizon=5.0, segment_duration=0.5))
     with pytest.raises(ValueError, match="trained for a 10-s horizon"):
         DensityPlanner(default).plan(problem)
