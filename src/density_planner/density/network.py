@@ -641,11 +641,12 @@ class LearnedDensity(DensityPredictor):
     def _padded_window(self, x0: Tensor, reference: Reference, size: int, per_seg: int) -> tuple[Tensor, Tensor]:
         """Errors and log-density ratios over a reference of fewer segments than the trained ``size``: the window
         reads the reference's parameters followed by zero inputs (the mode of the training references' inputs,
-        which are clamped normal draws) and predicts its whole horizon, of which the reference's own points are kept. The closed loop is
-        causal (the state at ``t`` does not depend on inputs after ``t``), so the padding changes nothing the exact
-        flow would predict; the network learned that from references whose later inputs are independent of the
-        earlier ones (measured: ``tests/density/test_network.py``). Reference headings past the end (they only turn
-        the discarded outputs into the world frame) repeat the last one."""
+        which are clamped normal draws) and predicts its whole horizon, of which the reference's own points are
+        kept. The closed loop is causal (the state at ``t`` does not depend on inputs after ``t``), so the padding
+        changes nothing the exact flow would predict; the network learned that from references whose later
+        inputs are independent of the earlier ones (measured: docs/density.md, ``benchmarks/bench_short_density.py``).
+        Reference headings past the end (they only turn the discarded outputs into the world frame) repeat the
+        last one."""
         par = reference.parameterization
         n = par.n_plan
         params = reference.params
