@@ -3,7 +3,7 @@ trajectory against the ground truth (issue 17).
 
 For every chosen scenario, one true initial state (drawn from the initial distribution with ``online.seed``):
 
-* ``offline``: the density planner's full plan from the initial distribution (horizon clamped to 10 s), tracked
+* ``offline``: the density planner's full plan from the initial distribution (horizon: the goal's end, as `plan`), tracked
   by the controller from the true state;
 * ``online-observed`` / ``online-oracle``: ``drive`` (receding horizon, replans every ``online.period``) with the
   observed-only prediction / the oracle (recorded future), both starting from that same offline plan;

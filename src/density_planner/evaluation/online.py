@@ -46,7 +46,7 @@ from torch import Tensor
 
 from ..checks import check_seed
 from ..control.base import TrackingController
-from ..control.reference import Reference, make_reference
+from ..control.reference import PiecewiseConstantInputs, Reference, make_reference
 from ..environment.prediction import Prediction, PredictionConfig, make_prediction
 from ..environment.scene import Scene
 from ..planners.base import Planner, PlanResult, PlanStatus
@@ -97,6 +97,14 @@ class OnlineConfig:
     #: the warm start is invalid (stage 1 reruns) when the measurement is farther than this from the previous
     #: reference's position at the replanning time [m]
     restart_distance: float = 3.0
+    #: a warm replan continues the previous reference from its state at the replanning time (the law of the true
+    #: state is re-centred on the measurement; the controller goes on tracking the same path); false: the new
+    #: reference starts at the measurement, and a heading error there turns the whole warm start (3.8 m off the
+    #: goal after 7.5 s at 10 m/s and 0.05 rad)
+    continue_reference: bool = True
+    #: on road scenes, a replan's horizon ends with the goal's time interval (whole segments), as the offline plan's
+    #: does (false: every replan plans the full horizon from its own time, past the goal's end)
+    shrink_horizon: bool = True
     #: steering rates of the braking candidates, as fractions of the largest steering rate
     brake_steer: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
     #: evaluate the C3M controller of the car torch-free in the online loop (:class:`~density_planner.control.fast.
@@ -348,6 +356,19 @@ def _run_length(scene: Scene, config: OnlineConfig, horizon: float) -> float:
     return min(config.duration or horizon, config.max_duration)
 
 
+def _replan_parameterization(par: PiecewiseConstantInputs, goal_end: float | None, t: float,
+                             shrink: bool) -> PiecewiseConstantInputs:
+    """The parameterisation of a replan at ``t``: ``par``, or with ``shrink`` and a goal that ends at ``goal_end``
+    [s, absolute] within ``par``'s horizon, the whole segments that reach the goal's end (at least one): the plan ends
+    with the goal's time interval, as the offline plan does."""
+    if not shrink or goal_end is None:
+        return par
+    n = max(1, math.ceil((goal_end - t) / par.segment_duration - 1e-9))
+    if n >= par.n_segments:
+        return par
+    return PiecewiseConstantInputs(n, par.segment_duration, par.dt, par.plan_dt)
+
+
 def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_dt: float, states: Tensor) -> float:
     """Collision probability (max over time) of one nominal trajectory ``states (T, nx)`` on the planning grid from
     absolute time ``t`` in the occupancy ``grid`` (the part inside the grid's span)."""
@@ -413,6 +434,7 @@ def drive(
                          f"{plan_dt} s")
     period_steps = int(round(steps_per_period))
     length = _run_length(scene, config, horizon)
+    goal_end = scene.road.goal.time_interval[1] if scene.road is not None else None
     n_total = max(1, int(math.floor(length / plan_dt + 1e-9)))  # planning steps driven
     dtype = getattr(planner, "dtype", torch.float32)
     device = getattr(planner, "device", torch.device("cpu"))
@@ -524,29 +546,40 @@ def drive(
             prob = None
             grid_t = prediction.window(t, horizon)
             rec.prediction_time = time.perf_counter() - tp
+            warm, origin = None, None
+            par_t = _replan_parameterization(par, goal_end, t, config.shrink_horizon)
+            offset = active.step_at(t, dt)
+            if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
+                gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
+                                                     - system.positions(x_hat).to(dtype)))
+                if gap <= config.restart_distance:
+                    tail = None
+                    if iv is not None and ia is not None:  # past the old horizon: straight, braking (the goal's
+                        # end, when the horizon shrinks to it: straight at constant speed, nothing left to plan)
+                        v_end = float(active.reference.x[-1, iv])
+                        tail = torch.zeros(system.nu, dtype=torch.float64)
+                        hold = (config.shrink_horizon and goal_end is not None
+                                and goal_end <= t + par_t.horizon + 1e-9)
+                        if not hold:
+                            tail[ia] = max(a_min, -v_end / par.segment_duration)
+                    old = active.params.detach().to(torch.float64)
+                    if old.shape[-1] < par.n_segments:  # a shrunk plan: pad with the tail to the full horizon
+                        fill = (tail if tail is not None else old[:, -1]).reshape(-1, 1)
+                        old = torch.cat([old, fill.expand(-1, par.n_segments - old.shape[-1])], dim=-1)
+                    warm = shift_parameters(old, t - active.t0, par.segment_duration, tail)[:, :par_t.n_segments]
+                    if config.continue_reference:  # the reference goes on from where it is, not from the measurement
+                        origin = active.x_ref[offset].detach().to(torch.float64).clone()
             try:
                 scene_t = replace(prediction.scene, grid=grid_t, t_start=grid_t.t0, start=centre)
                 mean = x_hat.detach().to(torch.float64).clone()
                 if hidden:  # hidden states (the car's heading bias) keep their law: unknown to the vehicle
                     mean[hidden] = law0.mean[hidden].to(mean)
-                prob = PlanningProblem(scene_t, recentred(law0, mean), system, par, risk, start_threshold=math.inf)
+                prob = PlanningProblem(scene_t, recentred(law0, mean), system, par_t, risk,
+                                       start_threshold=math.inf, reference_origin=origin)
             except ValueError as exc:
                 rec.reason = f"no planning problem at the measurement: {exc}"
             result = None
             if prob is not None:
-                warm = None
-                offset = active.step_at(t, dt)
-                if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
-                    gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
-                                                         - system.positions(x_hat).to(dtype)))
-                    if gap <= config.restart_distance:
-                        tail = None
-                        if iv is not None and ia is not None:  # past the old horizon: straight, braking
-                            v_end = float(active.reference.x[-1, iv])
-                            tail = torch.zeros(system.nu, dtype=torch.float64)
-                            tail[ia] = max(a_min, -v_end / par.segment_duration)
-                        warm = shift_parameters(active.params.detach().to(torch.float64), t - active.t0,
-                                                par.segment_duration, tail)
                 t1 = time.perf_counter()
                 try:
                     if warm_capable:

@@ -182,6 +182,10 @@ class PlanningProblem:
     parameterization: PiecewiseConstantInputs = field(default_factory=PiecewiseConstantInputs)
     risk: RiskConfig = field(default_factory=RiskConfig)
     start_threshold: float = START_OCCUPIED_THRESHOLD
+    #: ``(nx,)`` start of the reference when it is not the initial law's mean (None: the mean); an online replan
+    #: continues the previous reference from its state at the replanning time while the law is centred on the
+    #: measurement (:mod:`density_planner.evaluation.online`)
+    reference_origin: Tensor | None = None
 
     def collision(self, device: torch.device | str | None = None, *, road_edge: str | None = None) -> CollisionModel:
         """The collision model of this problem (scene grid, system, risk settings) on ``device``; ``road_edge``
@@ -202,6 +206,11 @@ class PlanningProblem:
                 f"{self.system.nx}"
             )
         self.scene.grid.check_span(self.t_start, self.parameterization.horizon)
+        if self.reference_origin is not None:
+            origin = torch.as_tensor(self.reference_origin)
+            if origin.shape != (self.system.nx,) or not bool(torch.isfinite(origin).all()):
+                raise ValueError(f"reference_origin must be a finite state of shape ({self.system.nx},), got shape "
+                                 f"{tuple(origin.shape)}")
 
     @classmethod
     def from_scene(
@@ -245,10 +254,12 @@ class PlanningProblem:
         return self.scene.grid.slices_for(self.t_start, par.plan_dt if dt is None else dt, n).to(device)
 
     def reference_start(self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Tensor:
-        """Start of the reference: the mean of the initial distribution with the states a plan cannot know at their
-        nominal values (``system.nominal_state``; for the car a zero heading bias: the reference is the nominal,
-        unbiased trajectory, the bias only enters the measurement)."""
-        start = self.system.nominal_state(self.initial_distribution.mean.clone())
+        """Start of the reference: ``reference_origin`` when given, else the mean of the initial distribution, with
+        the states a plan cannot know at their nominal values (``system.nominal_state``; for the car a zero heading
+        bias: the reference is the nominal, unbiased trajectory, the bias only enters the measurement)."""
+        base = self.initial_distribution.mean if self.reference_origin is None else torch.as_tensor(
+            self.reference_origin, dtype=self.initial_distribution.mean.dtype)
+        start = self.system.nominal_state(base.clone())
         return start.to(dtype=dtype, device=device)
 
     @property
