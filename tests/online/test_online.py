@@ -13,6 +13,7 @@ import torch
 
 from density_planner.evaluation.online import (
     OnlineConfig,
+    _replan_parameterization,
     braking_parameters,
     drive,
     recentred,
@@ -39,6 +40,35 @@ def test_shift_by_half_a_segment_averages_over_time():
     out = shift_parameters(p, 0.5, 1.0, torch.tensor([10.0], dtype=torch.float64))
     # new segment j covers [0.5 + j, 1.5 + j]: half of old j and half of old j + 1 (the tail past 3 s)
     torch.testing.assert_close(out, torch.tensor([[1.0, 3.0, 7.0]], dtype=torch.float64))
+
+
+def test_replan_horizon_ends_with_the_goal():
+    from density_planner.control.reference import PiecewiseConstantInputs
+
+    par = PiecewiseConstantInputs(n_segments=8)
+    assert _replan_parameterization(par, 8.0, 0.5, True) is par  # 7.5 s left: all 8 segments
+    assert _replan_parameterization(par, 8.0, 1.0, True).n_segments == 7
+    assert _replan_parameterization(par, 8.0, 3.5, True).n_segments == 5  # whole segments that reach the end
+    assert _replan_parameterization(par, 8.0, 7.9, True).n_segments == 1
+    assert _replan_parameterization(par, 8.0, 9.0, True).n_segments == 1  # one segment at least
+    assert _replan_parameterization(par, 20.0, 1.0, True) is par  # the goal after the horizon
+    assert _replan_parameterization(par, None, 1.0, True) is par  # no goal interval (random scenes)
+    assert _replan_parameterization(par, 8.0, 3.5, False) is par
+    short = _replan_parameterization(par, 8.0, 3.5, True)
+    assert (short.segment_duration, short.dt, short.plan_dt) == (par.segment_duration, par.dt, par.plan_dt)
+
+
+def test_reference_origin_overrides_the_law_mean(setup):
+    car, _, scene, problem, _, plan = setup
+    origin = plan.reference.x_plan[7].double()
+    prob = dataclasses.replace(problem, reference_origin=origin)
+    start = prob.reference_start(torch.float64)
+    torch.testing.assert_close(start, car.nominal_state(origin.clone()))
+    assert not torch.allclose(start, problem.reference_start(torch.float64))
+    with pytest.raises(ValueError, match="reference_origin must be a finite state of shape"):
+        dataclasses.replace(problem, reference_origin=torch.zeros(3))
+    with pytest.raises(ValueError, match="reference_origin must be a finite state"):
+        dataclasses.replace(problem, reference_origin=torch.full((car.nx,), math.nan))
 
 
 def test_recentred_law_is_a_translation():
@@ -202,6 +232,24 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert plot_run(scene, res, tmp_path / "run.png").stat().st_size > 10_000
     assert animate_run(scene, res, tmp_path / "run.gif").stat().st_size > 1_000
     assert math.isfinite(res.controller_step_time)
+
+
+def test_warm_replans_continue_the_previous_reference(setup):
+    """A warm replan starts its reference at the previous reference's state at the replanning time (the controller
+    goes on along the same path); with ``continue_reference = false`` at the measurement."""
+    car, ctrl, scene, problem, planner, plan = setup
+    true = plan.reference.x_plan[0].double().clone()
+    true[1] += 0.4  # a true start 0.4 m beside the reference: the tracking error is still > 0.05 m at 0.5 s
+    cfg = OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20, enforce_budget=False)
+    on = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, true_state=true)
+    off = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, continue_reference=False),
+                initial_plan=plan, true_state=true)
+    assert on.replans[1].warm_start and off.replans[1].warm_start
+    old = plan.reference.x_plan[5, :2].double().numpy()  # the previous reference at t = 0.5 s
+    measured = on.states[5, :2]
+    assert np.linalg.norm(measured - old) > 0.05
+    np.testing.assert_allclose(on.snapshots[1]["plan"][0], old, atol=1e-4)
+    np.testing.assert_allclose(off.snapshots[1]["plan"][0], measured, atol=1e-4)
 
 
 def test_torch_free_controller_loop_matches_the_torch_loop(setup):
