@@ -3,8 +3,8 @@ trajectory against the ground truth (issue 17).
 
 For every chosen scenario, one true initial state (drawn from the initial distribution with ``online.seed``):
 
-* ``offline``: the density planner's full plan from the initial distribution (horizon: the goal's end, as `plan`), tracked
-  by the controller from the true state;
+* ``offline``: the density planner's full plan from the initial distribution (horizon: the goal's end, as
+  ``plan``), tracked by the controller from the true state;
 * ``online-observed`` / ``online-oracle``: ``drive`` (receding horizon, replans every ``online.period``) with the
   observed-only prediction / the oracle (recorded future), both starting from that same offline plan;
 * ``mpc`` (``--mpc``): MPC M0 step by step from the true state (reads the scene's grid: the oracle occupancy).
