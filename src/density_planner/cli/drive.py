@@ -69,7 +69,9 @@ def _scene_for_drive(args, run_config):
     if args.kind == "commonroad":
         cr = run_config.commonroad
         cfg = {"max_horizon": max(cr.max_horizon, online.max_duration)}
-        if online.prediction.kind == "oracle":
+        if online.prediction.kind == "oracle" and not online.shrink_horizon:
+            # replans over a full horizon from every time read the oracle up to the run's end plus one horizon (with
+            # online.shrink_horizon they end with the goal, which the scene's grid covers: no longer, coarser grid)
             cfg["min_duration"] = max(cr.min_duration, online.max_duration + horizon)
         run_config = update(run_config, {"commonroad": cfg})
     return scene_from_args(args, run_config), run_config

@@ -544,10 +544,10 @@ def drive(
             tp = time.perf_counter()
             rec = Replan(t, "failed", 0.0)
             prob = None
-            grid_t = prediction.window(t, horizon)
+            par_t = _replan_parameterization(par, goal_end, t, config.shrink_horizon)
+            grid_t = prediction.window(t, par_t.horizon)
             rec.prediction_time = time.perf_counter() - tp
             warm, origin = None, None
-            par_t = _replan_parameterization(par, goal_end, t, config.shrink_horizon)
             offset = active.step_at(t, dt)
             if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
                 gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
