@@ -556,17 +556,17 @@ def drive(
                     tail = None
                     if iv is not None and ia is not None:  # past the old horizon: straight, braking (the goal's
                         # end, when the horizon shrinks to it: straight at constant speed, nothing left to plan)
-                        v_end = float(active.reference.x[-1, iv])
                         tail = torch.zeros(system.nu, dtype=torch.float64)
                         hold = (config.shrink_horizon and goal_end is not None
                                 and goal_end <= t + par_t.horizon + 1e-9)
                         if not hold:
+                            v_end = float(active.reference.x[-1, iv])
                             tail[ia] = max(a_min, -v_end / par.segment_duration)
-                    old = active.params.detach().to(torch.float64)
-                    if old.shape[-1] < par.n_segments:  # a shrunk plan: pad with the tail to the full horizon
-                        fill = (tail if tail is not None else old[:, -1]).reshape(-1, 1)
-                        old = torch.cat([old, fill.expand(-1, par.n_segments - old.shape[-1])], dim=-1)
-                    warm = shift_parameters(old, t - active.t0, par.segment_duration, tail)[:, :par_t.n_segments]
+                    # the horizon never grows from one replan to the next (it shrinks towards the goal's end), so
+                    # the shifted plan has at least the segments this one needs
+                    warm = shift_parameters(active.params.detach().to(torch.float64), t - active.t0,
+                                            par.segment_duration, tail)[:, :par_t.n_segments]
+                    assert warm.shape[-1] == par_t.n_segments
                     if config.continue_reference:  # the reference goes on from where it is, not from the measurement
                         origin = active.x_ref[offset].detach().to(torch.float64).clone()
             try:
