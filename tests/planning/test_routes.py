@@ -25,6 +25,7 @@ from density_planner.planners.routes import (
     risk_aware_profiles,
     route_seed_parameters,
     speed_profiles,
+    stop_before_end,
 )
 from density_planner.systems.car import KinematicCar
 
@@ -61,6 +62,29 @@ def test_junction_route_takes_the_right_turn():
     assert end == pytest.approx([100.0 + 11.75, -10.0], abs=1e-6)
     straight = find_routes(lane_graph(), (10.0, 1.75), 0.0, _box(140, 148, 0.5, 3.0))
     assert straight[0].lane_ids == (1, 2, 5)
+
+
+def test_routes_continue_straight_past_the_goal_lane_until_the_map_ends():
+    goal = _box(85, 95, 0.5, 3.0)  # on lane 2, whose successors are 5 (straight on) and 6 (the right turn)
+    routes = find_routes(lane_graph(), (10.0, 1.75), 0.0, goal, continue_for=30.0)
+    assert routes[0].lane_ids == (1, 2, 5) and routes[0].kinds == ("successor", "successor")
+    assert routes[0].path[-1] == pytest.approx([150.0, 1.75], abs=1e-6)
+    # lane 5 has no successor: the continuation stops there however long it is asked to be
+    assert find_routes(lane_graph(), (10.0, 1.75), 0.0, goal, continue_for=500.0)[0].lane_ids == (1, 2, 5)
+    # the turn's exit continues along its only successor
+    turn = find_routes(lane_graph(), (10.0, 1.75), 0.0, _box(110.5, 113.0, -10.5, -8.5), continue_for=5.0)
+    assert turn[0].lane_ids == (1, 2, 6, 7)
+
+
+def test_profiles_stop_before_the_end_of_the_lanes():
+    tau = np.arange(0, 10.01, 0.1)
+    v = np.stack([np.full_like(tau, 12.0), np.full_like(tau, 2.0)])  # the first would drive 120 m, the second 20
+    s = np.concatenate([np.zeros((2, 1)), np.cumsum(0.5 * (v[:, 1:] + v[:, :-1]) * 0.1, axis=1)], axis=1)
+    s2, v2 = stop_before_end(s, v, tau, 60.0, 3.0, 0.0)
+    assert s2[0].max() <= 60.0 + 0.5 and v2[0, -1] == 0.0  # stands (within one step's travel) at the end
+    assert s2[0, -1] >= 60.0 - 1.5  # and not far short of it
+    assert np.diff(v2[0]).min() >= -3.0 * 0.1 - 1e-9  # braking at the given rate
+    assert np.array_equal(v2[1], v[1]) and np.allclose(s2[1], s[1])  # the slow one is left alone
 
 
 def test_no_route_against_the_driving_direction_or_off_the_map():
@@ -169,7 +193,7 @@ def test_route_seeds_for_a_problem_and_none_without_lanes():
     seeds = route_seed_parameters(problem, RouteSeedConfig(max_routes=2), lane_graph=lane_graph(),
                                   v_limits=(0.1, 9.9), dtype=torch.float64)
     assert seeds is not None and seeds.params.shape[1:] == (2, 10)
-    assert seeds.routes[0].lane_ids == (1, 2, 6)
+    assert seeds.routes[0].lane_ids == (1, 2, 6, 7)  # continued past the goal lane
     assert float(seeds.fit_rms.median()) < 1.0
     # a targeted candidate ends in the goal region at the end of the horizon
     ends = seeds.targets[:, -1].numpy()

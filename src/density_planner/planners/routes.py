@@ -182,6 +182,7 @@ def find_routes(
     lane_change_cost: float = 30.0,
     reach: float = 200.0,
     lane_change_length: float = 25.0,
+    continue_for: float = 0.0,
 ) -> list[Route]:
     """The ``max_routes`` shortest lane routes from the start to the goal (see the module docstring).
 
@@ -191,6 +192,9 @@ def find_routes(
         goal_shapes: shapely geometry of the goal positions; ``None`` (a goal without a position): routes along
             the lanes ahead, up to ``reach`` [m] beyond the start.
         reach: path length [m] to cover for goals without a position.
+        continue_for: each route goes on past its last (goal) lane along the straightest successors for up to
+            this length [m] (:func:`_continuation`), so that a profile that passes the goal early or reaches it
+            fast still has a lane under it; where the lanes end sooner the path ends there.
 
     Returns an empty list when no lane lies under the start or no route reaches the goal lanes.
     """
@@ -217,6 +221,8 @@ def find_routes(
         for nodes in paths:
             lane_ids = tuple(int(n) for n in nodes[1:-1])
             kinds = tuple(g.edges[a, b]["kind"] for a, b in zip(lane_ids[:-1], lane_ids[1:]))
+            more = _continuation(graph, lane_ids[-1], continue_for, set(lane_ids))
+            lane_ids, kinds = lane_ids + more, kinds + ("successor",) * len(more)
             routes.append(Route(lane_ids, kinds, route_path(graph, lane_ids, kinds, start_xy,
                                                             lane_change_length=lane_change_length)))
             if len(routes) >= max_routes:
@@ -248,6 +254,32 @@ def _add_reach_sinks(graph: LaneGraph, g: Any, starts: list[int], start_xy, reac
             continue
         for nxt in lane.successors:
             frontier.append((nxt, covered + graph[nxt].length))
+
+
+def _continuation(graph: LaneGraph, last: int, length: float, used: set[int]) -> tuple[int, ...]:
+    """Lanes that continue ``last`` for at least ``length`` [m] where the map has them: at each lane end the
+    successor whose centre line starts with the smallest turn from the lane's end heading (going straight where
+    possible), never a lane already ``used`` (no loops)."""
+    out: list[int] = []
+    covered, lane_id, seen = 0.0, last, set(used)
+    while covered < length:
+        lane = graph[lane_id]
+        nexts = [n for n in lane.successors if n not in seen]
+        if not nexts:
+            break
+        c = _center(lane)
+        h_end = math.atan2(c[-1, 1] - c[-2, 1], c[-1, 0] - c[-2, 0])
+
+        def turn(n: int) -> float:
+            cn = _center(graph[n])
+            h = math.atan2(cn[1, 1] - cn[0, 1], cn[1, 0] - cn[0, 0])
+            return abs(math.remainder(h - h_end, 2 * math.pi))
+
+        lane_id = min(nexts, key=turn)
+        seen.add(lane_id)
+        out.append(lane_id)
+        covered += graph[lane_id].length
+    return tuple(out)
 
 
 def _center(lane: Any) -> np.ndarray:
@@ -363,6 +395,20 @@ def _brake_to(v: np.ndarray, s: np.ndarray, tau: np.ndarray, s_stop: float, acc:
     return np.where(tau[None, :] >= t_k, np.minimum(v, brake), v)
 
 
+def stop_before_end(s: np.ndarray, v: np.ndarray, tau: np.ndarray, s_end: float, acc: float, v_lo: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Profiles ``s, v (P, T)`` that would pass the arc length ``s_end`` [m] (the end of the lanes) brake at ``acc``
+    [m/s^2] so as to stand there (:func:`_brake_to`, down to ``v_lo``, which is 0 for a car), and hold; the others
+    are returned unchanged."""
+    over = (s > s_end).any(axis=1)
+    if not over.any():
+        return s, v
+    v = v.copy()
+    v_b = _brake_to(v[over], s[over], tau, s_end, acc, v_lo)
+    v[over] = v_b
+    return s[:, :1] + _integrate(v, tau), v
+
+
 def speed_profiles(
     s0: float,
     v0: float,
@@ -476,6 +522,7 @@ def risk_aware_profiles(
     risk_weight: float,
     effort_weight: float,
     goal_speed: tuple[float, float] | None = None,
+    s_end: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``n_keep`` best of :func:`profile_family` along ``path`` by a cost that sees the scene's occupancy.
 
@@ -487,11 +534,14 @@ def risk_aware_profiles(
     with ``d_goal^2`` the smallest, over the times of the goal interval, of the squared distance [m] along the path from
     ``s(t)`` to ``goal_arc`` (0 without a position goal) plus the squared distance [m/s] of the speed ``v(t)`` to
     ``goal_speed`` (the goal's speed interval, shrunk by a quarter of its width, at most 0.5 m/s, like the goal-region
-    cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). Profiles are kept best first, skipping any whose
+    cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). With ``s_end`` [m] (where the lanes under the
+    path end) the profiles that would pass it brake to stand there first (:func:`stop_before_end`). Profiles are kept best first, skipping any whose
     speeds differ from a kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
     """
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
     s = _integrate(v, tau)
+    if s_end is not None:  # the lanes end: stop before (stop_before_end)
+        s, v = stop_before_end(s, v, tau, s_end, max(rates), float(v_limits[0]))
     dt = np.diff(tau, prepend=tau[0])
     xy = path_points(path, s)
     ahead = path_points(path, s + 0.5)
@@ -738,7 +788,7 @@ def route_seed_parameters(
     shapes, interval, goal_speed = _goal_of(problem, cfg.goal_point_radius)
     reach = max(sv, v_limits[1]) * horizon + 10.0
     routes = find_routes(graph, (sx, sy), sth, shapes, max_routes=cfg.max_routes,
-                         lane_change_cost=cfg.lane_change_cost, reach=reach,
+                         lane_change_cost=cfg.lane_change_cost, reach=reach, continue_for=reach,
                          lane_change_length=max(cfg.lane_change_length, cfg.lane_change_time * sv))
     if not routes:
         log.info("route seeds: no route from the start to the goal on the lane map")
@@ -755,6 +805,8 @@ def route_seed_parameters(
     import shapely
 
     occupancy = _body_occupancy(problem, dtype, device) if cfg.risk_aware else None
+    # where the lanes end (the map's edge, a dead end) the vehicle's front stops 0.5 m short of the path's end
+    end_room = 0.5 * float(system.footprint.length) + 0.5
     all_s, all_v, all_xy, all_h, labels = [], [], [], [], []
     for r, route in enumerate(routes):
         cum = _arc(route.path)
@@ -776,9 +828,10 @@ def route_seed_parameters(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                 rates=tuple(sorted({cfg.acceleration, a_max})), n_speeds=cfg.profile_speeds,
                 switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
-                effort_weight=cfg.effort_weight, goal_speed=goal_speed)
+                effort_weight=cfg.effort_weight, goal_speed=goal_speed, s_end=cum[-1] - end_room)
             s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
             lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
+        s, v = stop_before_end(s, v, tau, cum[-1] - end_room, a_max, v_limits[0])
         xy = path_points(route.path, s)  # (P, T, 2)
         ahead = path_points(route.path, s + 0.5)
         h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
