@@ -18,15 +18,15 @@ from density_planner.planners.density_planner import DensityPlanner, DensityPlan
 from density_planner.planners.problem import PlanningProblem
 from density_planner.planners.routes import (
     RouteSeedConfig,
+    cap_profiles,
     find_routes,
     fit_reference_parameters,
     path_points,
+    path_speed_limit,
     profile_family,
     risk_aware_profiles,
     route_seed_parameters,
     speed_profiles,
-    path_speed_limit,
-    cap_profiles,
 )
 from density_planner.systems.car import KinematicCar
 

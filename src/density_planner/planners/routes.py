@@ -272,13 +272,11 @@ def _continuation(graph: LaneGraph, last: int, length: float, used: set[int]) ->
             break
         c = _center(lane)
         h_end = math.atan2(c[-1, 1] - c[-2, 1], c[-1, 0] - c[-2, 0])
-
-        def turn(n: int) -> float:
+        turns = []
+        for n in nexts:
             cn = _center(graph[n])
-            h = math.atan2(cn[1, 1] - cn[0, 1], cn[1, 0] - cn[0, 0])
-            return abs(math.remainder(h - h_end, 2 * math.pi))
-
-        lane_id = min(nexts, key=turn)
+            turns.append(abs(math.remainder(math.atan2(cn[1, 1] - cn[0, 1], cn[1, 0] - cn[0, 0]) - h_end, 2 * math.pi)))
+        lane_id = nexts[int(np.argmin(turns))]
         seen.add(lane_id)
         out.append(lane_id)
         covered += graph[lane_id].length
