@@ -156,6 +156,10 @@ def test_profile_family_ramps_within_its_rates_and_limits():
     assert np.all(v[:, 0] == 8.0) and np.all((v >= 0.0) & (v <= 12.0))
     assert np.abs(np.diff(v, axis=1)).max() <= 6.0 * 0.1 + 1e-9
     assert np.isclose(v[:, -1], 0.0).any() and np.isclose(v[:, -1], 12.0).any()
+    # an (accelerate, brake) pair: the car brakes at 5 m/s^2 but speeds up at 2 at most
+    v = profile_family(8.0, tau, v_limits=(0.0, 12.0), rates=((2.0, 5.0),), n_speeds=5, switch_times=(2.0,))
+    dv = np.diff(v, axis=1)
+    assert dv.max() == pytest.approx(2.0 * 0.1) and dv.min() == pytest.approx(-5.0 * 0.1)
 
 
 def test_risk_aware_profiles_stop_behind_a_standing_car_and_reach_a_goal_in_time():

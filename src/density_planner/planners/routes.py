@@ -372,10 +372,24 @@ def path_points(path: np.ndarray, s: np.ndarray) -> np.ndarray:
     return pts
 
 
-def _ramp_hold(v0: float, v_c: np.ndarray, tau: np.ndarray, acc: float) -> np.ndarray:
-    """Speeds ``(C, T)``: from ``v0`` ramp at ``acc`` to ``v_c (C,)``, then hold."""
-    dv = v_c[:, None] - v0
-    return v0 + np.sign(dv) * np.minimum(np.abs(dv), acc * tau[None, :])
+Rate = float | tuple[float, float]
+
+
+def _rate_pair(rate: Rate) -> tuple[float, float]:
+    """``(accelerate, brake)`` [m/s^2] of a rate given as one number (both) or as the pair."""
+    return (float(rate), float(rate)) if isinstance(rate, (int, float)) else (float(rate[0]), float(rate[1]))
+
+
+def _ramp(dv: np.ndarray, elapsed: np.ndarray, rate: Rate) -> np.ndarray:
+    """The speed change towards ``dv`` after ``elapsed`` seconds of ramping at ``rate`` (accelerating or braking)."""
+    up, down = _rate_pair(rate)
+    return np.where(dv > 0, np.minimum(dv, up * elapsed), -np.minimum(-dv, down * elapsed))
+
+
+def _ramp_hold(v0: float, v_c: np.ndarray, tau: np.ndarray, acc: Rate) -> np.ndarray:
+    """Speeds ``(C, T)``: from ``v0`` ramp at ``acc`` (one rate, or ``(accelerate, brake)``) to ``v_c (C,)``, then
+    hold."""
+    return v0 + _ramp(v_c[:, None] - v0, tau[None, :], acc)
 
 
 def _integrate(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -520,11 +534,12 @@ def speed_profiles(
     return s, v, labels
 
 
-def profile_family(v0: float, tau: np.ndarray, *, v_limits: tuple[float, float], rates: tuple[float, ...],
+def profile_family(v0: float, tau: np.ndarray, *, v_limits: tuple[float, float], rates: tuple[Rate, ...],
                    n_speeds: int, switch_times: tuple[float, ...]) -> np.ndarray:
     """Speeds ``(C, T)`` of two-phase profiles: from ``v0`` ramp at a rate of ``rates`` towards ``v1``; from the
     switch time on, ramp at a rate of ``rates`` towards ``v2`` (``v1, v2`` on ``n_speeds`` levels of
-    ``v_limits``); every combination, switch times past the horizon give one-phase profiles."""
+    ``v_limits``); every combination, switch times past the horizon give one-phase profiles. A rate is one number
+    [m/s^2] or an ``(accelerate, brake)`` pair (a car brakes harder than it accelerates)."""
     v_lo, v_hi = float(v_limits[0]), float(v_limits[1])
     levels = np.linspace(v_lo, v_hi, n_speeds)
     horizon = float(tau[-1])
@@ -541,7 +556,7 @@ def profile_family(v0: float, tau: np.ndarray, *, v_limits: tuple[float, float],
             for r2 in rates:
                 dv = levels[None, :] - v_k[:, None]  # (n1, n2)
                 rel = np.maximum(tau[None, None, :] - tau[k], 0.0)
-                second = v_k[:, None, None] + np.sign(dv)[..., None] * np.minimum(np.abs(dv)[..., None], r2 * rel)
+                second = v_k[:, None, None] + _ramp(dv[..., None], rel, r2)
                 prof = np.where(tau[None, None, :] >= tau[k], second, first[:, None, :])
                 out.append(prof.reshape(-1, tau.size))
     return np.clip(np.concatenate(out), v_lo, v_hi)
@@ -556,7 +571,7 @@ def risk_aware_profiles(
     goal_time: tuple[float, float],
     *,
     v_limits: tuple[float, float],
-    rates: tuple[float, ...],
+    rates: tuple[Rate, ...],
     n_speeds: int,
     switch_times: tuple[float, ...],
     n_keep: int,
@@ -583,8 +598,9 @@ def risk_aware_profiles(
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
     s = _integrate(v, tau)
     if speed_limit is not None:  # the road's curves and end (path_speed_limit)
-        s, v = cap_profiles(v, tau, speed_limit, acceleration=max(rates), deceleration=max(rates),
-                            v_lo=float(v_limits[0]))
+        pairs = [_rate_pair(r) for r in rates]
+        s, v = cap_profiles(v, tau, speed_limit, acceleration=max(p[0] for p in pairs),
+                            deceleration=max(p[1] for p in pairs), v_lo=float(v_limits[0]))
     dt = np.diff(tau, prepend=tau[0])
     xy = path_points(path, s)
     ahead = path_points(path, s + 0.5)
@@ -884,6 +900,7 @@ def route_seed_parameters(
     tau = np.arange(par.n_plan) * par.plan_dt
     ia = system.acceleration_input
     a_max = 0.9 * min(abs(float(system.input_bounds[0][ia])), abs(float(system.input_bounds[1][ia])))
+    a_brake = 0.9 * abs(float(system.input_bounds[0][ia]))  # the hardest braking the profiles use
     horizon = float(tau[-1])
     shapes, interval, goal_speed = _goal_of(problem, cfg.goal_point_radius)
     reach = max(sv, v_limits[1]) * horizon + 10.0
@@ -928,11 +945,11 @@ def route_seed_parameters(
                                  deceleration=a_max, turn_rate=turn_max, s_end=cum[-1] - end_room)
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                                    acceleration=cfg.acceleration, max_acceleration=a_max)
-        s, v = cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_max, v_lo=v_limits[0])
+        s, v = cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0])
         if occupancy is not None:
             s_r, v_r, _ = risk_aware_profiles(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
-                rates=tuple(sorted({cfg.acceleration, a_max})), n_speeds=cfg.profile_speeds,
+                rates=(cfg.acceleration, (a_max, a_brake)), n_speeds=cfg.profile_speeds,
                 switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
                 effort_weight=cfg.effort_weight, goal_speed=goal_speed, speed_limit=limit)
             s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
