@@ -6,18 +6,19 @@ a long bend); this module gives it candidates that do, built in four steps:
 1. **Routes** (:func:`find_routes`): lane sequences through the :class:`~density_planner.environment.lanes.LaneGraph`
    from the lanes under the start (heading-aligned) to the lanes touching the goal region, over successors and
    same-direction lane changes, the ``max_routes`` shortest by length plus ``lane_change_cost`` per change
-   (networkx ``shortest_simple_paths``, Yen's algorithm). A goal without a position gives the lanes ahead.
+   (networkx ``shortest_simple_paths``, Yen's algorithm), continued past the goal along the straightest
+   successors. A goal without a position gives the lanes ahead.
 2. **Paths** (:func:`route_path`): the routes' centre lines joined into one polyline each; a lane change blends
    from one centre line to the next over ``lane_change_length`` (smoothstep, so heading stays continuous).
 3. **Speed profiles** (:func:`speed_profiles`): arc length over time for *keep* (the start speed),
    *accelerate* / *decelerate* (ramp at ``acceleration`` to the cruise speed that puts the vehicle at a target
    point of the goal region at a target time of its interval) and *stop* (reach the goal's centre at the start
-   of its time interval, then brake and hold), within the speed limits.
+   of its time interval, then brake and hold), within the speed limits, and every profile held under the path's
+   own limit (:func:`path_speed_limit`: curves by lateral acceleration and turn rate, a stop where the lanes end).
 4. **Fit** (:func:`fit_reference_parameters`): the target positions and speeds become piecewise-constant reference
    inputs ``(M, nu, n_segments)`` by a batched least-squares fit (Levenberg-Marquardt) through the reference
-   roll-out (:func:`~density_planner.control.reference.plan_grid_reference`), started from the inputs read off the
-   target (turn rate from the heading change, acceleration from the speed change per segment) and projected onto
-   the input bounds after every step.
+   roll-out (:func:`~density_planner.control.reference.plan_grid_reference`), started from a segment-by-segment
+   guess and projected onto the input bounds after every step.
 
 :func:`route_seed_parameters` runs all four for a :class:`~density_planner.planners.problem.PlanningProblem`
 and returns ``None`` on scenes without a lane map (the paper's random scenes), so the planner then behaves
