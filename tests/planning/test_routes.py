@@ -92,6 +92,14 @@ def test_profiles_stop_before_the_end_of_the_lanes():
     assert s2[0, -1] >= 60.0 - 1.5  # and not far short of it
     assert np.diff(v2[0]).min() >= -3.0 * 0.1 - 1e-9  # braking at the given rate
     assert np.array_equal(v2[1], v[1]) and np.allclose(s2[1], _profile_arcs(v[1:], tau)[0])  # slow: unchanged
+    # with the end given as a stop, a profile that does not reach it within the horizon keeps its speed: 4 s at
+    # 12 m/s end at 48 m, before the end at 60 m, although braking from 12 m/s takes 24 m
+    free = path_speed_limit(path, 15.0, lateral_acceleration=3.0, deceleration=3.0)
+    short = tau[:41]
+    s3, v3 = cap_profiles(v[:, :41], short, free, acceleration=3.0, deceleration=3.0, v_lo=0.0, stop=(60.0, limit))
+    assert np.array_equal(v3, v[:, :41]) and s3[0, -1] == pytest.approx(48.0)
+    s4, v4 = cap_profiles(v, tau, free, acceleration=3.0, deceleration=3.0, v_lo=0.0, stop=(60.0, limit))
+    assert np.allclose(v4, v2) and np.allclose(s4, s2)  # one that would pass it stops as before
 
 
 def test_profiles_slow_down_for_the_turn_and_speed_up_after_it():

@@ -446,12 +446,22 @@ def path_speed_limit(path: np.ndarray, v_max: float, *, lateral_acceleration: fl
 
 
 def cap_profiles(v: np.ndarray, tau: np.ndarray, limit: tuple[np.ndarray, np.ndarray], *, acceleration: float,
-                 deceleration: float, v_lo: float) -> tuple[np.ndarray, np.ndarray]:
+                 deceleration: float, v_lo: float, stop: tuple[float, tuple[np.ndarray, np.ndarray]] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Speed profiles ``v (P, T)`` on the times ``tau`` held under the path's speed limit (:func:`path_speed_limit`)
     where they drive: ``v'(t_k) = min(v(t_k), v_lim(s'(t_{k-1}) + v'(t_{k-1}) dt), v'(t_{k-1}) + acceleration
-    dt)``, never braking
-    harder than ``deceleration`` nor below ``v_lo``; the start speed is kept. Returns the arc lengths ``s' (P, T)``
+    dt)``, never braking harder than ``deceleration`` nor below ``v_lo``; the start speed is kept. With
+    ``stop = (s_end, limit_with_stop)`` the profiles that would pass ``s_end`` within the times ``tau`` (the end of
+    the lanes within the horizon) are held under ``limit_with_stop`` instead: the others need not slow down for
+    an end they never reach (a map's edge shortly after a highway goal). Returns the arc lengths ``s' (P, T)``
     (from 0) and speeds ``v' (P, T)``; profiles that stay under the limit come back unchanged."""
+    if stop is not None:
+        s, out = cap_profiles(v, tau, limit, acceleration=acceleration, deceleration=deceleration, v_lo=v_lo)
+        over = s[:, -1] > stop[0]
+        if over.any():
+            s[over], out[over] = cap_profiles(v[over], tau, stop[1], acceleration=acceleration,
+                                              deceleration=deceleration, v_lo=v_lo)
+        return s, out
     s_grid, v_lim = limit
     out = np.empty_like(v)
     s = np.zeros_like(v)
@@ -580,6 +590,7 @@ def risk_aware_profiles(
     effort_weight: float,
     goal_speed: tuple[float, float] | None = None,
     speed_limit: tuple[np.ndarray, np.ndarray] | None = None,
+    stop: tuple[float, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``n_keep`` best of :func:`profile_family` along ``path`` by a cost that sees the scene's occupancy.
 
@@ -592,7 +603,8 @@ def risk_aware_profiles(
     ``s(t)`` to ``goal_arc`` (0 without a position goal) plus the squared distance [m/s] of the speed ``v(t)`` to
     ``goal_speed`` (the goal's speed interval, shrunk by a quarter of its width, at most 0.5 m/s, like the goal-region
     cost's margin; 1 m^2 per (m/s)^2, the cost's default weight). With ``speed_limit`` (:func:`path_speed_limit`) the
-    profiles are first held under the road's limit in curves and before the end of the lanes (:func:`cap_profiles`).
+    profiles are first held under the road's limit in curves and, with ``stop``, before the end of the lanes
+    (:func:`cap_profiles`).
     Profiles are kept best first, skipping any whose
     speeds differ from a kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
     """
@@ -601,7 +613,7 @@ def risk_aware_profiles(
     if speed_limit is not None:  # the road's curves and end (path_speed_limit)
         pairs = [_rate_pair(r) for r in rates]
         s, v = cap_profiles(v, tau, speed_limit, acceleration=max(p[0] for p in pairs),
-                            deceleration=max(p[1] for p in pairs), v_lo=float(v_limits[0]))
+                            deceleration=max(p[1] for p in pairs), v_lo=float(v_limits[0]), stop=stop)
     dt = np.diff(tau, prepend=tau[0])
     xy = path_points(path, s)
     ahead = path_points(path, s + 0.5)
@@ -942,17 +954,19 @@ def route_seed_parameters(
                 d = np.asarray(shapely.distance(shapes, shapely.points(pts)), dtype=np.float64)
                 s_near = float(s_grid[int(np.argmin(d))])
                 goal_arc = (s_near, s_near)
-        limit = path_speed_limit(route.path, v_limits[1], lateral_acceleration=cfg.lateral_acceleration,
-                                 deceleration=a_max, turn_rate=turn_max, s_end=cum[-1] - end_room)
+        limit, with_end = (path_speed_limit(route.path, v_limits[1], lateral_acceleration=cfg.lateral_acceleration,
+                                            deceleration=a_max, turn_rate=turn_max, s_end=end)
+                           for end in (None, cum[-1] - end_room))
+        stop = (cum[-1] - end_room, with_end)
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                                    acceleration=cfg.acceleration, max_acceleration=a_max)
-        s, v = cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0])
+        s, v = cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0], stop=stop)
         if occupancy is not None:
             s_r, v_r, _ = risk_aware_profiles(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                 rates=(cfg.acceleration, (a_max, a_brake)), n_speeds=cfg.profile_speeds,
                 switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
-                effort_weight=cfg.effort_weight, goal_speed=goal_speed, speed_limit=limit)
+                effort_weight=cfg.effort_weight, goal_speed=goal_speed, speed_limit=limit, stop=stop)
             s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
             lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
         xy = path_points(route.path, s)  # (P, T, 2)
