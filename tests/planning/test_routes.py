@@ -118,6 +118,33 @@ def test_profiles_slow_down_for_the_turn_and_speed_up_after_it():
     assert v[0, -1] > 10.0  # and back to speed after the turn
 
 
+def test_targeted_profiles_reach_the_goal_in_time_through_a_curve():
+    """With the road's cap passed in, the profiles aimed at the goal are chosen among capped ones: the slow-down
+    in the turn does not make them late (without it, the profile capped afterwards misses the interval)."""
+    route = find_routes(lane_graph(), (60.0, 1.75), 0.0, _box(110.0, 113.5, -27.0, -24.0))[0]
+    path = route.path
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    inside = shapely.contains_xy(_box(110.0, 113.5, -27.0, -24.0), path[:, 0], path[:, 1])
+    goal_arc = (float(cum[inside].min()), float(cum[inside].max()))
+    tau = np.arange(0, 10.01, 0.1)  # from 8 m/s, in the goal during [9, 10] s: through the turn at <= 5.9 m/s
+    limit = path_speed_limit(path, 15.0, lateral_acceleration=3.0, deceleration=3.0, turn_rate=0.9)
+
+    def cap(v):
+        return cap_profiles(v, tau, limit, acceleration=3.0, deceleration=5.0, v_lo=0.0)
+
+    def in_time(s):
+        during = tau >= 9.0 - 1e-9
+        return ((s[:, during] >= goal_arc[0]) & (s[:, during] <= goal_arc[1])).any(axis=1)
+
+    kw = dict(v_limits=(0.0, 15.0), acceleration=1.5, max_acceleration=3.0)
+    s_free, v_free, _ = speed_profiles(0.0, 8.0, tau, goal_arc, (9.0, 10.0), **kw)
+    s_late, _ = cap(v_free)
+    s_cap, v_cap, _ = speed_profiles(0.0, 8.0, tau, goal_arc, (9.0, 10.0), cap=cap, **kw)
+    assert np.allclose(cap(v_cap)[0][1:], s_cap[1:])  # the targeted ones are already under the cap (keep is not)
+    assert in_time(s_free)[1:6].all() and not in_time(s_late)[1:6].all()  # capped afterwards: some are late
+    assert in_time(s_cap)[1:6].all()  # chosen among capped ones: all five on time
+
+
 def test_no_route_against_the_driving_direction_or_off_the_map():
     assert find_routes(lane_graph(), (10.0, 1.75), math.pi, _box(85, 95, 0.5, 3.0)) == []  # wrong heading
     assert find_routes(lane_graph(), (10.0, 60.0), 0.0, _box(85, 95, 0.5, 3.0)) == []  # start off the lanes

@@ -485,6 +485,7 @@ def speed_profiles(
     v_limits: tuple[float, float],
     acceleration: float,
     max_acceleration: float | None = None,
+    cap: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Arc-length profiles along a path (see the module docstring).
 
@@ -498,6 +499,8 @@ def speed_profiles(
         v_limits: ``(v_min, v_max)`` [m/s]; acceleration: ramp rate [m/s^2].
         max_acceleration: a harder ramp [m/s^2] used where ``acceleration`` cannot reach a target (it must
             miss by more than 1 m at the comfortable rate).
+        cap: ``v (C, T) -> (s, v)``, the road's speed limit (:func:`cap_profiles`, arc lengths from 0): the
+            targeted profiles are chosen among capped ones, so that a curve on the way does not make them late.
 
     Returns:
         ``s (P, T)`` arc lengths [m], ``v (P, T)`` speeds [m/s] and one label per profile.
@@ -509,6 +512,8 @@ def speed_profiles(
     rates = [acceleration] if max_acceleration is None or max_acceleration <= acceleration else \
         [acceleration, float(max_acceleration)]
     v_all = np.concatenate([_ramp_hold(v0, cruise, tau, a) for a in rates])
+    if cap is not None:
+        v_all = cap(v_all)[1]
     s_all = s0 + _integrate(v_all, tau)
     hard = np.repeat(np.arange(len(rates)) > 0, cruise.size)  # profiles at the harder rate
     profiles: list[np.ndarray] = [np.full_like(tau, v0)[None]]
@@ -536,6 +541,8 @@ def speed_profiles(
         # stop: cruise, then brake at `acceleration` so as to stand still at the goal's centre, and hold; the
         # cruise speed that puts the vehicle nearest to that point at the start of the interval is chosen
         v_stop = _brake_to(v_all, s_all, tau, s_mid, acceleration, v_lo)
+        if cap is not None:
+            v_stop = cap(v_stop)[1]
         s_stop = s0 + _integrate(v_stop, tau)
         k = int(np.clip(np.searchsorted(tau, tl - 1e-9), 0, tau.size - 1))
         profiles.append(v_stop[int(np.argmin(np.abs(s_stop[:, k] - s_mid) + 1.0 * hard))][None])
@@ -958,9 +965,12 @@ def route_seed_parameters(
                                             deceleration=a_max, turn_rate=turn_max, s_end=end)
                            for end in (None, cum[-1] - end_room))
         stop = (cum[-1] - end_room, with_end)
+        def capped(v: np.ndarray, limit=limit, stop=stop) -> tuple[np.ndarray, np.ndarray]:
+            return cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0], stop=stop)
+
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
-                                   acceleration=cfg.acceleration, max_acceleration=a_max)
-        s, v = cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0], stop=stop)
+                                   acceleration=cfg.acceleration, max_acceleration=a_max, cap=capped)
+        s, v = capped(v)
         if occupancy is not None:
             s_r, v_r, _ = risk_aware_profiles(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
