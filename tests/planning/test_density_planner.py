@@ -62,6 +62,25 @@ def test_goes_around_a_single_obstacle():
     assert float(torch.linalg.norm(res.states[-1, :2] - torch.tensor(scene.goal))) < 1.5
 
 
+def test_stage_two_stops_once_its_cost_stalls():
+    """On the empty scene stage 2 starts at a plan that already reaches the goal: with ``patience = 3`` it stops
+    once three iterations in a row have not lowered its best cost by 0.1 % + 0.1, returns that best iterate, and
+    its history is that long; ``patience = 0`` runs every iteration."""
+    scene = empty_scene()
+    base = dict(n_candidates=30, epochs_init=60, epochs_density=30, n_samples=60)
+    early = _planner(DensityPlannerConfig(**base, patience=3)).plan(PlanningProblem.from_scene(scene, seed=0))
+    full = _planner(DensityPlannerConfig(**base, patience=0)).plan(PlanningProblem.from_scene(scene, seed=0))
+    hist = early.cost_history["stage2"]["total"]
+    n = early.iterations["stage2"]
+    assert full.iterations["stage2"] == 30 and len(full.cost_history["stage2"]["total"]) == 30
+    assert 4 <= n < 30 and len(hist) == n
+    # the last 3 iterations made no progress against the best before them, an earlier one did
+    last = min(hist[: n - 3])
+    assert min(hist[n - 3:]) >= last - 1e-3 * abs(last) - 0.1
+    assert hist == full.cost_history["stage2"]["total"][:n]  # the same iterates up to the stop
+    assert early.status == PlanStatus.SUCCESS
+
+
 def test_same_seed_same_result():
     scene = empty_scene()
     cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=3, n_samples=20, seed=3)

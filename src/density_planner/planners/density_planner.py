@@ -93,6 +93,13 @@ class DensityPlannerConfig:
     backtrack_factor: float = 2.0
     #: absolute slack of that test [cost units, m^2 for the goal], so that costs near 0 do not trigger it
     backtrack_slack: float = 0.1
+    #: stage 2 stops early once its best cost has not fallen by more than ``patience_tolerance`` (relative) plus
+    #: ``backtrack_slack`` (absolute) for this many iterations; 0 = off (all ``epochs_density`` iterations, paper).
+    #: The plan is the best iterate either way (``keep_best``); measured on the suite and the paper's random scenes
+    #: (docs/planner.md)
+    patience: int = 20
+    #: relative decrease of the best stage-2 cost that counts as progress for ``patience``
+    patience_tolerance: float = 1e-3
     #: report the cost and collision probability of the plan on a fresh, independent draw of n_samples initial
     #: states (True), or on the samples it was optimised on (False, paper: optimistic, the plan is fitted to them)
     fresh_evaluation_samples: bool = True
@@ -122,6 +129,10 @@ class DensityPlannerConfig:
             raise ValueError(f"reference_weight must be a finite number >= 0, got {self.reference_weight!r}")
         if not (self.backtrack_factor == 0 or (math.isfinite(self.backtrack_factor) and self.backtrack_factor > 1)):
             raise ValueError(f"backtrack_factor must be 0 (off) or a finite number > 1, got {self.backtrack_factor!r}")
+        if isinstance(self.patience, bool) or not isinstance(self.patience, int) or self.patience < 0:
+            raise ValueError(f"patience must be an integer >= 0 (0: off), got {self.patience!r}")
+        if not math.isfinite(self.patience_tolerance) or self.patience_tolerance < 0:
+            raise ValueError(f"patience_tolerance must be a finite number >= 0, got {self.patience_tolerance!r}")
         if not math.isfinite(self.backtrack_slack) or self.backtrack_slack < 0:
             raise ValueError(f"backtrack_slack must be a finite number >= 0, got {self.backtrack_slack!r}")
         check_choice("sample_proposal", self.sample_proposal, ("support", "distribution"))
@@ -360,6 +371,7 @@ class DensityPlanner(Planner):
         history: dict[str, list[float]] = {}
         best: tuple[float, Tensor | None, Reference | None, DensityTrajectory | None] = (math.inf, None, None, None)
         backtracker = _Backtracker(p, cfg.backtrack_factor, cfg.backtrack_slack)
+        progress_at, progress_cost = 0, math.inf  # the last iteration that lowered the best cost by enough
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
@@ -374,7 +386,9 @@ class DensityPlanner(Planner):
                 if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
                     best = (total, pv.detach().clone(), ref.detach(), traj.detach())
                 bar.update()
-                if it == cfg.epochs_density - 1:
+                if total < progress_cost - cfg.patience_tolerance * abs(progress_cost) - cfg.backtrack_slack:
+                    progress_at, progress_cost = it, total
+                if it == cfg.epochs_density - 1 or (cfg.patience and it - progress_at >= cfg.patience):
                     break
                 (grad,) = torch.autograd.grad(cost.total.sum(), pv)
                 back = backtracker.observe(cost.total.detach(), p)
@@ -383,6 +397,7 @@ class DensityPlanner(Planner):
                 else:
                     opt.step(grad.unsqueeze(0))
         history["backtracks"] = [float(backtracker.count)]
+        history["iterations"] = [float(it + 1)]
         return best, history, (x0, log_rho0, log_q0), slices
 
     def _sample_objective(self, objective: WeightedCost) -> WeightedCost:
@@ -488,7 +503,7 @@ class DensityPlanner(Planner):
             cost_history={"stage1": hist1, "stage2": hist2},
             collision=coll,
             timings=timings,
-            iterations={"stage1": it1, "stage2": self.config.epochs_density},
+            iterations={"stage1": it1, "stage2": int(hist2["iterations"][0])},
             extras=extras,
         )
 
