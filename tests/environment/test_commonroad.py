@@ -426,6 +426,14 @@ def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
     assert scene.goal == pytest.approx(near.goal, abs=1e-6)
     assert scene.road.goal.shapes.equals_exact(near.road.goal.shapes, 1e-6)
     assert near.meta["frame_offset"] == [0.0, 0.0]
+    # the lanes the route seeds follow are in the scene's frame too (they were in the file's, 5e6 m away)
+    from density_planner.planners.routes import scene_lane_graph
+
+    lanes, lanes_near = scene_lane_graph(scene), scene_lane_graph(near)
+    assert lanes is not None and lanes_near is not None and lanes.ids == lanes_near.ids
+    for i in lanes.ids:
+        assert np.allclose(lanes[i].center, lanes_near[i].center, atol=1e-6)
+    assert lanes.lanes_at(scene.start[:2], scene.start[2]) == lanes_near.lanes_at(near.start[:2], near.start[2]) != []
 
 
 def test_the_ego_size_is_the_systems_body(commonroad_dir):

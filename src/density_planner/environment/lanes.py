@@ -207,6 +207,13 @@ class LaneGraph:
                     g.add_edge(lane.lane_id, n, kind="change", weight=float(lane_change_cost))
         return g
 
+    def translated(self, dx: float, dy: float) -> LaneGraph:
+        """The same lanes moved by ``(dx, dy)`` [m] (e.g. into a scene's local frame: ``-meta["frame_offset"]``)."""
+        d = np.array([dx, dy], dtype=np.float64)
+        return LaneGraph([dataclasses.replace(lane, left=lane.left + d, right=lane.right + d,
+                                              center=None if lane.center is None else lane.center + d)
+                          for lane in self.lanes.values()])
+
     # ----------------------------------------------------------------- builders
     @classmethod
     def from_lanelet_network(cls, network: Any, *, exclude_types: frozenset[str] = NON_DRIVABLE_LANELET_TYPES

@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -867,9 +868,14 @@ def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
     return occupancy
 
 
+#: lane graphs moved into a scene's local frame, by the file's graph (one offset per file)
+_TRANSLATED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def scene_lane_graph(scene: Any) -> LaneGraph | None:
     """The lane graph of a scene: ``scene.lane_graph`` where set, else read from the CommonRoad file named in
-    ``scene.meta["file"]`` (cached); ``None`` for scenes without one (random, inD)."""
+    ``scene.meta["file"]`` (cached) and moved into the scene's frame (``meta["frame_offset"]``: the importer
+    translates scenarios with large, e.g. UTM, coordinates); ``None`` for scenes without one (random, inD)."""
     graph = getattr(scene, "lane_graph", None)
     if graph is not None:
         return graph
@@ -878,7 +884,16 @@ def scene_lane_graph(scene: Any) -> LaneGraph | None:
     if meta.get("source") != "commonroad" or not path:
         return None
     try:
-        return lane_graph_from_file(path)
+        graph = lane_graph_from_file(path)
+        ox, oy = (float(v) for v in (meta.get("frame_offset") or (0.0, 0.0)))
+        if ox or oy:
+            key = ("translated", ox, oy)
+            cached = _TRANSLATED.get(graph)
+            if cached is None or cached[0] != key:
+                cached = (key, graph.translated(-ox, -oy))
+                _TRANSLATED[graph] = cached
+            return cached[1]
+        return graph
     except (OSError, ValueError) as exc:
         log.warning("no lane graph for %s (%s): no route-seeded candidates", getattr(scene, "name", "?"), exc)
         return None
