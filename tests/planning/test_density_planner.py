@@ -63,22 +63,28 @@ def test_goes_around_a_single_obstacle():
 
 
 def test_stage_two_stops_once_its_cost_stalls():
-    """On the empty scene stage 2 starts at a plan that already reaches the goal: with ``patience = 3`` it stops
-    once three iterations in a row have not lowered its best cost by 0.1 % + 0.1, returns that best iterate, and
-    its history is that long; ``patience = 0`` runs every iteration."""
-    scene = empty_scene()
-    base = dict(n_candidates=30, epochs_init=60, epochs_density=30, n_samples=60)
-    early = _planner(DensityPlannerConfig(**base, patience=3)).plan(PlanningProblem.from_scene(scene, seed=0))
+    """With ``patience = 12`` stage 2 stops once 12 iterations in a row have not lowered its best cost by 0.1 %
+    (here without the absolute slack, the block scene's costs being ~1e-3), at the iteration recomputed from a full
+    run's costs, after making progress first; ``patience = 0`` runs every iteration."""
+    scene = block_scene()
+    base = dict(n_candidates=20, epochs_init=10, epochs_density=60, n_samples=10, backtrack_slack=0.0)
+    early = _planner(DensityPlannerConfig(**base, patience=12)).plan(PlanningProblem.from_scene(scene, seed=0))
     full = _planner(DensityPlannerConfig(**base, patience=0)).plan(PlanningProblem.from_scene(scene, seed=0))
     hist = early.cost_history["stage2"]["total"]
     n = early.iterations["stage2"]
-    assert full.iterations["stage2"] == 30 and len(full.cost_history["stage2"]["total"]) == 30
-    assert 4 <= n < 30 and len(hist) == n
-    # the last 3 iterations made no progress against the best before them, an earlier one did
-    last = min(hist[: n - 3])
-    assert min(hist[n - 3:]) >= last - 1e-3 * abs(last) - 0.1
-    assert hist == full.cost_history["stage2"]["total"][:n]  # the same iterates up to the stop
-    assert early.status == PlanStatus.SUCCESS
+    whole = full.cost_history["stage2"]["total"]
+    assert full.iterations["stage2"] == 60 and len(whole) == 60
+    assert len(hist) == n and hist == whole[:n]  # the same iterates up to the stop
+    at, ref, stop = 0, whole[0], None
+    for i, c in enumerate(whole[1:], start=1):
+        if c < ref - 1e-3 * abs(ref):
+            at, ref = i, c
+        if i - at >= 12:
+            stop = i + 1
+            break
+    assert stop is not None and n == stop < 60
+    assert at >= 1  # it made progress before it stalled
+    assert early.cost["total"] == pytest.approx(min(hist), rel=0.5) or early.cost["total"] < 1e-2
 
 
 def test_same_seed_same_result():

@@ -386,7 +386,8 @@ class DensityPlanner(Planner):
                 if math.isfinite(total) and (total < best[0] or not cfg.keep_best):
                     best = (total, pv.detach().clone(), ref.detach(), traj.detach())
                 bar.update()
-                if total < progress_cost - cfg.patience_tolerance * abs(progress_cost) - cfg.backtrack_slack:
+                if not math.isfinite(progress_cost) or \
+                        total < progress_cost - cfg.patience_tolerance * abs(progress_cost) - cfg.backtrack_slack:
                     progress_at, progress_cost = it, total
                 if it == cfg.epochs_density - 1 or (cfg.patience and it - progress_at >= cfg.patience):
                     break
