@@ -118,6 +118,29 @@ def test_profiles_slow_down_for_the_turn_and_speed_up_after_it():
     assert v[0, -1] > 10.0  # and back to speed after the turn
 
 
+def test_lane_map_noise_does_not_limit_highway_speed_but_a_curve_does():
+    """A straight lane whose vertices zigzag by +-0.05 m every 5 m (0.04-rad kinks as on recorded maps, curvature 0.01
+    1/m over 4 m, a 3 m/s^2 limit of 17 m/s if read at 4 m) allows 35 m/s; an arc of radius 200 m is held to
+    sqrt(3 * 200) = 24.5 m/s; a 5-m hairpin to the turn-rate bound."""
+    x = np.arange(0.0, 400.01, 5.0)
+    noisy = np.stack([x, 0.05 * (-1.0) ** np.arange(x.size)], axis=1)
+    s_grid, v_lim = path_speed_limit(noisy, 35.0, lateral_acceleration=3.0, deceleration=3.0, turn_rate=0.9)
+    assert v_lim.min() == pytest.approx(35.0)
+    phi = np.linspace(0.0, 400.0 / 200.0, 801)
+    arc = 200.0 * np.stack([np.sin(phi), 1.0 - np.cos(phi)], axis=1)
+    s_grid, v_lim = path_speed_limit(arc, 35.0, lateral_acceleration=3.0, deceleration=3.0, turn_rate=0.9)
+    mid = (s_grid > 100.0) & (s_grid < 300.0)
+    assert np.allclose(v_lim[mid], math.sqrt(3.0 * 200.0), rtol=0.02)
+    # the turn-rate bound: a 5-m radius needs v <= 0.9 * 5 = 4.5 m/s whatever the window
+    phi = np.linspace(0.0, math.pi, 201)
+    hairpin = np.concatenate([np.stack([np.linspace(-30.0, 0.0, 61), np.full(61, -5.0)], axis=1)[:-1],
+                              5.0 * np.stack([np.sin(phi), -np.cos(phi)], axis=1),
+                              np.stack([np.linspace(0.0, -30.0, 61), np.full(61, 5.0)], axis=1)[1:]])
+    s_grid, v_lim = path_speed_limit(hairpin, 35.0, lateral_acceleration=8.0, deceleration=3.0, turn_rate=0.9)
+    bend = (s_grid > 32.0) & (s_grid < 43.0)
+    assert v_lim[bend].max() <= 0.9 * 5.0 * 1.05
+
+
 def test_targeted_profiles_reach_the_goal_in_time_through_a_curve():
     """With the road's cap passed in, the profiles aimed at the goal are chosen among capped ones: the slow-down
     in the turn does not make them late (without it, the profile capped afterwards misses the interval)."""
