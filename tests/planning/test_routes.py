@@ -163,7 +163,7 @@ def test_targeted_profiles_reach_the_goal_in_time_through_a_curve():
     s_free, v_free, _ = speed_profiles(0.0, 8.0, tau, goal_arc, (9.0, 10.0), **kw)
     s_late, _ = cap(v_free)
     s_cap, v_cap, _ = speed_profiles(0.0, 8.0, tau, goal_arc, (9.0, 10.0), cap=cap, **kw)
-    assert np.allclose(cap(v_cap)[0][1:], s_cap[1:])  # the targeted ones are already under the cap (keep is not)
+    assert np.allclose(cap(v_cap)[0][1:], s_cap[1:])  # the targeted ones are already under the cap
     assert in_time(s_free)[1:6].all() and not in_time(s_late)[1:6].all()  # capped afterwards: some are late
     assert in_time(s_cap)[1:6].all()  # chosen among capped ones: all five on time
 

@@ -366,7 +366,7 @@ def _replan_parameterization(par: PiecewiseConstantInputs, goal_end: float | Non
     n = max(1, math.ceil((goal_end - t) / par.segment_duration - 1e-9))
     if n >= par.n_segments:
         return par
-    return PiecewiseConstantInputs(n, par.segment_duration, par.dt, par.plan_dt)
+    return replace(par, n_segments=n)
 
 
 def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_dt: float, states: Tensor) -> float:

@@ -517,8 +517,9 @@ def speed_profiles(
         v_limits: ``(v_min, v_max)`` [m/s]; acceleration: ramp rate [m/s^2].
         max_acceleration: a harder ramp [m/s^2] used where ``acceleration`` cannot reach a target (it must
             miss by more than 1 m at the comfortable rate).
-        cap: ``v (C, T) -> (s, v)``, the road's speed limit (:func:`cap_profiles`, arc lengths from 0): the
-            targeted profiles are chosen among capped ones, so that a curve on the way does not make them late.
+        cap: ``v (C, T) -> (s, v)``, the road's speed limit (:func:`cap_profiles`, arc lengths from 0): every
+            profile is held under it, and the targeted ones are chosen among capped ones, so that a curve on the
+            way does not make them late.
 
     Returns:
         ``s (P, T)`` arc lengths [m], ``v (P, T)`` speeds [m/s] and one label per profile.
@@ -566,8 +567,10 @@ def speed_profiles(
         profiles.append(v_stop[int(np.argmin(np.abs(s_stop[:, k] - s_mid) + 1.0 * hard))][None])
         labels.append("stop")
     v = np.concatenate(profiles)
-    s = s0 + _integrate(v, tau)
-    return s, v, labels
+    if cap is not None:
+        s_rel, v = cap(v)
+        return s0 + s_rel, v, labels
+    return s0 + _integrate(v, tau), v, labels
 
 
 def profile_family(v0: float, tau: np.ndarray, *, v_limits: tuple[float, float], rates: tuple[Rate, ...],
@@ -751,10 +754,8 @@ def fit_reference_parameters(
     w_v = math.sqrt(speed_weight)
     if stride is not None:
         params = _segment_by_segment(system, start, par, stride, params, targets, speeds, theta, low, high, w_v)
-    shape = params.shape[1:]
-    n_p = shape.numel()
 
-    def residuals(p: Tensor, rep: int = 1) -> Tensor:
+    def residuals(p: Tensor, rep: int) -> Tensor:
         """``(M * rep, R)`` residuals of ``p (M * rep, nu, S)`` (candidate-major) with ``|r|^2`` the error."""
         x, _ = plan_grid_reference(system, start, p, par)
         x = x.reshape(m, rep, t, -1)
@@ -762,25 +763,8 @@ def fit_reference_parameters(
         spd = w_v * (x[..., iv] - speeds[:, None])
         return (torch.cat([pos, spd], dim=-1) / math.sqrt(t)).reshape(m * rep, -1)
 
-    eye = torch.eye(n_p, dtype=dtype, device=device)
-    eps = 1e-6
-    lam = torch.full((m,), 1e-3, dtype=dtype, device=device)
     with torch.no_grad():
-        r = residuals(params)
-        err = r.pow(2).sum(-1)
-        for _ in range(iterations):
-            flat = params.reshape(m, 1, n_p)
-            probes = (flat + eps * eye).reshape(m * n_p, *shape)  # one forward difference per parameter
-            jac = (residuals(probes, n_p).reshape(m, n_p, -1) - r[:, None]) / eps  # (M, P, R)
-            step = _damped_step(jac, r, lam).reshape(m, *shape)
-            trial = torch.maximum(torch.minimum(params - step, high), low)
-            r_trial = residuals(trial)
-            err_trial = r_trial.pow(2).sum(-1)
-            better = err_trial < err
-            params = torch.where(better[:, None, None], trial, params)
-            r = torch.where(better[:, None], r_trial, r)
-            err = torch.where(better, err_trial, err)
-            lam = torch.where(better, lam / 3.0, lam * 4.0)
+        params, r = _levenberg_marquardt(residuals, params, low, high, iterations)
         pos_err = r[:, : 2 * t].pow(2).sum(-1)  # the position part of |r|^2: mean_k ||p_k - p*_k||^2
     return params.to(out_dtype).contiguous(), pos_err.sqrt().to(out_dtype)
 
@@ -795,6 +779,32 @@ def _damped_step(jac: Tensor, r: Tensor, lam: Tensor) -> Tensor:
     return torch.linalg.solve(hess + torch.diag_embed(damp), grad).squeeze(-1)
 
 
+def _levenberg_marquardt(residuals: Callable[[Tensor, int], Tensor], u: Tensor, low: Tensor, high: Tensor,
+                         iterations: int, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
+    """``iterations`` Levenberg-Marquardt steps on ``u (M, *shape)``, batched over the ``M`` candidates, projected
+    onto ``[low, high]``: ``residuals(p (M * rep, *shape), rep) -> (M * rep, R)`` (candidate-major); the Jacobian by
+    forward differences in one call with ``rep = P`` (one probe per parameter); a step is kept where it lowers that
+    candidate's ``|r|^2`` (its damping then shrinks by 3; else it grows by 4). Returns ``u`` and its residuals."""
+    m, shape = u.shape[0], u.shape[1:]
+    n_p = shape.numel()
+    eye = torch.eye(n_p, dtype=u.dtype, device=u.device)
+    lam = torch.full((m,), 1e-3, dtype=u.dtype, device=u.device)
+    r = residuals(u, 1)
+    err = r.pow(2).sum(-1)
+    for _ in range(iterations):
+        probes = (u.reshape(m, 1, n_p) + eps * eye).reshape(m * n_p, *shape)
+        jac = (residuals(probes, n_p).reshape(m, n_p, -1) - r[:, None]) / eps  # (M, P, R)
+        trial = torch.maximum(torch.minimum(u - _damped_step(jac, r, lam).reshape(m, *shape), high), low)
+        r_trial = residuals(trial, 1)
+        err_trial = r_trial.pow(2).sum(-1)
+        better = err_trial < err
+        u = torch.where(better.reshape(m, *([1] * len(shape))), trial, u)
+        r = torch.where(better[:, None], r_trial, r)
+        err = torch.where(better, err_trial, err)
+        lam = torch.where(better, lam / 3.0, lam * 4.0)
+    return u, r
+
+
 def _segment_by_segment(system: System, start: Tensor, par: PiecewiseConstantInputs, stride: int, params: Tensor,
                         targets: Tensor, speeds: Tensor, theta: Tensor, low: Tensor, high: Tensor, w_v: float,
                         iterations: int = 3, heading_weight: float = 2.0, window: int = 2) -> Tensor:
@@ -807,44 +817,26 @@ def _segment_by_segment(system: System, start: Tensor, par: PiecewiseConstantInp
     import dataclasses
 
     m, nu, n_seg = params.shape
-    eps = 1e-6
     ih, iv = system.heading_index, system.speed_index
     x = start.expand(m, -1)
     out = params.clone()
-
-    def residuals(x0: Tensor, u: Tensor, j: int, rep: int, part: PiecewiseConstantInputs) -> tuple[Tensor, Tensor]:
-        xs, _ = plan_grid_reference(system, x0, u, part)  # (M * rep, w * stride + 1, nx)
-        n = xs.shape[-2] - 1
-        sl = slice(j * stride + 1, j * stride + n + 1)
-        xs_ = xs.reshape(m, rep, n + 1, -1)[:, :, 1:]
-        pos = (system.positions(xs_) - targets[:, None, sl]).reshape(m, rep, -1)
-        spd = w_v * (xs_[..., iv] - speeds[:, None, sl])
-        head = heading_weight * (xs_[..., -1, ih] - theta[:, None, j * stride + n])
-        return torch.cat([pos, spd, head.unsqueeze(-1)], dim=-1).reshape(m * rep, -1), xs[:, stride]
-
     for j in range(n_seg):
-        w = min(window, n_seg - j)
-        part = dataclasses.replace(par, n_segments=w)
-        n_p = nu * w
-        eye = torch.eye(n_p, dtype=params.dtype, device=params.device)
-        u = out[:, :, j:j + w]
-        lam = torch.full((m,), 1e-3, dtype=params.dtype, device=params.device)
-        r, x_next = residuals(x, u, j, 1, part)
-        err = r.pow(2).sum(-1)
-        for _ in range(iterations):
-            probes = (u.reshape(m, 1, n_p) + eps * eye).reshape(m * n_p, nu, w)
-            x_rep = x.repeat_interleave(n_p, dim=0)
-            jac = (residuals(x_rep, probes, j, n_p, part)[0].reshape(m, n_p, -1) - r[:, None]) / eps
-            trial = torch.maximum(torch.minimum(u - _damped_step(jac, r, lam).reshape(m, nu, w), high), low)
-            r_t, x_t = residuals(x, trial, j, 1, part)
-            err_t = r_t.pow(2).sum(-1)
-            better = err_t < err
-            u = torch.where(better[:, None, None], trial, u)
-            r, err = torch.where(better[:, None], r_t, r), torch.where(better, err_t, err)
-            x_next = torch.where(better[:, None], x_t, x_next)
-            lam = torch.where(better, lam / 3.0, lam * 4.0)
-        out[:, :, j:j + w] = u  # the later segments of the window are the next window's start
-        x = x_next
+        part = dataclasses.replace(par, n_segments=min(window, n_seg - j))
+        n = part.n_segments * stride
+        sl = slice(j * stride + 1, j * stride + n + 1)
+
+        def residuals(u: Tensor, rep: int, x0: Tensor = x, part: PiecewiseConstantInputs = part, sl: slice = sl,
+                      n: int = n) -> Tensor:
+            xs, _ = plan_grid_reference(system, x0.repeat_interleave(rep, dim=0), u, part)
+            xs = xs.reshape(m, rep, n + 1, -1)[:, :, 1:]
+            pos = (system.positions(xs) - targets[:, None, sl]).reshape(m, rep, -1)
+            spd = w_v * (xs[..., iv] - speeds[:, None, sl])
+            head = heading_weight * (xs[..., -1, ih] - theta[:, None, sl.stop - 1])
+            return torch.cat([pos, spd, head.unsqueeze(-1)], dim=-1).reshape(m * rep, -1)
+
+        u, _ = _levenberg_marquardt(residuals, out[:, :, j:j + part.n_segments], low, high, iterations)
+        out[:, :, j:j + part.n_segments] = u  # the later segments of the window are the next window's start
+        x = plan_grid_reference(system, x, u, part)[0][:, stride]
     return out
 
 
@@ -1002,7 +994,6 @@ def route_seed_parameters(
 
         s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
                                    acceleration=cfg.acceleration, max_acceleration=a_max, cap=capped)
-        s, v = capped(v)
         if occupancy is not None:
             s_r, v_r, _ = risk_aware_profiles(
                 occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
