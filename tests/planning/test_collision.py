@@ -10,7 +10,7 @@ from helpers import empty_scene
 
 from density_planner.environment.grid import OccupancyGrid
 from density_planner.risk import CollisionModel, RiskConfig, collision_probability
-from density_planner.risk.body import DiscCover, dilate, disc_kernel_rows
+from density_planner.risk.body import DiscCover, dilate, dilate_sparse, disc_kernel_rows
 from density_planner.systems.base import Footprint
 from density_planner.systems.car import CarConfig, KinematicCar
 from density_planner.systems.linear import LinearSystem
@@ -167,6 +167,23 @@ def test_dilate_matches_brute_force():
             for di in range(-a, a + 1):
                 ref = torch.maximum(ref, p[:, pad + di:pad + di + 30, pad + dj:pad + dj + 25])
         torch.testing.assert_close(dilate(probs, rho), ref)
+
+
+@pytest.mark.parametrize(("shape", "rho", "tile"), [((3, 70, 45), 2.3, 8), ((2, 33, 64), 7.1, 32),
+                                                   ((4, 100, 101), 12.5, 8), ((1, 5, 6), 1.0, 32),
+                                                   ((2, 40, 40), 0.0, 16)])
+def test_dilate_sparse_equals_dense(shape, rho, tile):
+    """Tiles dilated with their halo (strided blocks inside, clamped indices at the border, tiles cut at the
+    border, tiles narrower than the reach) give the dense dilation exactly, also quantised to bytes."""
+    g = torch.Generator().manual_seed(7)
+    probs = torch.rand(shape, generator=g) * (torch.rand(shape, generator=g) < 0.01)
+    probs[0, 0, 0], probs[-1, -1, -1] = 1.0, 0.3  # occupied corners: the border paths
+    assert torch.equal(dilate_sparse(probs, rho, tile=tile, max_chunk=5000), dilate(probs, rho))
+    q = torch.mul(probs, 255).sub_(1e-4).ceil_().clamp_(0, 255).to(torch.uint8)
+    assert torch.equal(dilate_sparse(probs, rho, tile=tile, levels=255), dilate(q, rho).float().div_(255))
+    assert torch.equal(dilate_sparse(torch.zeros(shape), rho, tile=tile), torch.zeros(shape))
+    with pytest.raises(ValueError, match="levels"):
+        dilate_sparse(probs, rho, levels=256)
 
 
 def test_disc_cover_contains_rectangle_and_area_excess():

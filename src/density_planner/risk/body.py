@@ -29,6 +29,10 @@ The dilated grid holds the occupancy rounded *up* to a multiple of 1/255 (conser
 1 stay exact), so that the max-filter runs on bytes. The dilation is separable into row runs: a sparse table of
 windowed maxima along x (``log2`` levels) and one
 maximum per row of the disc, i.e. ``O(T NX NY (log r + r / h))`` operations with no Python loop over cells.
+Road users cover about 1 % of a road scene's cells (the off-road cells are the road barrier's, not collision's), so
+:func:`body_grid` dilates tiles (:func:`dilate_sparse`): the grid is cut into ``32 x 32``-cell tiles per slice, and
+only the tiles with an occupied cell within the disc's reach are dilated (each with its halo, batched over the
+tiles), the others stay 0. The result equals :func:`dilate` exactly; on the suite's road scenes it is 5-10x faster.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from torch import Tensor
 from ..environment.grid import OccupancyGrid
 from ..systems.base import Footprint
 
-__all__ = ["DiscCover", "dilate", "body_grid", "disc_kernel_rows"]
+__all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "disc_kernel_rows"]
 
 #: quantisation levels of the dilated grid (values rounded up to multiples of 1 / _LEVELS)
 _LEVELS = 255
@@ -153,6 +157,101 @@ def dilate(probs: Tensor, radius_cells: float) -> Tensor:
     return out.permute(1, 0, 2).contiguous()
 
 
+def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels: int | None = None,
+                  max_chunk: int = 1 << 22) -> Tensor:
+    """:func:`dilate` of ``probs (T, NX, NY)`` (values >= 0) computed on the tiles that can be non-zero only (module
+    docstring).
+
+    The grid is cut into ``tile x tile``-cell tiles per slice; a tile of the output can be non-zero only if an
+    occupied cell lies within the kernel's reach ``h`` (cells) of it, so only those tiles are dilated: each with a
+    halo of ``h`` cells read from its neighbours (zero beyond the border), batched over the tiles in chunks of at
+    most ``max_chunk`` cells. ``levels``: the values are rounded *up* to multiples of ``1 / levels`` and dilated
+    as bytes (``levels <= 255``; floating ``probs`` in [0, 1]), the result returned in ``probs``' dtype. Equal to
+    ``dilate`` (of the rounded values) cell for cell.
+    """
+    rows = disc_kernel_rows(radius_cells)
+    if tile < 1:
+        raise ValueError(f"tile must be >= 1 cell, got {tile}")
+    if levels is not None and not 1 <= levels <= 255:
+        raise ValueError(f"levels must lie in [1, 255] (values dilated as bytes), got {levels}")
+    if probs.ndim != 3:
+        raise ValueError(f"probs must have shape (T, NX, NY), got {tuple(probs.shape)}")
+    T, NX, NY = probs.shape
+    h = max(max(abs(j) for j in rows), max(rows.values()))
+    tile = max(tile, h, 1)
+    probs = probs.contiguous()
+    out = torch.zeros_like(probs)
+    idx = _active_tiles(probs, tile, h)  # (N, 3): slice, tile row, tile column
+    size = tile + 2 * h
+    per_chunk = max(1, max_chunk // (size * size))
+    for c0 in range(0, idx.shape[0], per_chunk):
+        t, bx, by = idx[c0:c0 + per_chunk].unbind(-1)
+        patch = _read_patches(probs, t, bx * tile - h, by * tile - h, size)
+        if levels is not None:
+            patch = patch.mul_(levels).sub_(1e-4).ceil_().clamp_(0, levels).to(torch.uint8)
+        d = dilate(patch, radius_cells)[:, h:h + tile, h:h + tile]
+        if levels is not None:
+            d = d.to(probs.dtype).div_(levels)
+        _write_tiles(out, t, bx, by, d)
+    return out
+
+
+def _active_tiles(probs: Tensor, tile: int, h: int) -> Tensor:
+    """``(N, 3)`` indices (slice, tile row, tile column) of the output tiles within ``h`` cells of a non-zero cell
+    of ``probs >= 0`` (amax reductions along the contiguous axis: no full-size temporary)."""
+    T, NX, NY = probs.shape
+    nbx, nby = -(-NX // tile), -(-NY // tile)
+    # per tile column: maxima over tile-wide runs of each row (the last, partial run separately)
+    full = NY // tile
+    cols = [probs.unfold(2, tile, tile).amax(-1)] if full else []
+    if NY % tile:
+        cols.append(probs[:, :, full * tile:].amax(-1, keepdim=True))
+    runs = torch.cat(cols, dim=-1) if len(cols) > 1 else cols[0]  # (T, NX, nby)
+    runs = F.pad(runs, (0, 0, 0, nbx * tile - NX))
+    occupied = runs.view(T, nbx, tile, nby).amax(2) > 0  # (T, nbx, nby)
+    k = -(-h // tile)  # tiles within reach
+    active = F.max_pool2d(occupied.to(torch.float32).unsqueeze(1), 2 * k + 1, 1, k).squeeze(1) > 0
+    return active.nonzero()
+
+
+def _read_patches(probs: Tensor, t: Tensor, x0: Tensor, y0: Tensor, size: int) -> Tensor:
+    """``(n, size, size)`` blocks ``probs[t, x0:x0 + size, y0:y0 + size]`` (zero beyond the border): blocks inside
+    the grid through a strided view, the others through clamped linear indices."""
+    T, NX, NY = probs.shape
+    out = torch.empty(t.shape[0], size, size, dtype=probs.dtype, device=probs.device)
+    inside = (x0 >= 0) & (x0 + size <= NX) & (y0 >= 0) & (y0 + size <= NY)
+    if bool(inside.any()):
+        # windows at every cell: (T, NX - size + 1, NY - size + 1, size, size), a view of probs
+        view = probs.as_strided((T, NX - size + 1, NY - size + 1, size, size), (NX * NY, NY, 1, NY, 1))
+        out[inside] = view[t[inside], x0[inside], y0[inside]]
+    edge = ~inside
+    if bool(edge.any()):
+        r = torch.arange(size, device=probs.device)
+        ix, iy = x0[edge, None] + r, y0[edge, None] + r
+        valid = ((ix >= 0) & (ix < NX))[:, :, None] & ((iy >= 0) & (iy < NY))[:, None, :]
+        lin = (t[edge, None, None] * NX + ix.clamp(0, NX - 1)[:, :, None]) * NY + iy.clamp(0, NY - 1)[:, None, :]
+        out[edge] = probs.reshape(-1)[lin] * valid
+    return out
+
+
+def _write_tiles(out: Tensor, t: Tensor, bx: Tensor, by: Tensor, values: Tensor) -> None:
+    """``out[t, tile bx, tile by] = values (n, tile, tile)``, cut at the grid's border."""
+    T, NX, NY = out.shape
+    tile = values.shape[-1]
+    x0, y0 = bx * tile, by * tile
+    whole = (x0 + tile <= NX) & (y0 + tile <= NY)
+    if bool(whole.any()):
+        view = out.as_strided((T, NX - tile + 1, NY - tile + 1, tile, tile), (NX * NY, NY, 1, NY, 1))
+        view[t[whole], x0[whole], y0[whole]] = values[whole]
+    cut = ~whole
+    if bool(cut.any()):
+        r = torch.arange(tile, device=out.device)
+        ox, oy = x0[cut, None] + r, y0[cut, None] + r
+        keep = (ox < NX)[:, :, None] & (oy < NY)[:, None, :]
+        lin = (t[cut, None, None] * NX + ox[:, :, None]) * NY + oy[:, None, :]
+        out.view(-1)[lin[keep]] = values[cut][keep]
+
+
 def body_grid(grid: OccupancyGrid, radius: float) -> OccupancyGrid:
     """The disc-dilated grid ``D_radius`` of ``grid`` (module docstring), cached on ``grid``; ``grid`` itself for
     ``radius = 0``."""
@@ -167,9 +266,8 @@ def body_grid(grid: OccupancyGrid, radius: float) -> OccupancyGrid:
         return cached
     with torch.no_grad():
         # quantised up to multiples of 1/255 (conservative by < 0.004): the max-filter runs on uint8, ~10x faster
-        # than on float32 (~0.05 s for a 101 x 241 x 401 grid on one thread)
-        # (in place on one temporary: the grids are large, 50M cells for a 13-s urban scene)
-        q = torch.mul(grid.probs, _LEVELS).sub_(1e-4).ceil_().clamp_(0, _LEVELS).to(torch.uint8)
-        out = grid.with_probs(dilate(q, rho).to(grid.probs.dtype).div_(_LEVELS))
+        # than on float32; only the tiles within reach of an occupied cell are dilated (the grids are large, 50M
+        # cells for a 13-s urban scene, and ~1 % occupied)
+        out = grid.with_probs(dilate_sparse(grid.probs, rho, levels=_LEVELS))
     grid._cache[key] = out
     return out
