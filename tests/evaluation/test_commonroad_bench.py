@@ -45,6 +45,11 @@ def test_bench_commonroad_records_verdicts_and_refusals(tmp_path, capsys):
     assert v["status"] in ("success", "failed")
     assert all(isinstance(v[k], bool) for k in ("goal_reached", "collision_free", "on_road", "within_model"))
     assert v["details"]["n_states"] == len(planned["trajectory"])
+    # the record's failure is the verdict's (not the paper's goal-point thresholds)
+    assert planned["failed"] == (v["status"] != "success")
+    parts = {"goal": "goal_reached", "collision": "collision_free", "off_road": "on_road",
+             "outside_model": "within_model"}
+    assert set(filter(None, planned["failure_reason"].split("+"))) == {r for r, k in parts.items() if not v[k]}
     table = (out / "summary_commonroad.md").read_text()
     assert "| density | 2 | 1 | 1 (0) |" in table and "Refused scenarios" in table and table in printed
     # resumable: nothing left to do
@@ -149,3 +154,18 @@ def test_plan_commonroad_writes_verdict_and_solution(tmp_path, capsys):
     planned = np.asarray(data["states"])
     np.testing.assert_allclose([s.position for s in states[: len(planned)]], planned[: len(states), :2], atol=1e-4)
     assert v["status"] in capsys.readouterr().out
+
+
+def test_verdict_failure_follows_the_road_verdict_only():
+    from density_planner.evaluation.verdict import verdict_failure
+
+    ok = {"status": "success", "goal_reached": True, "collision_free": True, "on_road": True, "within_model": True,
+          "basis": "road"}
+    assert verdict_failure(ok, True) == ({"no_solution": False, "goal": False, "collision": False,
+                                          "off_road": False, "outside_model": False}, "")
+    flags, reason = verdict_failure(dict(ok, status="failed", goal_reached=False, on_road=False), True)
+    assert reason == "goal+off_road" and flags["off_road"] and not flags["collision"]
+    assert verdict_failure(dict(ok, status="error"), True)[1] == "no_solution"
+    assert verdict_failure(ok, False)[1] == "no_solution"
+    assert verdict_failure(dict(ok, basis="occupancy"), True) is None  # the paper's scenes keep their thresholds
+    assert verdict_failure(None, True) is None

@@ -35,7 +35,7 @@ from .environments import EnvSpec, build_scene, stable_seed
 from .metrics import evaluation_box, failure_flags, monte_carlo_metrics, run_metrics
 from .records import RECORD_SCHEMA, scene_map_arrays
 from .simulate import execute, monte_carlo
-from .verdict import record_verdict
+from .verdict import record_verdict, verdict_failure
 
 __all__ = ["Job", "JobResult", "run_job", "job_scene", "base_record", "error_record", "planner_run_config"]
 
@@ -249,8 +249,8 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
                                                collision=problem.collision()))
             rec["trajectory"] = _floats(ref.x_plan)
             rec["verdict"] = record_verdict(scene, ref.x_plan, ref.u_plan, plan, car, plan_dt, job.run_config)
-        flags, reason = failure_flags(metrics, solved and not timeout, eval_cfg,
-                                      cost_thresholds=eval_cfg.ablation_cost_failures)
+        flags, reason = verdict_failure(rec.get("verdict"), solved and not timeout) or failure_flags(
+            metrics, solved and not timeout, eval_cfg, cost_thresholds=eval_cfg.ablation_cost_failures)
         rec.update(status="timeout" if timeout else plan.status.value, metrics=metrics, failed=bool(reason),
                    failure_reason=reason, failure_flags=flags, plan=_plan_summary(plan),
                    message=plan.message if not timeout else f"planning took {plan_time:.0f} s > "
@@ -278,7 +278,8 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
             rec["reference"] = _floats(problem.system.positions(run.plan.reference.x_plan))
     else:
         t_mc = 0.0
-    flags, reason = failure_flags(metrics, run.ok, eval_cfg)
+    # road scenes: the verdict decides (the paper's thresholds read a goal point and a cost scale they lack)
+    flags, reason = verdict_failure(rec.get("verdict"), run.ok) or failure_flags(metrics, run.ok, eval_cfg)
     rec.update(status=run.plan.status.value, metrics=metrics, failed=bool(reason), failure_reason=reason,
                failure_flags=flags, message=run.message or run.plan.message, plan=_plan_summary(run.plan))
     steps = run.step_times

@@ -17,7 +17,10 @@ Per run (:func:`run_metrics`), on the executed trajectory ``x(t_k)`` (0.1-s grid
   occupancy met) and ``mc_collision_frequency`` = fraction of samples whose ``max_t P_occ`` exceeds
   :attr:`EvaluationConfig.collision_threshold` (0.5); also ``mc_final_distance_mean`` [m].
 
-Failure (:func:`failure_flags`): no solution, ``J_C > 10``, final distance > 4.5 m, or ``J_B > 1e-4``.
+Failure (:func:`failure_flags`): no solution, ``J_C > 10``, final distance > 4.5 m, or ``J_B > 1e-4``. On road
+scenes (CommonRoad) the verdict decides instead (:func:`~density_planner.evaluation.verdict.verdict_failure`): a run
+fails unless its verdict is a success, with the failed parts as reasons (``goal``, ``collision``, ``off_road``,
+``outside_model``).
 
 Aggregation (:func:`summarise`), per method = (planner, variant):
 

@@ -41,7 +41,7 @@ import numpy as np
 from ..environment.road import vehicle_footprints
 
 __all__ = ["VerdictConfig", "Verdict", "judge", "judge_plan", "plan_inputs", "parts_table", "vehicle_footprints",
-           "record_verdict", "VERDICT_PARTS"]
+           "record_verdict", "verdict_failure", "VERDICT_PARTS"]
 
 #: the four parts of a verdict, in the order they are reported
 VERDICT_PARTS = ("goal_reached", "collision_free", "on_road", "within_model")
@@ -435,3 +435,20 @@ def record_verdict(scene: Any, states: Any, inputs: Any, plan: Any, system: Any,
                      evaluation=getattr(run_config, "evaluation", None)).to_dict()
     except Exception as exc:  # noqa: BLE001 - recorded
         return {"status": "error", "error": f"{type(exc).__name__}: {exc}"}
+
+
+#: failure reasons of a road verdict, per failed part (the benchmark records' ``failure_reason``)
+VERDICT_FAILURES = {"goal_reached": "goal", "collision_free": "collision", "on_road": "off_road",
+                    "within_model": "outside_model"}
+
+
+def verdict_failure(verdict: Any, solved: bool) -> tuple[dict[str, bool], str] | None:
+    """Failure flags and reason (flagged parts joined by ``+``) of a benchmark run on a road scene from its verdict
+    (:func:`record_verdict`): a run fails unless the verdict is a success. ``None`` for runs without a road verdict
+    (the paper's scenes keep the thresholds of :func:`~density_planner.evaluation.metrics.failure_flags`)."""
+    if not isinstance(verdict, dict) or verdict.get("basis") != "road":
+        return None
+    flags = {"no_solution": not solved or verdict.get("status") == "error"}
+    for part, reason in VERDICT_FAILURES.items():
+        flags[reason] = not flags["no_solution"] and not verdict.get(part, False)
+    return flags, "+".join(k for k, v in flags.items() if v)
