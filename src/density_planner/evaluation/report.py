@@ -135,13 +135,14 @@ def summary_markdown(rows: Sequence[Mapping[str, Any]], records: Sequence[Mappin
     out = io.StringIO()
     out.write("# Benchmark summary\n\n")
     out.write(
-        "Failure: no solution, collision cost J_C > 10, final distance > 4.5 m, or bounds cost J_B > 1e-4 (ablation: "
-        "no solution within the time limit); on road scenes (CommonRoad) a verdict other than success (failed parts: "
-        "goal, collision, off_road, outside_model). CRI / GCI / ICI: mean excess of the collision cost J_C, goal "
-        "cost J_G [m²] and input cost J_I over the best valid method of each environment, over the method's valid "
-        "runs. Final distance, P_coll max (occupancy probability met along the executed trajectory), offline and online "
-        "times: means over valid runs. MC: Monte-Carlo initial states from the planner's initial distribution; "
-        "mean of max_t P_occ and the fraction of samples with max_t P_occ > 0.5, over all runs that have them.\n\n"
+        "Failure: no solution, collision cost J_C > 10, final distance > 4.5 m, or bounds cost J_B > 1e-4 "
+        "(ablation: no solution within the time limit); on road scenes (CommonRoad) a verdict other than success "
+        "(failed parts: goal, collision, off_road, outside_model). CRI / GCI / ICI: mean excess of the collision "
+        "cost J_C, goal cost J_G [m²] and input cost J_I over the best valid method of each environment, over the "
+        "method's valid runs. Final distance, P_coll max (occupancy probability met along the executed "
+        "trajectory), offline and online times: means over valid runs. MC: Monte-Carlo initial states from the "
+        "planner's initial distribution; mean of max_t P_occ and the fraction of samples with max_t P_occ > 0.5, "
+        "over all runs that have them.\n\n"
     )
     settings = []
     for r in rows:
