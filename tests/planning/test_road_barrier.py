@@ -160,6 +160,31 @@ def test_active_subset_call_equals_the_dense_sum_with_gradients():
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("cell", [0.2, 0.5])
+def test_centre_pretest_skips_deep_states_only(cell):
+    """The centre test skips states deep inside a wide road (most of them here) and never one whose outline comes
+    within the margin of the edge (a curved, cornered road; coarse and fine lattices); value and gradients stay
+    those of the dense sum."""
+    road = shapely.union_all([shapely.box(0, 0, 60, 14), shapely.Point(60, 30).buffer(22).difference(
+        shapely.Point(60, 30).buffer(10)), shapely.box(50, 40, 64, 90)])
+    sdf = RoadSDF.from_geometry(road, (-10, 100, -10, 100), cell_size=cell, dtype=torch.float64)
+    barrier = RoadBarrierCost(sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5)
+    gen = torch.Generator().manual_seed(4)
+    x = torch.zeros(20000, 5, dtype=torch.float64)
+    x[:, :2] = torch.rand(20000, 2, generator=gen, dtype=torch.float64) * 90
+    x[:, 2] = torch.rand(20000, generator=gen, dtype=torch.float64) * 6.3
+    maybe = barrier._possibly_active(x)
+    deep = barrier.penetration(x[~maybe]) + barrier.margin
+    assert 0.05 < float((~maybe).double().mean()) and bool((deep < 0).all())
+    x = x.reshape(2, 100, 100, 5).requires_grad_(True)
+    w = torch.rand(2, 100, 100, generator=gen, dtype=torch.float64)
+    got = barrier(CostInputs(x, w, None, None))
+    dense = (w * barrier.per_state(x)).sum(dim=(-1, -2))
+    assert torch.allclose(got, dense, rtol=1e-12)
+    assert torch.allclose(torch.autograd.grad(got.sum(), x)[0], torch.autograd.grad(dense.sum(), x)[0],
+                          rtol=1e-12, atol=1e-12)
+
+
 # ------------------------------------------------------------------ the road's edge in collision (risk.road_edge)
 def _edge_scene():
     """The hand-made road whose grid marks the off-road cells occupied (as the CommonRoad importer does) and one
