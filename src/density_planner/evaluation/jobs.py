@@ -152,6 +152,9 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         "collision_probability_se_at_max": None if plan.collision is None or plan.collision.se is None
         else plan.collision.to_dict()["se_at_max"],
         "collision_estimator": None if plan.collision is None else plan.collision.estimator,
+        # collision at some time (lower bound; the planner's estimate of the metrics' mc_collision_mean)
+        "collision_probability_any": None if plan.collision is None or plan.collision.any_time is None
+        else float(plan.collision.any_time),
         "iterations": plan.iterations,
         "extras": {k: v for k, v in plan.extras.items() if k in _PLAN_EXTRAS},
     }

@@ -29,6 +29,17 @@ samples ``x0_i ~ q0`` propagated to ``x_i(t_k)`` (docs/planner.md, "Collision pr
 Both report the standard error of the weighted mean from the effective sample size (delta method for a
 self-normalised estimator): ``SE^2 = sum_i w_i^2 (P_i - P_coll)^2`` with normalised ``w``, and
 ``ESS = 1 / sum_i w_i^2``. For a single trajectory (one sample of weight 1) ``SE = 0``.
+
+**Collision at some time** (``"is"`` only): ``max_t P_coll(t)`` is the worst *instant*; the probability that the
+plan's execution collides at *some* time is larger when different executions meet obstacles at different times (two
+equally likely executions, each certain to collide, one at 2 s and one at 3 s: ``max_t P_coll = 0.5``, collision
+certain). The grid holds the marginal occupancy of each instant, not the joint law of an obstacle's path, so the
+report gives the lower bound that holds for any joint law::
+
+    P_any = sum_i w_i max_k P_body(x_i(t_k), t_k)  <=  P(collision at some t_k)
+
+(for one execution, a collision at some time is at least as likely as at the worst instant), with its standard error
+as above. It is the planner's own estimate of the Monte-Carlo ``mc_collision_mean`` of the benchmarks.
 """
 
 from __future__ import annotations
@@ -95,6 +106,9 @@ class CollisionReport:
         se: ``(*batch, T)`` standard error of ``per_slice`` (0 for a single trajectory).
         ess: ``(*batch, T)`` effective sample size ``1 / sum_i w_i^2``.
         estimator: ``"is"`` or ``"paper"``.
+        any_time: ``(*batch,)`` collision at some time, the lower bound ``sum_i w_i max_k P_body(x_i(t_k))``
+            (module docstring; ``None`` for the paper's estimator, whose weights change with time).
+        any_time_se: ``(*batch,)`` its standard error.
     """
 
     per_slice: Tensor
@@ -103,6 +117,8 @@ class CollisionReport:
     se: Tensor | None = None
     ess: Tensor | None = None
     estimator: str = "is"
+    any_time: Tensor | None = None
+    any_time_se: Tensor | None = None
 
     def to_dict(self) -> dict:
         out = {
@@ -116,6 +132,10 @@ class CollisionReport:
             out["se_at_max"] = _at_argmax(self.per_slice, self.se).detach().cpu().tolist()
         if self.ess is not None:
             out["ess_min"] = self.ess.detach().amin(-1).cpu().tolist()
+        if self.any_time is not None:
+            out["any_time"] = self.any_time.detach().cpu().tolist()
+            if self.any_time_se is not None:
+                out["any_time_se"] = self.any_time_se.detach().cpu().tolist()
         return out
 
 
@@ -247,15 +267,20 @@ class CollisionModel:
         check_choice("estimator", estimator, ESTIMATORS)
         *batch, n, t, _ = x.shape
         occ = self.occupancy(x, slices)  # (*batch, N, T)
+        any_time = any_se = None
         if estimator == "is":
-            w = importance_weights(x, log_rho0, log_q0)  # (*batch, N)
-            w = w.unsqueeze(-1).expand_as(occ)
+            w_i = importance_weights(x, log_rho0, log_q0)  # (*batch, N)
+            worst = occ.amax(-1)  # (*batch, N): each execution's worst instant
+            any_time = (w_i * worst).sum(-1)
+            any_se = torch.sqrt((w_i.pow(2) * (worst - any_time.unsqueeze(-1)).pow(2)).sum(-1))
+            w = w_i.unsqueeze(-1).expand_as(occ)
         else:
             w = self._paper_weights(x, log_rho)
         p = (w * occ).sum(-2)
         se = torch.sqrt((w.pow(2) * (occ - p.unsqueeze(-2)).pow(2)).sum(-2))
         ess = 1.0 / w.pow(2).sum(-2)
-        return CollisionReport(per_slice=p, max=p.amax(-1), sum=p.sum(-1), se=se, ess=ess, estimator=estimator)
+        return CollisionReport(per_slice=p, max=p.amax(-1), sum=p.sum(-1), se=se, ess=ess, estimator=estimator,
+                               any_time=any_time, any_time_se=any_se)
 
     def _paper_weights(self, x: Tensor, log_rho: Tensor | None) -> Tensor:
         """Per-sample weights of the paper's estimator: ``rho_i / (n_c(i) Z)``, ``(*batch, N, T)``."""
