@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 from eval_testdata import TINY_DP
 
 from density_planner.cli import main
@@ -169,3 +170,43 @@ def test_verdict_failure_follows_the_road_verdict_only():
     assert verdict_failure(ok, False)[1] == "no_solution"
     assert verdict_failure(dict(ok, basis="occupancy"), True) is None  # the paper's scenes keep their thresholds
     assert verdict_failure(None, True) is None
+
+
+def test_risk_calibration_counts_agreement_within_standard_errors():
+    from density_planner.evaluation.commonroad_bench import risk_calibration, summary_markdown
+
+    def rec(env, p, p_se, q, q_se):
+        return {"env": env, "plan": {"collision_probability_any": p, "collision_probability_any_se": p_se},
+                "metrics": {"mc_collision_mean": q, "mc_collision_se": q_se}}
+
+    recs = [rec("a", 0.50, 0.03, 0.55, 0.04),  # |d| = 0.05 <= 3 * 0.05
+            rec("b", 0.10, 0.01, 0.65, 0.05),  # far apart
+            rec("c", 0.0, 0.0, 0.005, 0.0),  # the 0.01 floor
+            {"env": "d", "plan": {"collision_probability_any": None}, "metrics": {}}]  # not checked
+    cal = risk_calibration(recs)
+    assert cal["calibration_checked"] == 3 and cal["calibrated"] == 2
+    assert cal["p_any_mean"] == pytest.approx(0.2) and cal["mc_collision_mean"] == pytest.approx(1.205 / 3)
+    assert cal["calibration_worst"][0] == ("b", 0.1, 0.65)
+    row = {"planner": "density", "scenarios": 4, "refused": 0, "planned": 4, "errors": 0, "success": 1,
+           "success_rate": 0.25, "success_rate_planned": 0.25, "p_coll_max_mean": 0.1,
+           "final_goal_distance_median": 1.0, "planning_time_median": 2.0,
+           **{f"{p}_rate": 1.0 for p in ("goal_reached", "collision_free", "on_road", "within_model")}, **cal}
+    text = summary_markdown({"rows": [row], "failed_parts": {}, "refusals": {}})
+    assert "within 3 standard errors (at least 0.01) on 2 of 3 scenarios" in text and "b 0.10 vs 0.65" in text
+
+
+def test_monte_carlo_metrics_report_the_standard_error():
+    """Two closed loops, one through an occupied cell and one clear: mean 0.5, standard error std / sqrt(2) = 0.5."""
+    from density_planner.environment.grid import OccupancyGrid
+    from density_planner.environment.scene import Scene
+    from density_planner.evaluation.metrics import monte_carlo_metrics
+    from density_planner.risk.collision import CollisionModel
+
+    probs = torch.zeros(3, 10, 10)
+    probs[:, 2, 2] = 1.0
+    scene = Scene(OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=1.0, dt=0.1), (2.0, 2.0, 0.0, 1.0),
+                  (7.0, 7.0), (0.5, 8.5, 0.5, 8.5), name="two-cells")
+    runs = [torch.tensor([[2.0, 2.0, 0.0, 1.0, 0.0]] * 3), torch.tensor([[7.0, 7.0, 0.0, 1.0, 0.0]] * 3)]
+    m = monte_carlo_metrics(scene, runs, collision=CollisionModel(scene.grid))
+    assert m["mc_collision_mean"] == pytest.approx(0.5) and m["mc_collision_se"] == pytest.approx(0.5)
+    assert monte_carlo_metrics(scene, runs[:1], collision=CollisionModel(scene.grid))["mc_collision_se"] == 0.0

@@ -101,7 +101,8 @@ def run_commonroad_job(job: Job) -> JobResult:
 SUMMARY_COLUMNS = ("planner", "scenarios", "refused", "planned", "errors", "success", "success_rate",
                    "success_rate_planned", *(f"{p}_rate" for p in VERDICT_PARTS), "p_coll_max_mean",
                    "p_coll_max_median", "final_goal_distance_median", "final_goal_distance_mean",
-                   "planning_time_median", "planning_time_mean")
+                   "planning_time_median", "planning_time_mean", "p_any_mean", "mc_collision_mean", "calibrated",
+                   "calibration_checked")
 
 
 def _median(values: Sequence[float | None]) -> float:
@@ -152,6 +153,7 @@ def commonroad_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         row.update(p_coll_max_mean=_mean(p_coll), p_coll_max_median=_median(p_coll),
                    final_goal_distance_median=_median(dist), final_goal_distance_mean=_mean(dist),
                    planning_time_median=_median(times), planning_time_mean=_mean(times))
+        row.update(risk_calibration(recs))
         rows.append(row)
         counter: Counter = Counter()
         ex: dict[str, str] = {}
@@ -172,6 +174,26 @@ def commonroad_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                         c[part] += 1
         failures[planner] = c
     return {"rows": rows, "refusals": refusals, "refusal_examples": examples, "failed_parts": failures}
+
+
+def risk_calibration(records: Sequence[Mapping[str, Any]], z: float = 3.0) -> dict[str, Any]:
+    """The planner's collision-at-some-time estimate against Monte Carlo, over the records that have both: the
+    plan's ``P_any`` (``plan.collision_probability_any``, from its own samples and density predictor) and the
+    benchmark's ``mc_collision_mean`` (executed closed loops from initial states drawn from the same law, the same
+    ``E[max_t P_body]``). ``calibrated``: how many agree within ``z`` combined standard errors (at least 0.01, the
+    grid's quantisation); ``worst``: the three largest differences ``(env, P_any, MC)``."""
+    pairs = []
+    for r in records:
+        plan, m = r.get("plan") or {}, r.get("metrics") or {}
+        p, q = plan.get("collision_probability_any"), m.get("mc_collision_mean")
+        if p is None or q is None or not (math.isfinite(p) and math.isfinite(q)):
+            continue
+        se = math.hypot(plan.get("collision_probability_any_se") or 0.0, m.get("mc_collision_se") or 0.0)
+        pairs.append((str(r.get("env")), float(p), float(q), max(se, 0.01)))
+    worst = sorted(pairs, key=lambda t: -abs(t[1] - t[2]))[:3]
+    return {"p_any_mean": _mean([p for _, p, _, _ in pairs]), "mc_collision_mean": _mean([q for _, _, q, _ in pairs]),
+            "calibrated": sum(abs(p - q) <= z * se for _, p, q, se in pairs), "calibration_checked": len(pairs),
+            "calibration_worst": [(e, round(p, 3), round(q, 3)) for e, p, q, _ in worst]}
 
 
 def _fmt(v: Any, pct: bool = False) -> str:
@@ -198,6 +220,13 @@ def summary_markdown(summary: Mapping[str, Any]) -> str:
     lines.append("")
     lines.append("Part rates are over the planned scenarios (a run that raised counts as failing every part); "
                  "'success (all)' counts refused scenarios as failures.")
+    for r in summary["rows"]:
+        if r.get("calibration_checked"):
+            worst = "; ".join(f"{e} {p:.2f} vs {q:.2f}" for e, p, q in r["calibration_worst"])
+            lines.append(f"Risk calibration ({r['planner']}): collision at some time, the planner's P_any against "
+                         f"Monte Carlo over executed closed loops (E[max_t P_body]), means {_fmt(r['p_any_mean'])} "
+                         f"vs {_fmt(r['mc_collision_mean'])}; within 3 standard errors (at least 0.01) on "
+                         f"{r['calibrated']} of {r['calibration_checked']} scenarios; largest differences: {worst}.")
     for planner, counter in summary["failed_parts"].items():
         if counter:
             lines.append(f"Failed parts ({planner}, planned scenarios): "

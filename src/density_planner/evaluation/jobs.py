@@ -155,6 +155,8 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         # collision at some time (lower bound; the planner's estimate of the metrics' mc_collision_mean)
         "collision_probability_any": None if plan.collision is None or plan.collision.any_time is None
         else float(plan.collision.any_time),
+        "collision_probability_any_se": None if plan.collision is None or plan.collision.any_time_se is None
+        else float(plan.collision.any_time_se),
         "iterations": plan.iterations,
         "extras": {k: v for k, v in plan.extras.items() if k in _PLAN_EXTRAS},
     }

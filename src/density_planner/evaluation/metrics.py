@@ -145,10 +145,10 @@ def monte_carlo_metrics(
     collision: CollisionModel | None = None,
 ) -> dict[str, Any]:
     """Collision frequency of Monte-Carlo trajectories (each ``(T_i, nx)``): ``mc_samples``, ``mc_collision_mean``
-    (mean of ``max_t P_occ``), ``mc_collision_frequency`` (fraction with ``max_t P_occ > threshold``),
-    ``mc_final_distance_mean`` [m]; ``None`` values without samples."""
+    (mean of ``max_t P_occ``) with its standard error ``mc_collision_se``, ``mc_collision_frequency`` (fraction
+    with ``max_t P_occ > threshold``), ``mc_final_distance_mean`` [m]; ``None`` values without samples."""
     if not trajectories:
-        return {"mc_samples": 0, "mc_collision_mean": None, "mc_collision_frequency": None,
+        return {"mc_samples": 0, "mc_collision_mean": None, "mc_collision_se": None, "mc_collision_frequency": None,
                 "mc_final_distance_mean": None}
     model = (collision or CollisionModel(scene.grid)).to("cpu")
     goal = torch.tensor(scene.goal, dtype=torch.float32)
@@ -167,9 +167,12 @@ def monte_carlo_metrics(
             worst.append(float(model.occupancy(x, slices).max()))
             dist.append(float((model.positions(x[-1]) - goal).norm()))
     n = len(worst)
+    mean = float(sum(worst) / n)
     return {
         "mc_samples": n,
-        "mc_collision_mean": float(sum(worst) / n),
+        "mc_collision_mean": mean,
+        # standard error of the mean (sample standard deviation / sqrt(n); 0 for one sample)
+        "mc_collision_se": float(math.sqrt(sum((w - mean) ** 2 for w in worst) / (n - 1) / n)) if n > 1 else 0.0,
         "mc_collision_frequency": float(sum(1 for w in worst if w > threshold) / n),
         "mc_final_distance_mean": float(sum(dist) / n),
     }
