@@ -187,12 +187,18 @@ def test_risk_calibration_counts_agreement_within_standard_errors():
     assert cal["calibration_checked"] == 3 and cal["calibrated"] == 2
     assert cal["p_any_mean"] == pytest.approx(0.2) and cal["mc_collision_mean"] == pytest.approx(1.205 / 3)
     assert cal["calibration_worst"][0] == ("b", 0.1, 0.65)
+    assert cal["learned_checked"] == 0
+    recs[1]["plan"]["collision_probability_any_predictor"] = 0.4  # the learned estimate, 0.25 off
+    recs[0]["plan"]["collision_probability_any_predictor"] = 0.5
+    cal = risk_calibration(recs)
+    assert cal["learned_checked"] == 2 and cal["learned_off_by_0_1"] == 1
     row = {"planner": "density", "scenarios": 4, "refused": 0, "planned": 4, "errors": 0, "success": 1,
            "success_rate": 0.25, "success_rate_planned": 0.25, "p_coll_max_mean": 0.1,
            "final_goal_distance_median": 1.0, "planning_time_median": 2.0,
            **{f"{p}_rate": 1.0 for p in ("goal_reached", "collision_free", "on_road", "within_model")}, **cal}
     text = summary_markdown({"rows": [row], "failed_parts": {}, "refusals": {}})
     assert "within 3 standard errors (at least 0.01) on 2 of 3 scenarios" in text and "b 0.10 vs 0.65" in text
+    assert "off Monte Carlo by more than 0.1 on 1 of 2 scenarios" in text
 
 
 def test_monte_carlo_metrics_report_the_standard_error():

@@ -83,14 +83,16 @@ def _context(job: Job, parameterization=None):
 
     # the run's system and model set for the scene kind (the car: road on recorded scenes, paper on random ones)
     models = run_model_set(job.run_config, job.env.kind)
+    exact_check = job.run_config.evaluation.exact_check
     key = (job.controller, job.density, job.run_config.system, job.run_config.liouville, parameterization,
-           models.name)
+           models.name, exact_check)
     if key not in _CONTEXTS:
         _CONTEXTS.clear()
-        # the predictor is loaded on first use (MPC and oracle jobs never load it); no exact re-check in sweeps
+        # the predictor is loaded on first use (MPC and oracle jobs never load it); the exact re-check of a learned
+        # prediction as evaluation.exact_check says
         _CONTEXTS[key] = build_context(job.run_config, kind=job.env.kind, controller=job.controller,
                                        density=job.density, parameterization=parameterization, lazy=True,
-                                       exact_check=False)
+                                       exact_check=exact_check)
     return replace(_CONTEXTS[key], config=job.run_config)
 
 
@@ -157,9 +159,17 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         else float(plan.collision.any_time),
         "collision_probability_any_se": None if plan.collision is None or plan.collision.any_time_se is None
         else float(plan.collision.any_time_se),
+        # the learned predictor's own estimate when the exact re-check reported instead (report_exact)
+        "collision_probability_any_predictor": _predictor_any(plan),
         "iterations": plan.iterations,
         "extras": {k: v for k, v in plan.extras.items() if k in _PLAN_EXTRAS},
     }
+
+
+def _predictor_any(plan: PlanResult) -> float | None:
+    est = plan.extras.get("predictor_estimate") if isinstance(plan.extras, dict) else None
+    value = ((est or {}).get("collision_probability") or {}).get("any_time")
+    return None if value is None else float(value)
 
 
 def base_record(job: Job, variant: str) -> dict[str, Any]:
@@ -273,6 +283,16 @@ def _evaluate(job: Job, variant: str, planner, problem: PlanningProblem, scene, 
         runs = monte_carlo(planner, problem, mc0, plan=plan, controller=ctx.controller, config=eval_cfg)
         metrics.update(monte_carlo_metrics(scene, runs, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
                                                collision=problem.collision()))
+        if mode == ExecutionMode.TRACK and not torch.equal(mc0, mc_states[: mc0.shape[0]]):
+            # the variant changed the drawn states (unbiased: no heading bias), so the law the planner's risk is an
+            # expectation over is not the one above: the same count of closed loops from the law itself, for the
+            # calibration of the reported risk (mc_law_collision_mean / _se)
+            law = monte_carlo(planner, problem, mc_states[: mc0.shape[0]], plan=plan, controller=ctx.controller,
+                              config=eval_cfg)
+            law_m = monte_carlo_metrics(scene, law, threshold=eval_cfg.collision_threshold, plan_dt=plan_dt,
+                                        collision=problem.collision())
+            metrics.update(mc_law_collision_mean=law_m["mc_collision_mean"],
+                           mc_law_collision_se=law_m["mc_collision_se"])
         t_mc = time.perf_counter() - t_mc
         if job.run_config.risk.validate_samples and mode == ExecutionMode.TRACK and variant == job.variants[0]:
             rec["risk_check"] = _risk_check(job, problem, run.plan, ctx.controller, eval_cfg)
