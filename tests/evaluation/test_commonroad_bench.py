@@ -216,3 +216,18 @@ def test_monte_carlo_metrics_report_the_standard_error():
     m = monte_carlo_metrics(scene, runs, collision=CollisionModel(scene.grid))
     assert m["mc_collision_mean"] == pytest.approx(0.5) and m["mc_collision_se"] == pytest.approx(0.5)
     assert monte_carlo_metrics(scene, runs[:1], collision=CollisionModel(scene.grid))["mc_collision_se"] == 0.0
+
+
+def test_a_scenarios_initial_law_does_not_depend_on_its_folder(tmp_path):
+    """The initial law's seed comes from the file's name, not from its sorted position in the folder."""
+    from density_planner.evaluation.commonroad_bench import commonroad_envs
+
+    alone, crowded = tmp_path / "alone", tmp_path / "crowded"
+    alone.mkdir()
+    crowded.mkdir()
+    shutil.copy(SHIPPED, alone / SHIPPED.name)
+    shutil.copy(SHIPPED, crowded / SHIPPED.name)
+    shutil.copy(SHIPPED, crowded / ("AAA_" + SHIPPED.name))  # sorts first: shifts the index
+    a = commonroad_envs(alone)[0]
+    b = [e for e in commonroad_envs(crowded) if e.name == a.name][0]
+    assert (a.index, b.index) == (0, 1) and a.law_seed == b.law_seed != commonroad_envs(crowded)[0].law_seed

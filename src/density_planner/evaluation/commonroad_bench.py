@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..io.atomic import atomic_write_text
-from .environments import EnvSpec
+from .environments import EnvSpec, stable_seed
 from .jobs import Job, JobResult, base_record, error_record, job_scene, run_job
 from .records import load_records
 from .verdict import VERDICT_PARTS
@@ -53,7 +53,9 @@ def commonroad_envs(folder: str | Path) -> tuple[EnvSpec, ...]:
     files = sorted(folder.glob("*.xml"))
     if not files:
         raise ValueError(f"--scenarios {folder} holds no CommonRoad scenarios (*.xml)")
-    return tuple(EnvSpec("commonroad", i, 0, f"cr-{f.stem}", file=str(f.resolve())) for i, f in enumerate(files))
+    # the initial law's seed from the file's name: a scenario's record does not depend on the folder's other files
+    return tuple(EnvSpec("commonroad", i, 0, f"cr-{f.stem}", file=str(f.resolve()),
+                         distribution_seed=stable_seed("distribution", f.stem)) for i, f in enumerate(files))
 
 
 def refusal_reason(exc: BaseException) -> str:
@@ -80,7 +82,7 @@ def run_commonroad_job(job: Job) -> JobResult:
 
     try:  # the scene and its planning problem (the run's system); a refusal is a record, not an error
         scene = job_scene(job)
-        PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+        PlanningProblem.from_scene(scene, seed=job.env.law_seed, planning=job.run_config.planning,
                                    system=run_system(job.run_config, job.env.kind))
     except (ValueError, OSError, ImportError) as exc:
         return JobResult([_refused_record(job, v, refusal_reason(exc)) for v in job.variants])

@@ -34,8 +34,12 @@ class EnvSpec:
         kind: ``"random"`` (artificial scene number ``seed``), ``"commonroad"`` (``file``; ``seed`` 0 = the
             scenario's planning problem, else a sampled start/goal pair) or ``"ind"`` (``data_dir``,
             ``recording``, window starting at ``start_time`` [s], start/goal sampler seed ``seed``).
-        index: the environment's number in the sweep (seed of the initial distribution).
+        index: the environment's number in the sweep (seed of the initial distribution unless
+            ``distribution_seed`` is given).
         name: unique name (file names of the records).
+        distribution_seed: seed of the initial distribution (:attr:`law_seed`); ``bench commonroad`` derives it
+            from the scenario's name, so that a scenario's initial law does not depend on the other files of its
+            folder (its sorted position, the index, does).
     """
 
     kind: Literal["random", "commonroad", "ind"]
@@ -46,6 +50,12 @@ class EnvSpec:
     data_dir: str | None = None
     recording: int | None = None
     start_time: float | None = None
+    distribution_seed: int | None = None
+
+    @property
+    def law_seed(self) -> int:
+        """Seed of the environment's initial distribution: ``distribution_seed``, else the index."""
+        return self.index if self.distribution_seed is None else self.distribution_seed
 
     def as_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}

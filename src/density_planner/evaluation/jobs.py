@@ -327,7 +327,7 @@ def run_job(job: Job) -> JobResult:
     torch.manual_seed(stable_seed("job", job.env.name, job.planner))
     try:
         scene = job_scene(job)
-        problem = PlanningProblem.from_scene(scene, seed=job.env.index, planning=job.run_config.planning,
+        problem = PlanningProblem.from_scene(scene, seed=job.env.law_seed, planning=job.run_config.planning,
                                              risk=job.run_config.risk, system=run_system(job.run_config, job.env.kind))
         x_true, mc_states = _true_states(problem, job.env, job.run_config.evaluation)
         ctx = _context(job, problem.parameterization)
@@ -336,7 +336,7 @@ def run_job(job: Job) -> JobResult:
         return JobResult([error_record(job, v, tb, "environment") for v in job.variants])
     scene_map = scene_map_arrays(scene) if job.want_map else None
     seed = stable_seed("planner", job.env.name, job.planner)
-    seeds = {"distribution": job.env.index, "true_state": stable_seed("true-state", job.env.name),
+    seeds = {"distribution": job.env.law_seed, "true_state": stable_seed("true-state", job.env.name),
              "monte_carlo": stable_seed("monte-carlo", job.env.name), "planner": seed}
     per_variant = planner_info(job.planner, default=True).plans_from_true_state and SETTINGS[job.setting].closed_loop
     planner = plan = None
