@@ -494,3 +494,27 @@ def test_scene_gives_the_planners_initial_uncertainty(tmp_path):
     assert initial_error_box(random_scene(0), car) == tuple(car.initial_error_max)
     with pytest.raises(ValueError, match="initial_error"):
         CommonRoadSceneConfig(initial_error=(0.5, 0.0, 0.3))
+
+
+def test_positions_given_as_shapes_read_as_their_centres(commonroad_dir):
+    """CommonRoad states may give an uncertain position as a shape (DEU_A9-3_1: RectOccupancy, whose centre is a
+    shapely point): the importer reads its centre, not a traceback; with the default configuration (the recorded
+    ego's duplicate looked for at the start) the file loads."""
+    from commonroad.geometry.occupancy.circle_occupancy import CircleOccupancy
+    from commonroad.geometry.occupancy.rect_occupancy import RectOccupancy
+
+    from density_planner.environment.commonroad import _point
+
+    assert np.allclose(_point(np.array([1.0, 2.0])), [1.0, 2.0])
+    assert np.allclose(_point(RectOccupancy(shapely.Point(3.0, -1.0), 2.0, 4.0, 0.3)), [3.0, -1.0])
+    assert np.allclose(_point(CircleOccupancy(1.5, shapely.Point(-2.0, 5.0))), [-2.0, 5.0])
+
+    class _Polygon:  # a shape without a centre attribute: its centroid
+        shapely_object = shapely.box(0.0, 0.0, 2.0, 4.0)
+
+    assert np.allclose(_point(_Polygon()), [1.0, 2.0])
+    assert _point(None) is None and _point("a b") is None and _point([1.0, 2.0, 3.0]) is None
+    from density_planner.systems.registry import make_system
+
+    scene = load_commonroad_scene(commonroad_dir / "DEU_A9-3_1_T-1.xml", system=make_system("car", "road"))
+    assert scene.road is not None and len(scene.road.obstacles) > 0

@@ -368,6 +368,22 @@ def _shape_outline(shape: Any, shapely: Any) -> tuple[Any, float, float]:
     return poly, max(x1 - x0, 1e-3), max(y1 - y0, 1e-3)
 
 
+def _point(position: Any) -> np.ndarray | None:
+    """``(2,)`` position [m] of a CommonRoad state's ``position``: the point, or the centre of a shape (an uncertain
+    position given as a rectangle, circle or polygon); ``None`` when it has neither."""
+    centre = getattr(position, "center", None)
+    if centre is not None and hasattr(centre, "x") and hasattr(centre, "y"):  # a shapely point
+        centre = (centre.x, centre.y)
+    if centre is None and hasattr(position, "shapely_object"):
+        c = position.shapely_object.centroid
+        centre = (c.x, c.y)
+    try:
+        pos = np.asarray(position if centre is None else centre, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    return pos if pos.size == 2 else None
+
+
 def _states(obs: Any) -> list[Any]:
     states = [obs.initial_state]
     trajectory = getattr(getattr(obs, "prediction", None), "trajectory", None)
@@ -383,8 +399,8 @@ def _trajectory_arrays(obs: Any, dt: float, where: str) -> tuple[np.ndarray, np.
         step = getattr(st, "time_step", None)
         if not isinstance(step, (int, np.integer)):
             continue
-        pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
-        if pos.size != 2:
+        pos = _point(getattr(st, "position", None))
+        if pos is None:
             continue
         rows[int(step)] = (pos[0], pos[1], _num(getattr(st, "orientation", None)), _num(getattr(st, "velocity",
                                                                                                  None)))
@@ -408,8 +424,7 @@ def _trajectory_arrays(obs: Any, dt: float, where: str) -> tuple[np.ndarray, np.
 def _state_at_step(obs: Any, step: int) -> np.ndarray | None:
     for st in _states(obs):
         if getattr(st, "time_step", None) == step:
-            pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
-            return pos if pos.size == 2 else None
+            return _point(getattr(st, "position", None))
     return None
 
 
