@@ -582,8 +582,8 @@ def static_map(
 
 def _static_track(obs: Any, shapely: Any) -> ObstacleTrack | None:
     st = obs.initial_state
-    pos = np.asarray(getattr(st, "position", None), dtype=np.float64).reshape(-1)
-    if pos.size != 2 or not np.isfinite(pos).all():
+    pos = _point(getattr(st, "position", None))
+    if pos is None or not np.isfinite(pos).all():
         return None
     th = _num(getattr(st, "orientation", None)) or 0.0
     outline, length, width = _shape_outline(obs.obstacle_shape, shapely)
@@ -823,7 +823,9 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         if not isinstance(step, (int, np.integer)):
             raise DataError(f"{where}: the planning problem's initial state has no integer time step")
         t_start = float(step) * dt_src
-        pos = np.asarray(getattr(init, "position", None), dtype=np.float64).reshape(-1)
+        pos = _point(getattr(init, "position", None))
+        if pos is None:
+            pos = np.zeros(0)
         th, v = _num(getattr(init, "orientation", None)), _num(getattr(init, "velocity", None))
         if pos.size != 2 or th is None or v is None or not (np.isfinite(pos).all() and math.isfinite(th)
                                                              and math.isfinite(v)):
