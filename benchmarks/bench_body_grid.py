@@ -84,5 +84,6 @@ def main(argv: list[str] | None = None) -> int:
               f"{t_dense / t_tiled:.1f}x")
     return 0
 
+
 if __name__ == "__main__":
     sys.exit(main())
