@@ -178,36 +178,34 @@ def commonroad_summary(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return {"rows": rows, "refusals": refusals, "refusal_examples": examples, "failed_parts": failures}
 
 
-def _mc_law(metrics: Mapping[str, Any]) -> float | None:
-    """The Monte-Carlo ``E[max_t P_body]`` over the planner's initial law (``mc_law_collision_mean`` where the
-    variant changed the executed states, else ``mc_collision_mean``)."""
-    v = metrics.get("mc_law_collision_mean")
-    return metrics.get("mc_collision_mean") if v is None else v
+def _mc_law(metrics: Mapping[str, Any]) -> tuple[float | None, float | None]:
+    """The Monte-Carlo ``E[max_t P_body]`` over the planner's initial law and its standard error:
+    ``mc_law_collision_*`` where the variant changed the executed states, else ``mc_collision_*``."""
+    key = "mc_law_collision" if metrics.get("mc_law_collision_mean") is not None else "mc_collision"
+    return metrics.get(f"{key}_mean"), metrics.get(f"{key}_se")
 
 
 def risk_calibration(records: Sequence[Mapping[str, Any]], z: float = 3.0) -> dict[str, Any]:
     """The planner's collision-at-some-time estimate against Monte Carlo, over the records that have both: the
     plan's ``P_any`` (``plan.collision_probability_any``, from its own samples and density predictor) and the
     benchmark's Monte-Carlo ``E[max_t P_body]`` of executed closed loops from initial states drawn from the same law
-    (``mc_law_collision_mean`` where the variant zeroed the heading bias of the executed states, else
-    ``mc_collision_mean``). ``calibrated``: how many agree within ``z`` combined standard errors (at least 0.01, the
+    (:func:`_mc_law`). ``calibrated``: how many agree within ``z`` combined standard errors (at least 0.01, the
     grid's quantisation); ``worst``: the three largest differences ``(env, P_any, MC)``."""
-    pairs = []
+    pairs, learned = [], []
     for r in records:
-        plan, m = r.get("plan") or {}, r.get("metrics") or {}
-        # Monte Carlo from the planner's own initial law where the variant changed the executed states
-        law = "mc_law_collision_mean" in m and m["mc_law_collision_mean"] is not None
-        p, q = plan.get("collision_probability_any"), m.get("mc_law_collision_mean" if law else "mc_collision_mean")
-        if p is None or q is None or not (math.isfinite(p) and math.isfinite(q)):
+        plan = r.get("plan") or {}
+        q, q_se = _mc_law(r.get("metrics") or {})
+        if q is None or not math.isfinite(q):
             continue
-        se = math.hypot(plan.get("collision_probability_any_se") or 0.0,
-                        m.get("mc_law_collision_se" if law else "mc_collision_se") or 0.0)
-        pairs.append((str(r.get("env")), float(p), float(q), max(se, 0.01)))
+        p = plan.get("collision_probability_any")
+        if p is not None and math.isfinite(p):
+            se = math.hypot(plan.get("collision_probability_any_se") or 0.0, q_se or 0.0)
+            pairs.append((str(r.get("env")), float(p), float(q), max(se, 0.01)))
+        # the learned predictor's own estimate where the exact re-check reported instead
+        p_learned = plan.get("collision_probability_any_predictor")
+        if p_learned is not None:
+            learned.append((float(p_learned), float(q)))
     worst = sorted(pairs, key=lambda t: -abs(t[1] - t[2]))[:3]
-    # the learned predictor's own estimate where the exact re-check reported instead (no SE: the floor)
-    learned = [(float(p), float(q)) for r in records
-               if (p := (r.get("plan") or {}).get("collision_probability_any_predictor")) is not None
-               and (q := _mc_law(r.get("metrics") or {})) is not None]
     return {"p_any_mean": _mean([p for _, p, _, _ in pairs]), "mc_collision_mean": _mean([q for _, _, q, _ in pairs]),
             "calibrated": sum(abs(p - q) <= z * se for _, p, q, se in pairs), "calibration_checked": len(pairs),
             "calibration_worst": [(e, round(p, 3), round(q, 3)) for e, p, q, _ in worst],
