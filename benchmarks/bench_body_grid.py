@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from density_planner.environment.commonroad import load_commonroad_scene
     from density_planner.evaluation.environments import shipped_commonroad_dir
-    from density_planner.risk.body import _LEVELS, DiscCover, _active_tiles, dilate, dilate_sparse, disc_kernel_rows
+    from density_planner.risk.body import _LEVELS, DiscCover, _active_tiles, _reach_and_tile, dilate, dilate_sparse
     from density_planner.risk.collision import collision_grid
     from density_planner.systems.registry import make_system
 
@@ -62,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         grid = collision_grid(scene)
         probs = grid.probs
         rho = radius / grid.cell_size
-        h = max(max(abs(j) for j in disc_kernel_rows(rho)), max(disc_kernel_rows(rho).values()))
-        tile = max(32, h)
+        h, tile = _reach_and_tile(rho, 32)  # as dilate_sparse with its default tile
         n_tiles = probs.shape[0] * -(-probs.shape[1] // tile) * -(-probs.shape[2] // tile)
 
         def dense(probs: torch.Tensor = probs, rho: float = rho) -> torch.Tensor:

@@ -170,16 +170,13 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
     as bytes (``levels <= 255``; floating ``probs`` in [0, 1]), the result returned in ``probs``' dtype. Equal to
     ``dilate`` (of the rounded values) cell for cell.
     """
-    rows = disc_kernel_rows(radius_cells)
     if tile < 1:
         raise ValueError(f"tile must be >= 1 cell, got {tile}")
     if levels is not None and not 1 <= levels <= 255:
         raise ValueError(f"levels must lie in [1, 255] (values dilated as bytes), got {levels}")
     if probs.ndim != 3:
         raise ValueError(f"probs must have shape (T, NX, NY), got {tuple(probs.shape)}")
-    T, NX, NY = probs.shape
-    h = max(max(abs(j) for j in rows), max(rows.values()))
-    tile = max(tile, h, 1)
+    h, tile = _reach_and_tile(radius_cells, tile)
     probs = probs.contiguous()
     out = torch.zeros_like(probs)
     idx = _active_tiles(probs, tile, h)  # (N, 3): slice, tile row, tile column
@@ -195,6 +192,14 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
             d = d.to(probs.dtype).div_(levels)
         _write_tiles(out, t, bx, by, d)
     return out
+
+
+def _reach_and_tile(radius_cells: float, tile: int) -> tuple[int, int]:
+    """The kernel's reach ``h`` [cells] (its largest row or column offset) and the tile size :func:`dilate_sparse`
+    uses: ``tile``, widened to ``h`` (a halo never spans more than the neighbouring tiles)."""
+    rows = disc_kernel_rows(radius_cells)
+    h = max(max(abs(j) for j in rows), max(rows.values()))
+    return h, max(tile, h, 1)
 
 
 def _active_tiles(probs: Tensor, tile: int, h: int) -> Tensor:
