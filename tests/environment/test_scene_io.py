@@ -98,6 +98,14 @@ def test_validate_scene_rejects_nan_after_in_place_edit():
         validate_scene(scene)
 
 
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), 1.5, -0.2])
+def test_validate_scene_rejects_out_of_range_after_in_place_edit(value):
+    scene = small_scene()
+    scene.grid.probs[2, 3, 4] = value
+    with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
+        validate_scene(scene)
+
+
 def test_scene_construction_errors():
     with pytest.raises(ValueError, match="start must have 4"):
         small_scene(start=(1.0, 2.0))
