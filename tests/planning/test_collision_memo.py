@@ -30,3 +30,22 @@ def test_memo_matches_direct_computation():
     a = memo.desired(xy.double(), k)
     b = desired_positions(scene.grid, xy.double(), k, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
     assert a[0].dtype == torch.float64 and torch.equal(a[0], b[0])
+
+
+def test_collision_terms_of_one_grid_share_their_memo():
+    """Stage 1, stage 2 and the report each build a collision term: they share one table per setting, filled by
+    whichever reads a cell first, and still give the direct values."""
+    scene = random_scene(1)
+    cfg = CostConfig()
+    first = CollisionCost(scene.grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+    second = CollisionCost(scene.grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+    other_beta = CollisionCost(scene.grid, beta=cfg.beta / 2, plateau_scales=cfg.plateau_scales)
+    assert first._memo is second._memo and first._memo is not other_beta._memo
+    g = torch.Generator().manual_seed(1)
+    k = torch.arange(101)
+    xy = torch.tensor([0.0, -10.0]) + torch.randn(40, 101, 2, generator=g) * torch.tensor([8.0, 16.0])
+    first.desired(xy, k)  # fills the shared table
+    for term, beta in ((second, cfg.beta), (other_beta, cfg.beta / 2)):
+        a = term.desired(xy + 0.3, k)
+        b = desired_positions(scene.grid, xy + 0.3, k, beta=beta, plateau_scales=cfg.plateau_scales)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])

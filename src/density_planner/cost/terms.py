@@ -222,6 +222,17 @@ class _DesiredPositionMemo:
         self._table: Tensor | None = None
         self._known: Tensor | None = None
 
+    @classmethod
+    def shared(cls, grid: OccupancyGrid, beta: float, plateau_scales: tuple[int, ...]) -> _DesiredPositionMemo:
+        """The memo of ``grid`` for these settings, cached on the grid: the collision terms of one scene (the
+        stage-1, stage-2 and report objectives each build one) share their table and mask, which are allocated
+        once per scene and filled once (the values are a function of the cell alone)."""
+        key = ("desired_position_memo", float(beta), tuple(plateau_scales))
+        memo = grid._cache.get(key)
+        if memo is None:
+            memo = grid._cache[key] = cls(grid, beta, plateau_scales)
+        return memo
+
     @property
     def enabled(self) -> bool:
         t, nx, ny = self.grid.shape
@@ -290,7 +301,7 @@ class CollisionCost(CostTerm):
         self.grid = collision.body_grid
         self.beta = float(beta)
         self.plateau_scales = tuple(int(s) for s in plateau_scales)
-        self._memo = _DesiredPositionMemo(self.grid, self.beta, self.plateau_scales) if memo else None
+        self._memo = _DesiredPositionMemo.shared(self.grid, self.beta, self.plateau_scales) if memo else None
         if self._memo is not None and not self._memo.enabled:
             self._memo = None
 

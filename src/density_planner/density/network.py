@@ -504,7 +504,7 @@ class LearnedDensity(DensityPredictor):
         lo, hi = self.speed_range
         par = reference.parameterization
         starts = self.windows(par.n_segments) if par.n_segments >= self.architecture.n_segments else [0]
-        v = reference.x[..., [s * par.steps_per_segment for s in starts], self.layout.speed]
+        v = reference.x.detach()[..., [s * par.steps_per_segment for s in starts], self.layout.speed]
         floor = 0.0 if lo <= STANDSTILL_EXTENSION else lo - _SPEED_TOLERANCE
         bad = (v < floor) | (v > hi + _SPEED_TOLERANCE)
         if not bool(bad.any()):
