@@ -7,15 +7,7 @@ The pipeline, in the order data flows through it::
 The names below are the stable public API; everything else is importable from its subpackage.
 """
 
-import os as _os
-
-# PyTorch backs CPU buffers of 2 MB and more with transparent huge pages when this is set before its first
-# allocation: a road scene's dense grids (100-700 MB each, built once per scene) are then allocated and first
-# written 2-3x faster (docs/planner.md, "Speed"). Effective only when density_planner is imported before torch
-# (as the CLI does); THP_MEM_ALLOC_ENABLE=0 in the environment keeps the default pages.
-_os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
-
-from importlib.metadata import PackageNotFoundError, version  # noqa: E402
+from importlib.metadata import PackageNotFoundError, version
 
 from .control import (
     CarTrackingController,
