@@ -18,9 +18,12 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# the demo plans a recorded road scene that ships with the package (CommonRoad, BSD-licensed), default settings
+DEMO_SCENARIO ?= src/density_planner/data/commonroad/USA_Lanker-1_1_T-1.xml
+
 demo: $(STAMP)
-	$(CLI) plan --env random --seed 0 --out $(OUT)/demo
-	@echo "Pictures: $(OUT)/demo/plan.png, $(OUT)/demo/plan.gif, $(OUT)/demo/costs.png (plan.json holds the numbers)"
+	$(CLI) plan --env commonroad --file $(DEMO_SCENARIO) --out $(OUT)/demo
+	@echo "Pictures: $(OUT)/demo/plan.png, $(OUT)/demo/plan.gif, $(OUT)/demo/costs.png (plan.json holds the numbers, solution.xml the CommonRoad solution)"
 
 test: $(STAMP)
 	$(PY) -m pytest -q
