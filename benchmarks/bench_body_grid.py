@@ -44,7 +44,16 @@ def main(argv: list[str] | None = None) -> int:
 
     from density_planner.environment.commonroad import load_commonroad_scene
     from density_planner.evaluation.environments import shipped_commonroad_dir
-    from density_planner.risk.body import _LEVELS, DiscCover, _active_tiles, _reach_and_tile, dilate, dilate_sparse
+    from density_planner.risk.body import (
+        _LEVELS,
+        DiscCover,
+        _active_tiles,
+        _reach_and_tile,
+        dequantise,
+        dilate,
+        dilate_sparse,
+        quantise_up,
+    )
     from density_planner.risk.collision import collision_grid
     from density_planner.systems.registry import make_system
 
@@ -66,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         n_tiles = probs.shape[0] * -(-probs.shape[1] // tile) * -(-probs.shape[2] // tile)
 
         def dense(probs: torch.Tensor = probs, rho: float = rho) -> torch.Tensor:
-            q = torch.mul(probs, _LEVELS).sub_(1e-4).ceil_().clamp_(0, _LEVELS).to(torch.uint8)
-            return dilate(q, rho).to(probs.dtype).div_(_LEVELS)
+            return dequantise(dilate(quantise_up(probs, _LEVELS), rho), _LEVELS, probs.dtype)
 
         def tiled(probs: torch.Tensor = probs, rho: float = rho) -> torch.Tensor:
             return dilate_sparse(probs, rho, levels=_LEVELS)

@@ -824,14 +824,13 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
             raise DataError(f"{where}: the planning problem's initial state has no integer time step")
         t_start = float(step) * dt_src
         pos = _point(getattr(init, "position", None))
-        if pos is None:
-            pos = np.zeros(0)
         th, v = _num(getattr(init, "orientation", None)), _num(getattr(init, "velocity", None))
-        if pos.size != 2 or th is None or v is None or not (np.isfinite(pos).all() and math.isfinite(th)
-                                                             and math.isfinite(v)):
+        if pos is None or th is None or v is None or not (np.isfinite(pos).all() and math.isfinite(th)
+                                                            and math.isfinite(v)):
             raise DataError(
                 f"{where}: the planning problem's initial state must have a finite position, orientation and "
-                f"velocity, got position {pos.tolist()}, orientation {th}, velocity {v}; fix the file"
+                f"velocity, got position {None if pos is None else pos.tolist()}, orientation {th}, velocity {v}; "
+                "fix the file"
             )
         if cfg.recenter_above > 0 and float(np.abs(pos).max()) > cfg.recenter_above:
             frame_offset = (float(1000.0 * round(pos[0] / 1000.0)), float(1000.0 * round(pos[1] / 1000.0)))

@@ -48,7 +48,7 @@ from torch import Tensor
 from ..environment.grid import OccupancyGrid
 from ..systems.base import Footprint
 
-__all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "disc_kernel_rows"]
+__all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "disc_kernel_rows", "quantise_up", "dequantise"]
 
 #: quantisation levels of the dilated grid (values rounded up to multiples of 1 / _LEVELS)
 _LEVELS = 255
@@ -186,12 +186,25 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
         t, bx, by = idx[c0:c0 + per_chunk].unbind(-1)
         patch = _read_patches(probs, t, bx * tile - h, by * tile - h, size)
         if levels is not None:
-            patch = patch.mul_(levels).sub_(1e-4).ceil_().clamp_(0, levels).to(torch.uint8)
+            patch = quantise_up(patch, levels, out=patch)
         d = dilate(patch, radius_cells)[:, h:h + tile, h:h + tile]
         if levels is not None:
-            d = d.to(probs.dtype).div_(levels)
+            d = dequantise(d, levels, probs.dtype)
         _write_tiles(out, t, bx, by, d)
     return out
+
+
+def quantise_up(probs: Tensor, levels: int, *, out: Tensor | None = None) -> Tensor:
+    """``probs`` in [0, 1] rounded *up* to multiples of ``1 / levels`` (a tolerance of 1e-4 level keeps exact
+    multiples), as ``uint8`` level counts; ``out``: a float tensor of ``probs``' shape to compute in (may be
+    ``probs`` itself), else a new one."""
+    work = torch.mul(probs, levels) if out is None else torch.mul(probs, levels, out=out)
+    return work.sub_(1e-4).ceil_().clamp_(0, levels).to(torch.uint8)
+
+
+def dequantise(counts: Tensor, levels: int, dtype: torch.dtype) -> Tensor:
+    """Level counts of :func:`quantise_up` back to probabilities in ``dtype``."""
+    return counts.to(dtype).div_(levels)
 
 
 def _reach_and_tile(radius_cells: float, tile: int) -> tuple[int, int]:
