@@ -411,7 +411,7 @@ def test_goal_velocity_outside_the_model_domain_is_refused(tmp_path):
 
 
 def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
-    """UTM-like coordinates (float32 resolution 0.5 m at 5e6 m) are moved by a whole-km offset, recorded."""
+    """UTM-like coordinates (float32 resolution 0.5 m at 5e6 m) are moved by a multiple of 100 m, recorded."""
     path = write_scenario(tmp_path / "s.xml")
     root = ET.parse(path).getroot()
     for tag, off in (("x", 686000.0), ("y", 5334000.0)):
@@ -434,6 +434,29 @@ def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
     for i in lanes.ids:
         assert np.allclose(lanes[i].center, lanes_near[i].center, atol=1e-6)
     assert lanes.lanes_at(scene.start[:2], scene.start[2]) == lanes_near.lanes_at(near.start[:2], near.start[2]) != []
+
+
+def test_a_start_the_road_car_could_drive_out_of_its_position_box_from_is_translated(tmp_path):
+    """A start 5.9 km out (below recenter_above, but the road car's positions are bounded by +-1 km: DEU_A9-3_1)
+    is moved by a multiple of 100 m to within 50 m of the origin, so the problem built on it is inside the model;
+    the same scenario near the origin is not moved."""
+    from density_planner.planners import PlanningProblem
+    from density_planner.systems.registry import make_system
+
+    car = make_system("car", "road")
+    path = write_scenario(tmp_path / "s.xml")
+    root = ET.parse(path).getroot()
+    for tag, off in (("x", 331.0), ("y", -5863.0)):
+        for el in root.iter(tag):
+            el.text = str(float(el.text) + off)
+    far = tmp_path / "far.xml"
+    ET.ElementTree(root).write(far)
+    scene = load_commonroad_scene(far, _cfg(), system=car)
+    assert scene.meta["frame_offset"] == [300.0, -5900.0]
+    assert scene.start[:2] == pytest.approx((41.0, 38.75), abs=1e-6)
+    assert max(abs(c) for c in scene.start[:2]) <= 50.0
+    PlanningProblem.from_scene(scene, system=car)  # refused before: "the start is outside the model's state box"
+    assert load_commonroad_scene(path, _cfg(), system=car).meta["frame_offset"] == [0.0, 0.0]
 
 
 def test_the_ego_size_is_the_systems_body(commonroad_dir):

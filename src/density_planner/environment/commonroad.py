@@ -172,8 +172,10 @@ class CommonRoadSceneConfig:
     #: ids of further dynamic or static obstacles to leave out
     exclude_obstacles: tuple[int, ...] = ()
     #: scenarios whose start lies farther than this from the origin (e.g. UTM coordinates, where float32 has
-    #: 0.5-m resolution) are translated to a local frame: scene coordinates = file coordinates - frame_offset
-    #: (``meta["frame_offset"]``, a multiple of 1 km) [m]; 0 = never
+    #: 0.5-m resolution), or so far that the vehicle could leave the system's position bounds within
+    #: ``max_horizon`` at its top speed (the road car's +-1 km box), are translated to a local frame: scene
+    #: coordinates = file coordinates - frame_offset (``meta["frame_offset"]``, a multiple of 100 m, so the local
+    #: start lies within 50 m of the origin) [m]; 0 = never
     recenter_above: float = 10_000.0
     #: id of the planning problem to use; negative = the one with the smallest id
     planning_problem_id: int = -1
@@ -766,6 +768,15 @@ def _model_limits(system: Any) -> tuple[float, float, float, str]:
     return float(lo[iv]), float(hi[iv]), float(max(abs(ulo[ia]), abs(uhi[ia]))), type(system).__name__
 
 
+def _reach_inside_position_box(system: Any, pos: np.ndarray, reach: float) -> bool:
+    """Whether every position within ``reach`` [m] of ``pos`` (the farthest the vehicle can drive in the longest
+    horizon) lies inside the system's position bounds (the road car's +-1 km box; a plan leaving it is outside the
+    model)."""
+    lo, hi = system.state_bounds
+    return all(float(lo[i]) <= float(p) - reach and float(p) + reach <= float(hi[i])
+               for i, p in zip(system.position_indices, pos))
+
+
 # ---------------------------------------------------------------------------------------------------- load
 def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None = None, *,
                           system: Any = None) -> Scene:
@@ -832,8 +843,9 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 f"velocity, got position {None if pos is None else pos.tolist()}, orientation {th}, velocity {v}; "
                 "fix the file"
             )
-        if cfg.recenter_above > 0 and float(np.abs(pos).max()) > cfg.recenter_above:
-            frame_offset = (float(1000.0 * round(pos[0] / 1000.0)), float(1000.0 * round(pos[1] / 1000.0)))
+        if cfg.recenter_above > 0 and (float(np.abs(pos).max()) > cfg.recenter_above
+                                       or not _reach_inside_position_box(system, pos, v_max * cfg.max_horizon)):
+            frame_offset = (float(100.0 * round(pos[0] / 100.0)), float(100.0 * round(pos[1] / 100.0)))
             scenario.translate_rotate(-np.asarray(frame_offset), 0.0)
             problem_set.translate_rotate(-np.asarray(frame_offset), 0.0)
             drivable, road_notes = drivable_area(scenario, cfg, where=where)
