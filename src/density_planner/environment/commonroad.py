@@ -120,8 +120,10 @@ class CommonRoadSceneConfig:
     #: the grid covers at least this long [s] (the planners' horizon follows the goal's time interval; one 1-s
     #: segment at least)
     min_duration: float = 1.0
-    #: cap on the horizon [s] (the horizon follows the end of the goal's time interval)
-    max_horizon: float = 20.0
+    #: cap on the horizon [s] (the horizon follows the end of the goal's time interval): a bound on memory and
+    #: planning time, above the goals of the public CommonRoad scenes seen here (DEU_Muc goals end 20.4 s after the
+    #: start; at 20 s DEU_Muc-26_2's goal instant was out of reach)
+    max_horizon: float = 30.0
     #: finest cell edge [m]; coarser when the grid would exceed ``memory_budget_gib``
     cell_size: float = 0.1
     #: coarsest cell edge the automatic choice may use [m]
@@ -172,8 +174,8 @@ class CommonRoadSceneConfig:
     #: ids of further dynamic or static obstacles to leave out
     exclude_obstacles: tuple[int, ...] = ()
     #: scenarios whose start lies farther than this from the origin (e.g. UTM coordinates, where float32 has
-    #: 0.5-m resolution), or so far that the vehicle could leave the system's position bounds within
-    #: ``max_horizon`` at its top speed (the road car's +-1 km box), are translated to a local frame: scene
+    #: 0.5-m resolution), or so far that the vehicle could leave the system's position bounds at its top speed
+    #: before the goal's time interval ends (the road car's +-1 km box), are translated to a local frame: scene
     #: coordinates = file coordinates - frame_offset (``meta["frame_offset"]``, a multiple of 100 m, so the local
     #: start lies within 50 m of the origin) [m]; 0 = never
     recenter_above: float = 10_000.0
@@ -768,10 +770,18 @@ def _model_limits(system: Any) -> tuple[float, float, float, str]:
     return float(lo[iv]), float(hi[iv]), float(max(abs(ulo[ia]), abs(uhi[ia]))), type(system).__name__
 
 
+def _goal_horizon(problem: Any, dt_src: float, t_start: float, cap: float) -> float:
+    """End of the planning problem's goal time intervals after the start [s], at most ``cap`` (``cap`` where the
+    goal states give no time)."""
+    ends = [iv[1] * dt_src - t_start for st in getattr(getattr(problem, "goal", None), "state_list", None) or ()
+            if (iv := _interval(getattr(st, "time_step", None))) is not None]
+    return min(max(ends), cap) if ends else cap
+
+
 def _reach_inside_position_box(system: Any, pos: np.ndarray, reach: float) -> bool:
-    """Whether every position within ``reach`` [m] of ``pos`` (the farthest the vehicle can drive in the longest
-    horizon) lies inside the system's position bounds (the road car's +-1 km box; a plan leaving it is outside the
-    model)."""
+    """Whether every position within ``reach`` [m] of ``pos`` (the farthest the vehicle can drive before the end of
+    its horizon) lies inside the system's position bounds (the road car's +-1 km box; a plan leaving it is outside
+    the model)."""
     lo, hi = system.state_bounds
     return all(float(lo[i]) <= float(p) - reach and float(p) + reach <= float(hi[i])
                for i, p in zip(system.position_indices, pos))
@@ -843,8 +853,9 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 f"velocity, got position {None if pos is None else pos.tolist()}, orientation {th}, velocity {v}; "
                 "fix the file"
             )
+        reach = v_max * _goal_horizon(problem, dt_src, t_start, cfg.max_horizon)
         if cfg.recenter_above > 0 and (float(np.abs(pos).max()) > cfg.recenter_above
-                                       or not _reach_inside_position_box(system, pos, v_max * cfg.max_horizon)):
+                                       or not _reach_inside_position_box(system, pos, reach)):
             frame_offset = (float(100.0 * round(pos[0] / 100.0)), float(100.0 * round(pos[1] / 100.0)))
             scenario.translate_rotate(-np.asarray(frame_offset), 0.0)
             problem_set.translate_rotate(-np.asarray(frame_offset), 0.0)

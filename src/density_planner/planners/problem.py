@@ -47,7 +47,8 @@ class PlanningConfig:
     window whose inputs after the horizon are zero, cut to the horizon (the closed loop is causal; measured as
     accurate as the window's own inputs, docs/density.md), a longer one chains windows of 10 s
     (:meth:`~density_planner.density.network.LearnedDensity.windows`; measured as accurate as the first window).
-    ``max_horizon`` is 20 s (the CommonRoad suite's goals end up to 20.4 s after the start). For another segment
+    ``max_horizon`` is 30 s (the CommonRoad suite's goals end up to 20.4 s after the start; the cap bounds memory
+    and time, it is not meant to cut a goal off). For another segment
     length or planning step the planner falls back to exact Liouville (logged warning; minutes per plan instead of
     seconds) or, when a learned predictor is named explicitly, refuses with an error. A goal that starts later than
     ``max_horizon`` cannot be reached.
@@ -57,7 +58,7 @@ class PlanningConfig:
     horizon: float | None = None
     #: cap on a horizon suggested by the scene [s] (an explicit ``horizon`` is not capped); above 10 s the
     #: learned predictors chain windows of their 10 s
-    max_horizon: float = 20.0
+    max_horizon: float = 30.0
     #: floor of a horizon suggested by the scene [s] (a plan ends with its goal's time interval: one segment at
     #: least)
     min_horizon: float = 1.0
