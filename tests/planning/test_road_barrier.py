@@ -50,6 +50,35 @@ def test_zero_in_lane_positive_at_the_edge_and_off_road(barrier):
     assert float(c[4]) > 0  # turned across the lane: the corners leave the road
 
 
+def test_margin_weight_splits_the_barrier_between_the_margin_and_the_edge(barrier):
+    """mu = margin_weight: inside the road the barrier is mu times the full one (mu = 1; the margin zone priced at mu),
+    beyond the edge it is mu phi(sdf + margin) + (1 - mu) phi(sdf) with slope >= 1 per metre (finite differences);
+    mu = 1 is the full barrier."""
+    full = barrier
+    lateral = torch.linspace(4.4, 6.8, 49, dtype=torch.float64)  # the car's left side from 0.26 m inside to 0.9 m out
+    x = _poses(torch.stack([torch.full_like(lateral, 50.0), lateral, torch.zeros_like(lateral)], -1))
+    d = full._sdf_outline(x)  # (P, n)
+    ref = torch.relu(d + full.margin)
+    for mu in (1.0, 0.1, 0.0):
+        b = RoadBarrierCost(full.sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5, margin_weight=mu)
+        e = torch.relu(d)
+        expect = (mu * ref * (1 + ref) + (1 - mu) * e * (1 + e)).sum(0)
+        got = b.per_state(x)
+        assert torch.allclose(got, expect, atol=1e-12)
+        inside = d.amax(0) <= 0
+        whole = RoadBarrierCost(full.sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5, margin_weight=1.0)
+        assert torch.allclose(got[inside], mu * whole.per_state(x)[inside], atol=1e-12)
+        out = d.amax(0) > 0.02
+        slope = torch.diff(got[out]) / torch.diff(lateral[out])
+        assert bool((slope >= 0.99).all())  # at least one outline point's slope of 1 per m, at any mu
+    from density_planner.cost.road import RoadCostConfig
+    assert full.margin_weight == RoadCostConfig().margin_weight  # the fixture (no margin_weight given): the default
+    with pytest.raises(ValueError, match="margin_weight"):
+        RoadBarrierCost(full.sdf, margin_weight=1.5)
+    with pytest.raises(ValueError, match="margin_weight"):
+        RoadCostConfig(margin_weight=-0.1)
+
+
 def test_off_road_costs_more_than_any_collision(barrier):
     """One state whose rectangle crosses the road's edge costs (weighted) more than the largest collision cost
     one state can have: P_occ = 1 with the steepest occupancy gradient the grid allows (0.5 per cell)."""

@@ -7,17 +7,23 @@ perimeter (``vehicle_length x vehicle_width`` of the scene, at most ``footprint_
 included) at every sample's pose, and the road SDF (:class:`~density_planner.environment.road_sdf.RoadSDF`,
 negative on the road) there::
 
-    J_R = sum_{i,k} w_i(t_k) sum_{q in outline} phi(sdf(q_i(t_k)) + margin),   phi(s) = s_+ + s_+^2 / (1 m)
+    J_R = sum_{i,k} w_i(t_k) sum_{q in outline} [mu phi(sdf(q_i(t_k)) + margin) + (1 - mu) phi(sdf(q_i(t_k)))],
+    phi(s) = s_+ + s_+^2 / (1 m)
 
-``phi`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
-everywhere beyond, so a plan deep off the road still gets a gradient back to it (no plateau). With the default weight
-``alpha_R = 1e4`` one outline point on the road's edge costs ``1e4 * (0.15 + 0.15^2) = 1725`` per state, more than any
-one state can cost in collision (``alpha_C P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the road scenes'
-``alpha_C = 10`` (``collision_weight``): 250 at 0.1-m cells, 1000 at 0.2 m, with the default ``beta = 100`` cells; at
-0.4-m cells up to 4000, but only for a disc centre 20 m deep inside an occupied region), so leaving the road never
-pays for avoiding an obstacle, and its slope (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per
-m, ``alpha_G = 4``, times the goal-far factor 10 while far: 2000 per m at 25 m; one outline point's 1e4 only 125 m from
-the goal, where a car's side is several points), so the optimiser does not trade road
+``J_R`` is zero while every outline point is at least ``margin`` inside the road, and its slope is at least one
+everywhere beyond the edge, so a plan deep off the road still gets a gradient back to it (no plateau). Its share
+``mu = margin_weight`` (0.01) starts ``margin`` inside the edge: it gives the optimiser a gradient away from the kerb
+before the edge at a price below the goal's (driving close to a kerb is legal; at ``mu = 1``, stops 22-28, a
+reference 4 cm into the margin zone of a tight turn outweighed a 2.3-m goal miss, and yielding in a junction turn
+cost more than driving into a car). With the default weight ``alpha_R = 1e4`` an outline point on the road's edge
+costs ``1e4 mu (0.15 + 0.15^2) = 17`` per state; one 0.05 m beyond it ``1e4 (mu phi(0.2) + (1 - mu) phi(0.05)) =
+544``, and a side of the car (10 points) over the edge more than any one state can cost in collision (``alpha_C
+P_occ ||p - p_des||^2 <= alpha_C (beta * h / 2)^2`` with the road scenes' ``alpha_C = 10`` (``collision_weight``): 250
+at 0.1-m cells, 1000 at 0.2 m, with the default ``beta = 100`` cells; at 0.4-m cells up to 4000, but only for a disc
+centre 20 m deep inside an occupied region), so leaving the road does not pay for avoiding an obstacle, and its
+slope beyond the edge (>= 1e4 per m and point) dominates the goal's pull (``2 alpha_G d`` per m, ``alpha_G = 4``,
+times the goal-far factor 10 while far: 2000 per m at 25 m; one outline point's 1e4 only 125 m from the goal, where
+a car's side is several points), so the optimiser does not trade road
 for goal either. That holds for a single trajectory (stage 1's candidates, stage 2's reference at
 ``reference_weight`` times ``alpha_R``); on the density planner's stage-2 sample cloud the barrier has its own,
 smaller weight ``sample_weight`` (30): there it is an expected depth over the edge, a risk traded against the
@@ -33,7 +39,10 @@ Why the default spacing of 0.5 m (26 points on a 4.5 x 1.8 m car) and not fewer:
 m and ``R = 5`` m, a tight urban kerb: harmless), but a right-angled re-entrant corner of the drivable area
 (lanelet notches, junction corners) reaches up to ``s / 2 - sqrt(2) margin`` while both neighbours keep their
 ``margin``; the verdict forgives 0.05 m (``verdict.road_tolerance``), hence ``s <= 2 (0.05 + sqrt(2) 0.15) =
-0.52`` m. Coarser outlines were not adopted for speed; instead the evaluation is cheap (below).
+0.52`` m. With ``mu = 0.01`` the margin zone is cheap, so a plan may keep outline points between the margin and the
+edge, where such a corner can reach up to ``s / 2 = 0.25`` m in: the guarantee holds for plans that keep the margin,
+and the verdict (exact geometry) judges the others. Coarser outlines were not adopted for speed; instead the
+evaluation is cheap (below).
 
 Evaluation cost (the planner calls it on ``samples x steps`` poses every iteration): the outline points of all
 poses come from one ``(P, 3) @ (3, 2 n)`` product straight in the SDF lattice's normalised coordinates, looked up
@@ -106,6 +115,12 @@ class RoadCostConfig:
     sample_weight: float | None = 30.0
     #: the barrier starts this far inside the road's edge [m]
     margin: float = 0.15
+    #: share ``mu`` of the barrier that starts ``margin`` inside the edge; the rest, ``1 - mu``, starts at the edge
+    #: (module docstring). At 1 (stops 22-28) a reference brushing the margin zone in a tight turn paid as for a wall
+    #: inside the road (CHN_Sha-4_7: 4 cm into the zone over 12 steps outweighed a 2.3-m goal miss; CHN_Sha-7_1:
+    #: yielding in a junction turn cost more than driving into a car). Measured on the whole suite (docs/planner.md,
+    #: stop 29): 1 / 0.01 gave 58 / 60 successes, on road 64 either way, none lost
+    margin_weight: float = 0.01
     #: largest spacing of the outline points checked [m]
     footprint_spacing: float = 0.5
     #: cell size of the road's signed distance field [m] (grows to respect sdf_max_cells)
@@ -117,6 +132,8 @@ class RoadCostConfig:
         for name in ("goal_weight", "goal_margin", "goal_time_margin", "goal_velocity_weight",
                      "goal_orientation_weight", "weight", "margin"):
             check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
+        if not 0.0 <= self.margin_weight <= 1.0:
+            raise ValueError(f"cost.road.margin_weight must lie in [0, 1], got {self.margin_weight!r}")
         for name in ("collision_weight", "sample_weight"):
             if getattr(self, name) is not None:
                 check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
@@ -144,13 +161,18 @@ class RoadBarrierCost(CostTerm):
     name = "road"
 
     def __init__(self, sdf: RoadSDF, *, length: float = 4.5, width: float = 1.8, margin: float = 0.15,
-                 spacing: float = 0.5, layout: tuple[int, int, int] = (0, 1, 2)):
+                 spacing: float = 0.5, layout: tuple[int, int, int] = (0, 1, 2),
+                 margin_weight: float = RoadCostConfig.margin_weight):
         if not (length > 0 and width > 0):
             raise ValueError(f"vehicle length and width must be > 0, got {length}, {width}")
         self.sdf = sdf
         #: state indices of the position and the heading (``x, y, heading``; the system's facts)
         self.layout = tuple(int(i) for i in layout)
         self.margin = float(margin)
+        if not 0.0 <= margin_weight <= 1.0:
+            raise ValueError(f"margin_weight must lie in [0, 1], got {margin_weight}")
+        #: share of the barrier that starts ``margin`` inside the edge (the rest starts at the edge)
+        self.margin_weight = float(margin_weight)
         self.outline = torch.as_tensor(vehicle_outline(length, width, spacing))
         #: largest distance of an outline point from the reference point [m]
         self.radius = float(self.outline.norm(dim=1).max()) * (1 + 1e-6)
@@ -204,9 +226,15 @@ class RoadBarrierCost(CostTerm):
         return self._sdf_outline(x).amax(0)
 
     def per_state(self, x: Tensor) -> Tensor:
-        """``sum_q phi(sdf(q) + margin)`` per state ``x (..., nx)``."""
-        s = torch.relu(self._sdf_outline(x, self.margin))
-        return (s * (1.0 + s)).sum(0)
+        """``sum_q [mu phi(sdf(q) + margin) + (1 - mu) phi(sdf(q))]`` per state ``x (..., nx)``, ``mu`` the
+        ``margin_weight``."""
+        d = self._sdf_outline(x)
+        s = torch.relu(d + self.margin)
+        phi = s * (1.0 + s)
+        if self.margin_weight == 1.0:
+            return phi.sum(0)
+        e = torch.relu(d)
+        return (self.margin_weight * phi + (1.0 - self.margin_weight) * e * (1.0 + e)).sum(0)
 
     def __call__(self, inputs: CostInputs) -> Tensor:
         """``J_R (*batch,)``. Exact shortcut: a first pass without autograd finds the states with an outline point
@@ -272,6 +300,7 @@ def with_road_terms(
                 sdf = sdf.to(device)
             terms.append(RoadBarrierCost(sdf, length=road.vehicle_length, width=road.vehicle_width,
                                          margin=rc.margin, spacing=rc.footprint_spacing,
+                                         margin_weight=rc.margin_weight,
                                          **({} if layout is None else {"layout": layout[:3]})))
             weights["road"] = rc.weight
     return terms, weights
