@@ -10,7 +10,7 @@ import torch
 from road_helpers import drivable, lane_graph, road_scene
 
 from density_planner.cost.composite import CostConfig, build_cost
-from density_planner.cost.road import RoadBarrierCost, vehicle_outline
+from density_planner.cost.road import RoadBarrierCost, RoadCostConfig, vehicle_outline
 from density_planner.cost.terms import CollisionCost, CostInputs
 from density_planner.environment.grid import OccupancyGrid
 from density_planner.environment.road import GoalRegion
@@ -59,6 +59,7 @@ def test_margin_weight_splits_the_barrier_between_the_margin_and_the_edge(barrie
     x = _poses(torch.stack([torch.full_like(lateral, 50.0), lateral, torch.zeros_like(lateral)], -1))
     d = full._sdf_outline(x)  # (P, n)
     ref = torch.relu(d + full.margin)
+    whole = RoadBarrierCost(full.sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5, margin_weight=1.0)
     for mu in (1.0, 0.1, 0.0):
         b = RoadBarrierCost(full.sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5, margin_weight=mu)
         e = torch.relu(d)
@@ -66,12 +67,10 @@ def test_margin_weight_splits_the_barrier_between_the_margin_and_the_edge(barrie
         got = b.per_state(x)
         assert torch.allclose(got, expect, atol=1e-12)
         inside = d.amax(0) <= 0
-        whole = RoadBarrierCost(full.sdf, length=4.5, width=1.8, margin=0.15, spacing=0.5, margin_weight=1.0)
         assert torch.allclose(got[inside], mu * whole.per_state(x)[inside], atol=1e-12)
         out = d.amax(0) > 0.02
         slope = torch.diff(got[out]) / torch.diff(lateral[out])
         assert bool((slope >= 0.99).all())  # at least one outline point's slope of 1 per m, at any mu
-    from density_planner.cost.road import RoadCostConfig
     assert full.margin_weight == RoadCostConfig().margin_weight  # the fixture (no margin_weight given): the default
     with pytest.raises(ValueError, match="margin_weight"):
         RoadBarrierCost(full.sdf, margin_weight=1.5)
@@ -146,7 +145,6 @@ def test_density_planner_weighs_the_sample_cloud_with_the_sample_weight():
     ``cost.road.weight`` (times ``reference_weight``); ``None`` keeps one weight for both."""
     from dataclasses import replace
 
-    from density_planner.cost.road import RoadCostConfig
     from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
 
     goal = GoalRegion(shapely.box(85, 0.5, 95, 3.0), (9.0, 10.0))
