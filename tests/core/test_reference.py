@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from density_planner.control.reference import PiecewiseConstantInputs, make_reference
-from density_planner.systems.base import System
+from density_planner.control.reference import PiecewiseConstantInputs, make_reference, plan_grid_reference
+from density_planner.systems.base import System, hold_speeds
 from density_planner.systems.car import KinematicCar
 
 
@@ -19,6 +19,67 @@ def test_cumsum_rollout_equals_plain_euler_loop():
     loop = System.rollout(car, start, ref.u, ref.dt)  # the generic step-by-step Euler loop
     # identical arithmetic up to summation order: float64 round-off over 1000 steps
     torch.testing.assert_close(ref.x, loop, atol=1e-10, rtol=0)
+
+
+def test_hold_speeds_is_the_stepwise_standstill():
+    """Lindley's closed form equals ``w_{k+1} = max(0, w_k + dv_k)`` step by step, also from a negative start
+    speed (kept as the first value) and for sequences that stop, restart and stop again."""
+    g = torch.Generator().manual_seed(3)
+    dv = 0.7 * torch.randn(6, 300, generator=g, dtype=torch.float64) - 0.05
+    v0 = torch.tensor([3.0, 0.0, -0.4, 10.0, 0.2, 1.0], dtype=torch.float64)
+    free = torch.cat([v0[:, None], v0[:, None] + dv.cumsum(-1)], dim=-1)
+    w = [v0]
+    for k in range(dv.shape[1]):
+        w.append((w[-1] + dv[:, k]).clamp(min=0.0))
+    loop = torch.stack(w, dim=-1)
+    held = hold_speeds(free)
+    torch.testing.assert_close(held, loop, atol=1e-12, rtol=0)
+    assert bool((held[:, 1:] >= 0).all()) and float(held[2, 0]) == -0.4
+    # stops, then restarts: both happen in this draw
+    stopped = (held[:, 1:-1] == 0) & (held[:, 2:] > 0)
+    assert bool(stopped.any())
+    ok = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    assert hold_speeds(ok) is ok  # nothing to hold
+
+
+# a reference braking from 4 m/s: it stops in segment 1 (t ~ 1.33 s), stands, restarts in segment 3, brakes to a
+# stop again in segment 5 and stays (segments 6-9 brake further: they must not reverse it)
+_STOPPING = [[0.1, 0.0, -0.2, 0.0, 0.3, 0.0, 0.0, 0.1, 0.0, 0.0],
+             [-2.0, -2.3, -1.0, 1.5, 0.0, -2.0, -1.0, -0.5, -3.0, -1.0]]
+
+
+def test_a_stopping_reference_stands_instead_of_reversing():
+    car = KinematicCar()
+    start = torch.tensor([1.0, -2.0, 0.7, 4.0, 0.1], dtype=torch.float64)
+    params = torch.tensor(_STOPPING, dtype=torch.float64)[None]
+    ref = make_reference(car, start, params)
+    v = ref.x[0, :, 3]
+    assert float(v.min()) == 0.0 and float(v[-1]) == 0.0
+    # the plant (generic Euler loop with the hold after every step) on the commanded inputs
+    plant = System.rollout(car, start, PiecewiseConstantInputs().inputs(params), ref.dt)
+    torch.testing.assert_close(ref.x, plant, atol=1e-10, rtol=0)
+    # the inputs it applied drive the model itself (no hold needed) along the same states
+    model = [start.expand(1, 5)]
+    for k in range(ref.n_steps):
+        model.append(model[-1] + ref.dt * car.f(model[-1], ref.u[:, k]))
+    torch.testing.assert_close(ref.x, torch.stack(model, dim=-2), atol=1e-10, rtol=0)
+    standing = (v[:-1] == 0) & (v[1:] == 0)
+    assert int(standing.sum()) > 300 and bool((ref.u[0, standing, 1] == 0).all())  # no braking feed-forward at rest
+    assert bool((ref.u[0, ~standing, 1] >= params[0, 1].min()).all())
+    # the planning grid gives the same states; its inputs are the hold's means over each 0.1-s step
+    x_plan, u_plan = plan_grid_reference(car, start, params)
+    torch.testing.assert_close(x_plan, ref.x_plan, atol=1e-10, rtol=0)
+    dv = (x_plan[0, 1:, 3] - x_plan[0, :-1, 3]) / 0.1
+    torch.testing.assert_close(u_plan[0, :, 1], dv, atol=1e-9, rtol=0)
+
+
+def test_gradient_through_the_hold_matches_finite_differences():
+    car = KinematicCar()
+    par = PiecewiseConstantInputs(n_segments=4, segment_duration=0.5, dt=0.05)
+    params = torch.tensor([[[0.2, -0.1, 0.0, 0.3], [-3.0, -1.3, 2.0, 0.5]]], dtype=torch.float64, requires_grad=True)
+    start = torch.tensor([0.0, 0.0, 0.3, 1.7, 0.0], dtype=torch.float64, requires_grad=True)
+    assert float(make_reference(car, start.detach(), params.detach(), par).x[0, :, 3].min()) == 0.0  # hold acts
+    assert torch.autograd.gradcheck(lambda p, s: make_reference(car, s, p, par).x, (params, start))
 
 
 def test_shapes_and_grids():

@@ -25,7 +25,7 @@ from density_planner.planners.density_planner import DensityPlanner, DensityPlan
 from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.car import KinematicCar
 
-FAST = DensityPlannerConfig(n_candidates=6, epochs_init=15, epochs_density=4, n_samples=30)
+FAST = DensityPlannerConfig(n_candidates=6, epochs_init=15, epochs_density=4, n_samples=30, evaluation_samples=30)
 
 
 def untrained(arch: str) -> DensityNetwork:
@@ -76,7 +76,8 @@ def test_plan_command_with_learned_predictor_reports_exact_check(tmp_path):
     save_density_model(tmp_path / "w", untrained("trajectory"),
                        extra={"controller": {"spec": "analytic", "fingerprint": controller_fingerprint(ctrl)}})
     fast = ["--set", "density_planner.n_candidates=6", "--set", "density_planner.epochs_init=15",
-            "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20"]
+            "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20",
+            "--set", "density_planner.evaluation_samples=20"]
     rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density",
                str(tmp_path / "w.pt"), *fast, "-q", "--no-gif", "--out", str(tmp_path / "p")])
     assert rc in (0, 3)  # a plan was made (3: its verdict failed; this short optimisation need not pass it)
@@ -91,7 +92,8 @@ def test_plan_command_with_learned_predictor_reports_exact_check(tmp_path):
 @pytest.mark.slow
 def test_plan_command_default_falls_back_to_exact_for_other_controller(tmp_path):
     fast = ["--set", "density_planner.n_candidates=4", "--set", "density_planner.epochs_init=5",
-            "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=10"]
+            "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=10",
+            "--set", "density_planner.evaluation_samples=10"]
     rc = main(["plan", "--env", "random", "--seed", "1", "--controller", "analytic", *fast, "-q", "--no-gif",
                "--out", str(tmp_path / "p")])
     assert rc in (0, 3)  # a plan was made (3: its verdict failed; this short optimisation need not pass it)

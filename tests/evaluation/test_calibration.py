@@ -126,7 +126,8 @@ def test_validate_risk_reports_the_calibration_on_a_recorded_scene(tmp_path):
     rc = main(["validate", "risk", "--env", "commonroad", "--file", str(SHIPPED / "USA_Lanker-1_1_T-1.xml"),
                "--samples", "200", "--calibration-samples", "100", "-q", "--out", str(out),
                "--set", "density_planner.n_candidates=8", "--set", "density_planner.epochs_init=5",
-               "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=50"])
+               "--set", "density_planner.epochs_density=3", "--set", "density_planner.n_samples=50",
+               "--set", "density_planner.evaluation_samples=50"])
     assert rc in (0, 1)
     report = json.loads((out / "risk_report.json").read_text())
     cal = report["calibration"]

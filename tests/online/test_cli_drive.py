@@ -12,7 +12,8 @@ from density_planner.cli import main
 DATA = Path(__file__).resolve().parents[2] / "src" / "density_planner" / "data" / "commonroad"
 
 TINY = ["--set", "density_planner.n_candidates=5", "--set", "density_planner.epochs_init=3", "--set",
-        "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20", "--set",
+        "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20",
+        "--set", "density_planner.evaluation_samples=20", "--set",
         "online.replan_epochs=1", "--set", "online.replan_samples=20", "--set", "online.enforce_budget=false"]
 
 

@@ -122,7 +122,7 @@ def setup():
     scene = random_scene(2, RandomSceneConfig(n_slices=141))
     problem = PlanningProblem.from_scene(scene, seed=0, system=car)
     planner = DensityPlanner(pred, DensityPlannerConfig(n_candidates=10, epochs_init=10, epochs_density=5,
-                                                        n_samples=50))
+                                                        n_samples=50, evaluation_samples=50))
     plan = planner.plan(problem)
     assert plan.ok
     return car, ctrl, scene, problem, planner, plan

@@ -23,7 +23,7 @@ from density_planner.systems.base import Footprint
 from density_planner.systems.car import KinematicCar
 from density_planner.systems.linear import LinearSystem
 
-FAST = DensityPlannerConfig(n_candidates=30, epochs_init=60, epochs_density=8, n_samples=60)
+FAST = DensityPlannerConfig(n_candidates=30, epochs_init=60, epochs_density=8, n_samples=60, evaluation_samples=60)
 
 
 def _double_integrator():
@@ -72,7 +72,7 @@ def test_reported_risk_agrees_with_monte_carlo(name):
     errors at every step (the risk owner is system-agnostic: positions and body from the system)."""
     scene = block_scene()
     problem, controller = _problem(name, scene)
-    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=20, epochs_density=2, n_samples=400)
+    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=20, epochs_density=2, n_samples=400, evaluation_samples=400)
     res = DensityPlanner(ExactLiouville(problem.system, controller), cfg).plan(problem)
     check = validate_risk(problem, res, controller, n=2000, seed=1, threshold=4.0)
     assert check.passed, check.to_dict()

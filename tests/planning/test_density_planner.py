@@ -17,7 +17,8 @@ from density_planner.planners.density_planner import DensityPlanner, DensityPlan
 from density_planner.planners.problem import PlanningProblem
 from density_planner.systems.car import KinematicCar
 
-FAST = DensityPlannerConfig(n_candidates=30, epochs_init=60, epochs_density=8, n_samples=60)
+# the plan is reported on its own draw of evaluation_samples (40), not on stage 2's n_samples (60)
+FAST = DensityPlannerConfig(n_candidates=30, epochs_init=60, epochs_density=8, n_samples=60, evaluation_samples=40)
 
 
 def _planner(config=FAST):
@@ -37,7 +38,7 @@ def test_empty_scene_reaches_goal(empty_result):
     # the reference ends within 1 m of the goal (issue 5); the weighted sample cloud too
     assert float(torch.linalg.norm(final - torch.tensor(scene.goal))) < 1.0
     assert res.cost["goal"] < 1.0
-    assert res.samples.x.shape == (60, 101, 5) and torch.isfinite(res.samples.log_rho).all()
+    assert res.samples.x.shape == (40, 101, 5) and torch.isfinite(res.samples.log_rho).all()
     assert res.collision is not None and float(res.collision.max) == 0.0
 
 
@@ -67,7 +68,8 @@ def test_stage_two_stops_once_its_cost_stalls():
     (here without the absolute slack, the block scene's costs being ~1e-3), at the iteration recomputed from a full
     run's costs, after making progress first; ``patience = 0`` runs every iteration."""
     scene = block_scene()
-    base = dict(n_candidates=20, epochs_init=10, epochs_density=60, n_samples=10, backtrack_slack=0.0)
+    base = dict(n_candidates=20, epochs_init=10, epochs_density=60, n_samples=10, evaluation_samples=10,
+                backtrack_slack=0.0)
     early = _planner(DensityPlannerConfig(**base, patience=12)).plan(PlanningProblem.from_scene(scene, seed=0))
     full = _planner(DensityPlannerConfig(**base, patience=0)).plan(PlanningProblem.from_scene(scene, seed=0))
     hist = early.cost_history["stage2"]["total"]
@@ -89,7 +91,8 @@ def test_stage_two_stops_once_its_cost_stalls():
 
 def test_same_seed_same_result():
     scene = empty_scene()
-    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=3, n_samples=20, seed=3)
+    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=3, n_samples=20, evaluation_samples=20,
+                               seed=3)
     a = _planner(cfg).plan(PlanningProblem.from_scene(scene, seed=1))
     b = _planner(cfg).plan(PlanningProblem.from_scene(scene, seed=1))
     assert torch.equal(a.params, b.params)
@@ -144,8 +147,8 @@ def test_bad_problems_are_rejected():
         PlanningProblem(scene, None)
 
 
-@pytest.mark.parametrize("kwargs", [{"n_candidates": 0}, {"n_samples": 0}, {"lr": 0.0}, {"update_clip": -1.0},
-                                    {"sample_proposal": "grid"}, {"weighting": "both"}])
+@pytest.mark.parametrize("kwargs", [{"n_candidates": 0}, {"n_samples": 0}, {"evaluation_samples": 0}, {"lr": 0.0},
+                                    {"update_clip": -1.0}, {"sample_proposal": "grid"}, {"weighting": "both"}])
 def test_bad_planner_config(kwargs):
     with pytest.raises(ValueError):
         DensityPlannerConfig(**kwargs)
@@ -158,8 +161,8 @@ def test_mass_weighted_iterations_read_states_only_with_the_same_plan():
 
     scene = block_scene()
     problem = PlanningProblem.from_scene(scene, seed=0)
-    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=4, n_samples=30, seed=3,
-                               fresh_evaluation_samples=False)
+    cfg = DensityPlannerConfig(n_candidates=10, epochs_init=15, epochs_density=4, n_samples=30, evaluation_samples=30,
+                               seed=3, fresh_evaluation_samples=False)
     planner = _planner(cfg)
     pred = planner.predictor
     ref = make_reference(pred.system, problem.reference_start(), 0.3 * torch.ones(1, 2, 10),

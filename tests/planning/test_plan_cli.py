@@ -9,7 +9,8 @@ import pytest
 from density_planner.cli import main
 
 FAST = ["--set", "density_planner.n_candidates=8", "--set", "density_planner.epochs_init=20",
-        "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=20"]
+        "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=20",
+        "--set", "density_planner.evaluation_samples=20"]
 
 
 def test_plan_writes_outputs_and_config(tmp_path, capsys):

@@ -148,7 +148,8 @@ def test_ind_start_time_5_cli(tmp_path):
     rc = main(["plan", "--env", "ind", "--data-dir", str(tmp_path), "--recording", "7", "--start-time", "5",
                "--controller", "analytic", "--density", "exact", "--set", "density_planner.n_candidates=4",
                "--set", "density_planner.epochs_init=3", "--set", "density_planner.epochs_density=2",
-               "--set", "density_planner.n_samples=10", "-q", "--no-gif", "--out", str(out)])
+               "--set", "density_planner.n_samples=10",
+               "--set", "density_planner.evaluation_samples=10", "-q", "--no-gif", "--out", str(out)])
     assert rc in (0, 1, 3)  # a plan (success, failed planning, or a plan that failed its verdict) with its files
     data = json.loads((out / "plan.json").read_text())
     assert data["scene"]["t_start"] == pytest.approx(5.0)

@@ -97,6 +97,12 @@ def test_rollout_equals_stepwise_euler_and_f_matches_finite_differences():
     fast = ks.rollout(x0, u, 0.01)
     slow = super(KinematicSingleTrack, ks).rollout(x0, u, 0.01)
     torch.testing.assert_close(fast, slow, atol=1e-12, rtol=0)
+    # braking to a stop: the hold at rest (standstill) in both, no reversing
+    brake = u.clone()
+    brake[..., 1] = -3.0
+    fast = ks.rollout(x0, brake, 0.1)
+    torch.testing.assert_close(fast, super(KinematicSingleTrack, ks).rollout(x0, brake, 0.1), atol=1e-12, rtol=0)
+    assert float(fast[..., 3].min()) == 0.0 and bool((fast[:, -10:, :2] == fast[:, -1:, :2]).all())
     # f is the derivative of the flow: (x(h) - x(-h)) / 2h with an accurate integrator
     x, uu = x0[0], u[0, 0]
     jac = torch.autograd.functional.jacobian(lambda z: ks.f(z, uu), x)

@@ -16,7 +16,8 @@ from density_planner.io.commonroad_solution import SolutionConfig, read_solution
 from density_planner.systems.ks import KinematicSingleTrack, KSConfig
 
 TINY = ["--set", "density_planner.n_candidates=4", "--set", "density_planner.epochs_init=3",
-        "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=16"]
+        "--set", "density_planner.epochs_density=2", "--set", "density_planner.n_samples=16",
+        "--set", "density_planner.evaluation_samples=16"]
 
 
 def _trajectory(ks: KinematicSingleTrack) -> np.ndarray:

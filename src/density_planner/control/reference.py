@@ -203,7 +203,9 @@ def make_reference(
     """Reference trajectories of ``system`` from ``start (*batch, nx)`` for ``params (*batch, nu, n_segments)``.
 
     The state follows explicit Euler on the fine grid of the nominal model (``system.rollout``, loop-free for the
-    car). Leading dimensions of ``start`` and ``params`` broadcast.
+    car), held at rest once it stops when the system cannot reverse (:meth:`System.standstill`); ``u`` are then the
+    inputs the roll-out applied (:meth:`System.held_inputs`: no braking feed-forward at rest), ``params`` the
+    commanded ones. Leading dimensions of ``start`` and ``params`` broadcast.
     """
     par = parameterization or PiecewiseConstantInputs()
     params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
@@ -212,7 +214,8 @@ def make_reference(
     u = par.inputs(params)
     x = system.rollout(start, u, par.dt)
     batch = x.shape[:-2]
-    return Reference(params.expand(*batch, *params.shape[-2:]), x, u.expand(*batch, *u.shape[-2:]), par)
+    u = system.held_inputs(x, u.expand(*batch, *u.shape[-2:]), par.dt)
+    return Reference(params.expand(*batch, *params.shape[-2:]), x, u, par)
 
 
 def plan_grid_reference(
@@ -222,7 +225,9 @@ def plan_grid_reference(
     parameterization: PiecewiseConstantInputs | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``(x_plan (*batch, n_plan, nx), u_plan (*batch, n_plan - 1, nu))``: :func:`make_reference` on the planning
-    grid only (same values, cheaper; used where the fine grid is not needed, e.g. the planner's first stage)."""
+    grid only (same values, cheaper; used where the fine grid is not needed, e.g. the planner's first stage). Where
+    the roll-out stops, ``u_plan`` is the mean input the hold applied over the planning step (``held_inputs`` on the
+    planning grid; :func:`make_reference`'s ``u_plan`` samples the fine grid's instead)."""
     par = parameterization or PiecewiseConstantInputs()
     params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
     start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
@@ -238,7 +243,8 @@ def plan_grid_reference(
         u = par.inputs(params)
         x_plan = system.rollout_strided(start, u, par.dt, par.plan_stride)
         u_plan = u[..., :: par.plan_stride, :]
-    return x_plan, u_plan.expand(*x_plan.shape[:-2], *u_plan.shape[-2:])
+    u_plan = u_plan.expand(*x_plan.shape[:-2], *u_plan.shape[-2:])
+    return x_plan, system.held_inputs(x_plan, u_plan, par.dt * par.plan_stride)
 
 
 def horizon_steps(duration: float, dt: float) -> int:

@@ -15,7 +15,23 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["System", "ControlAffineSystem", "Footprint", "ConfigBoxes"]
+__all__ = ["System", "ControlAffineSystem", "Footprint", "ConfigBoxes", "hold_speeds"]
+
+
+def hold_speeds(v: Tensor) -> Tensor:
+    """Speeds ``v (..., K + 1)`` of an Euler roll-out made without the standstill hold -> those of the vehicle that
+    stops instead of reversing, ``w_0 = v_0``, ``w_{k+1} = max(0, w_k + (v_{k+1} - v_k))`` (:meth:`System.standstill`
+    after every step).
+
+    Loop-free (Lindley's recursion): ``w_k = v_k - min(0, min_{1 <= j <= k} v_j)`` for ``k >= 1``, one cumulative
+    minimum. Differentiable: where the hold is active the speed no longer depends on the braking that stopped it.
+    Returns ``v`` itself when no speed after the first is negative (nothing to hold).
+    """
+    tail = v[..., 1:]
+    if tail.numel() == 0 or not bool((tail < 0).any()):
+        return v
+    low = torch.cummin(tail, dim=-1).values.clamp(max=0.0)
+    return torch.cat([v[..., :1], tail - low], dim=-1)
 
 
 @dataclass(frozen=True)
@@ -252,19 +268,38 @@ class System(ABC):
     def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
         """Explicit-Euler open-loop rollout: ``x0 (*batch, nx)``, ``u (*batch, K, nu)`` -> ``(*batch, K+1, nx)``.
 
+        The roll-out is the plant's: :meth:`standstill` holds a vehicle that cannot reverse at rest after every
+        step (a reference that brakes to a stop stays stopped; :meth:`held_inputs` gives the inputs it applied).
         Generic version with a loop over the K steps; systems override it with a loop-free form where one exists.
         """
         batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-2])
         x = x0.expand(*batch, x0.shape[-1])
         xs = [x]
         for k in range(u.shape[-2]):
-            x = x + dt * self.f(x, u[..., k, :])
+            x = self.standstill(x + dt * self.f(x, u[..., k, :]))
             xs.append(x)
         return torch.stack(xs, dim=-2)
 
     def rollout_strided(self, x0: Tensor, u: Tensor, dt: float, stride: int) -> Tensor:
         """:meth:`rollout` returned only every ``stride``-th state: ``(*batch, K // stride + 1, nx)``."""
         return self.rollout(x0, u, dt)[..., ::stride, :]
+
+    def held_inputs(self, x: Tensor, u: Tensor, dt: float) -> Tensor:
+        """The inputs ``(*batch, K, nu)`` a roll-out ``x (*batch, K + 1, nx)`` of ``u`` over steps ``dt`` applied:
+        where :meth:`standstill` held the vehicle at rest, the acceleration input is replaced by the speed change it
+        made, ``(v_{k+1} - v_k) / dt = -v_k / dt`` (0 while standing), so that a controller's feed-forward does not
+        brake a reference that has stopped. Assumes the acceleration input drives the speed state (``v' = a``, the
+        car and the single-track model); identity for systems without a standstill or an acceleration input, and
+        for roll-outs that never stop."""
+        i, a = self.standstill_index, self.acceleration_input
+        if i is None or a is None:
+            return u
+        v = x[..., :-1, i]
+        held = v + dt * u[..., a] < 0
+        if not bool(held.any()):
+            return u
+        channel = torch.arange(u.shape[-1], device=u.device) == a
+        return torch.where(held.unsqueeze(-1) & channel, (-v / dt).unsqueeze(-1), u)
 
 
 class ControlAffineSystem(System):

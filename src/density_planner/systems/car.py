@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ..checks import broadcast_shape
-from .base import ConfigBoxes, ControlAffineSystem, Footprint
+from .base import ConfigBoxes, ControlAffineSystem, Footprint, hold_speeds
 from .registry import register_system
 
 __all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "wrap_heading", "PX",
@@ -263,8 +263,14 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         )
 
     # ------------------------------------------------------------ references
+    def _hold(self, v: Tensor) -> Tensor:
+        """Speeds of a roll-out held at rest once stopped (:func:`~density_planner.systems.base.hold_speeds`) when
+        the speed box starts at 0 (:attr:`standstill_index`), else ``v``."""
+        return v if self.standstill_index is None else hold_speeds(v)
+
     def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
-        """Loop-free explicit-Euler rollout of the nominal car (no bias), identical to the step-by-step loop.
+        """Loop-free explicit-Euler rollout of the nominal car (no bias), identical to the step-by-step loop with the
+        plant's hold at rest (:meth:`standstill`: a car that brakes to a stop stays stopped).
 
         With ``x_{k+1} = x_k + dt f(x_k, u_k)``: ``theta`` and ``v`` are exclusive cumulative sums of the inputs,
         and ``p_x, p_y`` exclusive cumulative sums of ``v_k cos(theta_k)``, ``v_k sin(theta_k)``.
@@ -273,7 +279,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
-        v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
+        v = self._hold(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
         px = _exclusive_cumsum(dt * v[..., :-1] * torch.cos(theta[..., :-1]), x0[..., PX])
         py = _exclusive_cumsum(dt * v[..., :-1] * torch.sin(theta[..., :-1]), x0[..., PY])
         bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
@@ -290,7 +296,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
-        v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
+        v = self._hold(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
         vc = (dt * v[..., :-1] * torch.cos(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
         vs = (dt * v[..., :-1] * torch.sin(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
         px = _exclusive_cumsum(vc, x0[..., PX])
@@ -322,6 +328,10 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         v_seg = _exclusive_cumsum(n * dt * acc, x0[..., V])
         theta = theta_seg[..., :-1, None] + omega[..., None] * j  # (*batch, S, n)
         v = v_seg[..., :-1, None] + acc[..., None] * j
+        if self.standstill_index is not None and bool((v_seg[..., 1:] < 0).any() | (v < 0).any()):
+            # the hold (standstill) acts: on the fine grid, then back into segments
+            held = self._hold(torch.cat([v.flatten(-2), v_seg[..., -1:]], dim=-1))
+            v, v_seg = held[..., :-1].unflatten(-1, v.shape[-2:]), torch.cat([v_seg[..., :-1], held[..., -1:]], -1)
         blocks = (*theta.shape[:-1], n // stride, stride)
         vc = (dt * v * torch.cos(theta)).reshape(blocks).sum(-1).flatten(-2)
         vs = (dt * v * torch.sin(theta)).reshape(blocks).sum(-1).flatten(-2)

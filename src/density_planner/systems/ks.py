@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import ConfigBoxes, ControlAffineSystem, Footprint
+from .base import ConfigBoxes, ControlAffineSystem, Footprint, hold_speeds
 from .registry import register_system
 
 __all__ = ["KSVehicle", "KS_VEHICLES", "KSConfig", "KS_DOMAINS", "ks_domain", "KinematicSingleTrack"]
@@ -248,7 +248,8 @@ class KinematicSingleTrack(ConfigBoxes, ControlAffineSystem):
 
     # ------------------------------------------------------------ references
     def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
-        """Loop-free explicit-Euler rollout, identical to the step-by-step loop: ``delta`` and ``v`` are exclusive
+        """Loop-free explicit-Euler rollout, identical to the step-by-step loop with the plant's hold at rest
+        (:meth:`standstill`, :func:`~density_planner.systems.base.hold_speeds`): ``delta`` and ``v`` are exclusive
         cumulative sums of the inputs, ``psi`` one of ``v_k tan(delta_k) / l_wb``, and ``p_x, p_y`` ones of
         ``v_k cos(psi_k)``, ``v_k sin(psi_k)``."""
         batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-2])
@@ -256,6 +257,8 @@ class KinematicSingleTrack(ConfigBoxes, ControlAffineSystem):
         u = u.expand(*batch, *u.shape[-2:])
         delta = _exclusive_cumsum(dt * u[..., STEER_RATE], x0[..., DELTA])
         v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
+        if self.standstill_index is not None:
+            v = hold_speeds(v)
         psi = _exclusive_cumsum(dt * v[..., :-1] * torch.tan(delta[..., :-1]) / self.wheelbase, x0[..., PSI])
         px = _exclusive_cumsum(dt * v[..., :-1] * torch.cos(psi[..., :-1]), x0[..., PX])
         py = _exclusive_cumsum(dt * v[..., :-1] * torch.sin(psi[..., :-1]), x0[..., PY])
