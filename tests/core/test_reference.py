@@ -80,6 +80,8 @@ def test_gradient_through_the_hold_matches_finite_differences():
     start = torch.tensor([0.0, 0.0, 0.3, 1.7, 0.0], dtype=torch.float64, requires_grad=True)
     assert float(make_reference(car, start.detach(), params.detach(), par).x[0, :, 3].min()) == 0.0  # hold acts
     assert torch.autograd.gradcheck(lambda p, s: make_reference(car, s, p, par).x, (params, start))
+    # the planning grid's piecewise form of the hold (segment-level running minimum)
+    assert torch.autograd.gradcheck(lambda p, s: plan_grid_reference(car, s, p, par)[0], (params, start))
 
 
 def test_shapes_and_grids():

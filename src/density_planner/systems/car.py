@@ -328,10 +328,9 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         v_seg = _exclusive_cumsum(n * dt * acc, x0[..., V])
         theta = theta_seg[..., :-1, None] + omega[..., None] * j  # (*batch, S, n)
         v = v_seg[..., :-1, None] + acc[..., None] * j
-        if self.standstill_index is not None and bool((v_seg[..., 1:] < 0).any() | (v < 0).any()):
-            # the hold (standstill) acts: on the fine grid, then back into segments
-            held = self._hold(torch.cat([v.flatten(-2), v_seg[..., -1:]], dim=-1))
-            v, v_seg = held[..., :-1].unflatten(-1, v.shape[-2:]), torch.cat([v_seg[..., :-1], held[..., -1:]], -1)
+        # linear within a segment: a negative speed shows at a segment's end
+        if self.standstill_index is not None and bool((v_seg[..., 1:] < 0).any()):
+            v, v_seg = _hold_piecewise(v, v_seg)
         blocks = (*theta.shape[:-1], n // stride, stride)
         vc = (dt * v * torch.cos(theta)).reshape(blocks).sum(-1).flatten(-2)
         vs = (dt * v * torch.sin(theta)).reshape(blocks).sum(-1).flatten(-2)
@@ -341,6 +340,24 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         v = torch.cat([v[..., ::stride].flatten(-2), v_seg[..., -1:]], dim=-1)
         bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
         return torch.stack([px, py, theta, v, bias], dim=-1)
+
+
+def _hold_piecewise(v: Tensor, v_seg: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`~density_planner.systems.base.hold_speeds` of unheld speeds that are linear within each segment:
+    ``v (..., S, n)`` on the fine grid (segment ``s``, step ``i``), ``v_seg (..., S + 1)`` at the segment starts and
+    the end. The running minimum ``m_k = min(0, min_{1 <= j <= k} v_j)`` of a piecewise-linear sequence is attained
+    at step 1, a segment start or ``k`` itself, so ``v_k - m_k = max(v_k - M_s, 0)`` with ``M_s`` the cumulative
+    minimum over ``0``, step 1 and the segment starts up to ``s`` (``S`` values, not the fine grid); the first step
+    keeps ``v_0``. Returns the held ``(v, v_seg)`` (of ``v_seg`` only the end is held; its interior entries are
+    returned unchanged: the caller reads the end only)."""
+    first = v[..., 0, 1] if v.shape[-1] > 1 else v_seg[..., 1]  # v_1
+    starts = torch.cat([first.clamp(max=0.0).unsqueeze(-1), v_seg[..., 1:-1]], dim=-1)  # (..., S)
+    low = torch.cummin(starts, dim=-1).values.unsqueeze(-1)  # (..., S, 1): M_s
+    head = torch.cat([v[..., :1, :1], (v[..., :1, 1:] - low[..., :1, :]).clamp(min=0.0)], dim=-1)
+    held = torch.cat([head, (v[..., 1:, :] - low[..., 1:, :]).clamp(min=0.0)], dim=-2)
+    end = v_seg[..., -1:]
+    end_held = (end - torch.minimum(low[..., -1, :], v[..., -1, -1:])).clamp(min=0.0)
+    return held, torch.cat([v_seg[..., :-1], end_held], dim=-1)
 
 
 def _exclusive_cumsum(increments: Tensor, start: Tensor) -> Tensor:
