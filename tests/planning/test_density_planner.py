@@ -103,7 +103,8 @@ def test_stage1_rollout_matches_fine_reference():
     from density_planner.control.reference import make_reference, plan_grid_reference
 
     car = KinematicCar()
-    p = (torch.randn(4, 2, 10, dtype=torch.float64)).clamp(-3, 3)
+    p = (torch.randn(4, 2, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(0))).clamp(-3, 3)
+    p[0, 1] = torch.tensor([-3.0, -1.0, -0.5, 2.0, 0.0, -3.0, -3.0, 1.0, 0.0, 0.0])  # stops, restarts, stops
     start = torch.tensor([1.0, 2.0, 0.3, 4.0, 0.0], dtype=torch.float64)
     x_plan, u_plan = plan_grid_reference(car, start, p)
     ref = make_reference(car, start, p)

@@ -225,9 +225,7 @@ def plan_grid_reference(
     parameterization: PiecewiseConstantInputs | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``(x_plan (*batch, n_plan, nx), u_plan (*batch, n_plan - 1, nu))``: :func:`make_reference` on the planning
-    grid only (same values, cheaper; used where the fine grid is not needed, e.g. the planner's first stage). Where
-    the roll-out stops, ``u_plan`` is the mean input the hold applied over the planning step (``held_inputs`` on the
-    planning grid; :func:`make_reference`'s ``u_plan`` samples the fine grid's instead)."""
+    grid only (same values, cheaper; used where the fine grid is not needed, e.g. the planner's first stage)."""
     par = parameterization or PiecewiseConstantInputs()
     params = check_tensor("params", params, last_dims=(system.nu, par.n_segments), min_ndim=2)
     start = check_tensor("start", start, last_dims=(system.nx,), dtype=params.dtype, device=params.device)
@@ -244,7 +242,8 @@ def plan_grid_reference(
         x_plan = system.rollout_strided(start, u, par.dt, par.plan_stride)
         u_plan = u[..., :: par.plan_stride, :]
     u_plan = u_plan.expand(*x_plan.shape[:-2], *u_plan.shape[-2:])
-    return x_plan, system.held_inputs(x_plan, u_plan, par.dt * par.plan_stride)
+    # the fine grid's applied input at each planning step (its first fine step), as make_reference samples it
+    return x_plan, system.held_inputs(x_plan, u_plan, par.dt)
 
 
 def horizon_steps(duration: float, dt: float) -> int:

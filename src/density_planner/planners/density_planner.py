@@ -275,20 +275,24 @@ class DensityPlanner(Planner):
                                system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
 
-        p0 = cfg.init_std * torch.randn(cfg.n_candidates, system.nu, par.n_segments, dtype=torch.float64,
+        t_seed = time.perf_counter()
+        seeds = self.seed_candidates(problem)
+        t_seed = time.perf_counter() - t_seed
+        n_seeds = 0 if seeds is None else int(seeds.shape[0])
+        # beside route seeds (they start on the road, near the goal) fewer random candidates and epochs serve
+        seeded = n_seeds > 0 and self.candidate_seeds is None
+        n_random = cfg.routes.random_candidates if seeded else cfg.n_candidates
+        epochs = cfg.routes.epochs_init if seeded else cfg.epochs_init
+        p0 = cfg.init_std * torch.randn(n_random, system.nu, par.n_segments, dtype=torch.float64,
                                         generator=generator)
         scale = self._step_scale(problem)
         p0 = p0.to(self.dtype).to(self.device)
         if scale is not None:
             p0 = p0 * scale
         params = torch.maximum(torch.minimum(p0, high), low)
-        t_seed = time.perf_counter()
-        seeds = self.seed_candidates(problem)
-        n_seeds = 0 if seeds is None else int(seeds.shape[0])
         if seeds is not None:
             seeds = seeds.to(dtype=self.dtype, device=self.device)
             params = torch.cat([torch.maximum(torch.minimum(seeds, high), low), params])
-        t_seed = time.perf_counter() - t_seed
         opt = BatchedAdam(params, lr=cfg.lr, betas=cfg.betas, update_clip=cfg.update_clip, low=low, high=high,
                           scale=scale)
         m = params.shape[0]
@@ -302,8 +306,8 @@ class DensityPlanner(Planner):
         totals = []
         per_candidate: dict[str, list[Tensor]] = {}
         backtracker = _Backtracker(params, cfg.backtrack_factor, cfg.backtrack_slack)
-        with self._bar(cfg.epochs_init, "stage 1 (initialisation)") as bar:
-            for it in range(cfg.epochs_init):
+        with self._bar(epochs, "stage 1 (initialisation)") as bar:
+            for it in range(epochs):
                 p = params.detach().requires_grad_(True)
                 x_plan, u_plan = plan_grid_reference(system, start, p, par)
                 inputs = CostInputs.single(x_plan, u_plan, slices)
@@ -312,7 +316,7 @@ class DensityPlanner(Planner):
                 for k, v in cost.terms.items():
                     per_candidate.setdefault(k, []).append(v.detach())
                 bar.update()
-                if it == cfg.epochs_init - 1:
+                if it == epochs - 1:
                     break
                 (grad,) = torch.autograd.grad(cost.total.sum(), p)
                 back = backtracker.observe(cost.total.detach(), params)
@@ -348,7 +352,7 @@ class DensityPlanner(Planner):
             history["seed_seconds"] = [t_seed]
             history["best_is_seed"] = [float(best < n_seeds)]
         log.info("stage 1: best candidate %d of %d, full cost %.4g", best, m, float(total.min()))
-        return chosen.detach().clone(), history, cfg.epochs_init
+        return chosen.detach().clone(), history, epochs
 
     # ------------------------------------------------------------------ stage 2
     def _predict(self, predictor: DensityPredictor, problem: PlanningProblem, params: Tensor, x0: Tensor,

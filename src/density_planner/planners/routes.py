@@ -82,6 +82,13 @@ class RouteSeedConfig:
     lateral_acceleration: float = 3.0
     #: at most this many route candidates join the random ones
     max_candidates: int = 48
+    #: random stage-1 candidates beside the route seeds (``density_planner.n_candidates`` where a scene has none):
+    #: the seeds start on the road towards the goal, the random ones are the fallback. Measured on the CommonRoad
+    #: suite with ``epochs_init``: the same plans pass as with 100 random candidates and 100 epochs, stage 1 in 30 %
+    #: less time (docs/planner.md, stop 30)
+    random_candidates: int = 25
+    #: stage-1 epochs where route seeds exist (``density_planner.epochs_init`` where a scene has none)
+    epochs_init: int = 50
     #: Levenberg-Marquardt iterations of the fit through the reference roll-out (:func:`fit_reference_parameters`)
     fit_iterations: int = 3
     #: weight of the squared speed error against the squared position error in the fit [m^2 / (m/s)^2]
@@ -102,7 +109,8 @@ class RouteSeedConfig:
     profile_switch_times: tuple[float, ...] = (1.0, 2.0, 4.0, 6.0, 8.0)
 
     def __post_init__(self) -> None:
-        for name in ("max_routes", "max_candidates", "fit_iterations", "profile_speeds"):
+        for name in ("max_routes", "max_candidates", "fit_iterations", "profile_speeds", "random_candidates",
+                     "epochs_init"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"routes.{name} must be a positive integer, got {v!r}")
