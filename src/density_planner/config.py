@@ -187,13 +187,26 @@ def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
     return cfg
 
 
+#: folder of the named configurations shipped with the package (``--config paper``)
+PRESETS = Path(__file__).parent / "data" / "presets"
+
+
+def presets() -> list[str]:
+    """Names of the shipped configurations (``--config NAME``; the TOML files in ``data/presets``)."""
+    return sorted(p.stem for p in PRESETS.glob("*.toml"))
+
+
 def load_config(cls: type[T], path: str | Path | None = None, overrides: Sequence[str] = ()) -> T:
-    """Defaults of ``cls``, updated by the TOML file at ``path`` (if given), then by ``overrides``."""
+    """Defaults of ``cls``, updated by the TOML file at ``path`` (if given; a bare name such as ``"paper"`` that is
+    not a file names a shipped preset, :func:`presets`), then by ``overrides``."""
     cfg = cls()
     if path is not None:
         path = Path(path)
+        if not path.is_file() and path.suffix == "" and path.parent == Path(".") and str(path) in presets():
+            path = PRESETS / f"{path}.toml"
         if not path.is_file():
-            raise ConfigError(f"config file not found: {path}")
+            raise ConfigError(f"config file not found: {path} (a TOML file, or a shipped preset: "
+                              f"{', '.join(presets())})")
         try:
             data = tomllib.loads(path.read_text())
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

@@ -80,3 +80,22 @@ def test_missing_and_invalid_file(tmp_path):
     bad.write_text("x = = 1")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(Outer, bad)
+
+
+def test_the_paper_preset_restores_the_papers_setting(tmp_path, monkeypatch):
+    from density_planner.config import presets
+    from density_planner.settings import RunConfig
+
+    assert "paper" in presets()
+    monkeypatch.chdir(tmp_path)  # a bare name, not a file here
+    cfg = load_config(RunConfig, "paper", ["density_planner.seed=3"])
+    assert (cfg.risk.estimator, cfg.risk.body) == ("paper", False)
+    dp = cfg.density_planner
+    assert (dp.weighting, dp.n_samples, dp.epochs_density, dp.seed) == ("density", 500, 100, 3)
+    # everything else keeps its default
+    assert dp.n_candidates == RunConfig().density_planner.n_candidates
+    # a local file of that name wins over the preset; an unknown name lists the presets
+    (tmp_path / "paper").write_text('[density_planner]\nn_samples = 7\n')
+    assert load_config(RunConfig, "paper").density_planner.n_samples == 7
+    with pytest.raises(ConfigError, match="shipped preset: .*paper"):
+        load_config(RunConfig, "papr")

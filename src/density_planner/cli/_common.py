@@ -127,7 +127,9 @@ def apply_system_args(args: argparse.Namespace, run_config):
 def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:
     """``--config FILE.toml`` and ``--set KEY=VALUE``; ``example`` is a valid key of the command's configuration
     (tests/test_set_examples.py parses every example)."""
-    p.add_argument("--config", type=Path, default=None, metavar="FILE.toml", help="configuration file (TOML)")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE.toml",
+                   help="configuration file (TOML), or the name of a shipped preset: 'paper' (the paper's setting: "
+                        "point vehicle, binned risk estimator, density weights, 500 samples, 100 stage-2 iterations)")
     p.add_argument(
         "--set",
         dest="overrides",
