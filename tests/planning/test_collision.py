@@ -184,6 +184,19 @@ def test_dilate_sparse_equals_dense(shape, rho, tile):
     assert torch.equal(dilate_sparse(torch.zeros(shape), rho, tile=tile), torch.zeros(shape))
     with pytest.raises(ValueError, match="levels"):
         dilate_sparse(probs, rho, levels=256)
+    # ignored cells (a road's off-road cells, at 1.0 in the scene's grid) read as 0: equal to dilating the masked
+    # grid, whether a tile is wholly ignored, wholly kept or cut by the mask (also at the border)
+    ignore = torch.zeros(shape[1:], dtype=torch.bool)
+    ignore[: shape[1] // 3] = True
+    ignore[:, -(shape[2] // 4 + 1):] = True
+    ignore[shape[1] // 2, 1:3] = True
+    walled = probs.masked_fill(ignore, 1.0)
+    assert torch.equal(dilate_sparse(walled, rho, tile=tile, max_chunk=5000, ignore=ignore),
+                       dilate(probs.masked_fill(ignore, 0.0), rho))
+    assert torch.equal(dilate_sparse(walled, rho, tile=tile, levels=255, ignore=ignore),
+                       dilate_sparse(walled.masked_fill(ignore, 0.0), rho, tile=tile, levels=255))
+    with pytest.raises(ValueError, match="ignore"):
+        dilate_sparse(probs, rho, ignore=ignore[1:])
 
 
 def test_disc_cover_contains_rectangle_and_area_excess():

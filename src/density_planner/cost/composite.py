@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ..environment.scene import Scene
-from ..risk.collision import CollisionModel, RiskConfig, collision_grid
+from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from .road import RoadCostConfig, with_road_terms
 from .terms import BoundsCost, CollisionCost, CostInputs, CostTerm, GoalCost, InputCost
@@ -161,8 +161,8 @@ def build_cost(
         close_threshold=config.goal_close_threshold,
         positions=None if system is None else system.positions,
     )
-    grid = collision_grid(scene, risk)  # road scenes: road users only, the road is the barrier's
-    model = CollisionModel(grid if device is None else grid.to(device), system, risk)
+    # road scenes: road users only, the road is the barrier's
+    model = CollisionModel.for_scene(scene, system, risk, device=device)
     collision = CollisionCost(model, beta=config.beta, plateau_scales=config.plateau_scales)
     terms, weights = with_road_terms(scene, config, [goal, InputCost(), bounds, collision], config.weights.as_dict(),
                                      optimisation=optimisation, device=device, system=system)

@@ -20,7 +20,7 @@ from ..checks import check_seed
 from ..control.reference import PiecewiseConstantInputs
 from ..density.distributions import InitialDistribution, paper_gaussian_mixture
 from ..environment.scene import START_OCCUPIED_THRESHOLD, Scene, validate_scene
-from ..risk.collision import CollisionModel, RiskConfig, collision_grid
+from ..risk.collision import CollisionModel, RiskConfig
 from ..systems.base import System
 from ..systems.registry import make_system
 
@@ -192,8 +192,7 @@ class PlanningProblem:
         """The collision model of this problem (scene grid, system, risk settings) on ``device``; ``road_edge``
         overrides ``risk.road_edge`` (the MPC and oracle constraints, which have no road term, pass
         ``"occupied"``; :func:`~density_planner.risk.collision.collision_grid`)."""
-        grid = collision_grid(self.scene, self.risk, road_edge=road_edge)
-        return CollisionModel(grid if device is None else grid.to(device), self.system, self.risk)
+        return CollisionModel.for_scene(self.scene, self.system, self.risk, device=device, road_edge=road_edge)
 
     def __post_init__(self) -> None:
         validate_scene(self.scene, start_threshold=self.start_threshold)

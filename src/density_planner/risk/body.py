@@ -48,7 +48,8 @@ from torch import Tensor
 from ..environment.grid import OccupancyGrid
 from ..systems.base import Footprint
 
-__all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "disc_kernel_rows", "quantise_up", "dequantise"]
+__all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "masked_grid", "disc_kernel_rows", "quantise_up",
+           "dequantise"]
 
 #: quantisation levels of the dilated grid (values rounded up to multiples of 1 / _LEVELS)
 _LEVELS = 255
@@ -159,9 +160,11 @@ def dilate(probs: Tensor, radius_cells: float) -> Tensor:
 
 
 def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels: int | None = None,
-                  max_chunk: int = 1 << 22) -> Tensor:
+                  max_chunk: int = 1 << 22, ignore: Tensor | None = None) -> Tensor:
     """:func:`dilate` of ``probs (T, NX, NY)`` (values >= 0) computed on the tiles that can be non-zero only (module
-    docstring).
+    docstring). ``ignore (NX, NY)`` (bool): cells read as 0 in every slice (a road scene's off-road cells, which the
+    road barrier prices, not collision), without forming the masked grid: equal to ``dilate_sparse(probs *
+    ~ignore, ...)``.
 
     The grid is cut into ``tile x tile``-cell tiles per slice; a tile of the output can be non-zero only if an
     occupied cell lies within the kernel's reach ``h`` (cells) of it, so only those tiles are dilated: each with a
@@ -178,13 +181,21 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
         raise ValueError(f"probs must have shape (T, NX, NY), got {tuple(probs.shape)}")
     h, tile = _reach_and_tile(radius_cells, tile)
     probs = probs.contiguous()
+    keep = None
+    if ignore is not None:
+        if ignore.shape != probs.shape[1:] or ignore.dtype != torch.bool:
+            raise ValueError(f"ignore must be a bool tensor of shape {tuple(probs.shape[1:])}, got "
+                             f"{ignore.dtype} {tuple(ignore.shape)}")
+        keep = (~ignore).to(device=probs.device, dtype=probs.dtype).contiguous()
     out = torch.zeros_like(probs)
-    idx = _active_tiles(probs, tile, h)  # (N, 3): slice, tile row, tile column
+    idx = _active_tiles(probs, tile, h, keep)  # (N, 3): slice, tile row, tile column
     size = tile + 2 * h
     per_chunk = max(1, max_chunk // (size * size))
     for c0 in range(0, idx.shape[0], per_chunk):
         t, bx, by = idx[c0:c0 + per_chunk].unbind(-1)
         patch = _read_patches(probs, t, bx * tile - h, by * tile - h, size)
+        if keep is not None:
+            patch *= _read_patches(keep.unsqueeze(0), torch.zeros_like(t), bx * tile - h, by * tile - h, size)
         if levels is not None:
             patch = quantise_up(patch, levels, out=patch)
         d = dilate(patch, radius_cells)[:, h:h + tile, h:h + tile]
@@ -215,9 +226,9 @@ def _reach_and_tile(radius_cells: float, tile: int) -> tuple[int, int]:
     return h, max(tile, h, 1)
 
 
-def _active_tiles(probs: Tensor, tile: int, h: int) -> Tensor:
-    """``(N, 3)`` indices (slice, tile row, tile column) of the output tiles within ``h`` cells of a non-zero cell
-    of ``probs >= 0`` (amax reductions along the contiguous axis: no full-size temporary)."""
+def _tile_maxima(probs: Tensor, tile: int) -> Tensor:
+    """``(T, nbx, nby)`` maxima of ``probs (T, NX, NY)`` over its ``tile x tile`` tiles (the last row and column of
+    tiles cut at the border); amax reductions along the contiguous axis: no full-size temporary."""
     T, NX, NY = probs.shape
     nbx, nby = -(-NX // tile), -(-NY // tile)
     # per tile column: maxima over tile-wide runs of each row (the last, partial run separately)
@@ -227,7 +238,29 @@ def _active_tiles(probs: Tensor, tile: int, h: int) -> Tensor:
         cols.append(probs[:, :, full * tile:].amax(-1, keepdim=True))
     runs = torch.cat(cols, dim=-1) if len(cols) > 1 else cols[0]  # (T, NX, nby)
     runs = F.pad(runs, (0, 0, 0, nbx * tile - NX))
-    occupied = runs.view(T, nbx, tile, nby).amax(2) > 0  # (T, nbx, nby)
+    return runs.view(T, nbx, tile, nby).amax(2)
+
+
+def _active_tiles(probs: Tensor, tile: int, h: int, keep: Tensor | None = None) -> Tensor:
+    """``(N, 3)`` indices (slice, tile row, tile column) of the output tiles within ``h`` cells of a non-zero cell
+    of ``probs >= 0`` (times ``keep (NX, NY)`` where given). With ``keep``, tiles wholly kept read ``probs`` alone,
+    tiles wholly dropped are empty, and only the tiles ``keep`` cuts are re-read with it (a road's edge: few)."""
+    T = probs.shape[0]
+    occupied = _tile_maxima(probs, tile) > 0  # (T, nbx, nby)
+    if keep is not None:
+        kmax = _tile_maxima(keep.unsqueeze(0), tile)[0] > 0
+        kmin = -_tile_maxima(-keep.unsqueeze(0), tile)[0] > 0  # (tiles cut by the map's border count as cut)
+        occupied &= kmax
+        cut = (kmax & ~kmin).nonzero()  # (C, 2)
+        per_chunk = max(1, (1 << 22) // (tile * tile))
+        pairs = torch.cartesian_prod(torch.arange(T, device=probs.device), torch.arange(cut.shape[0],
+                                                                                        device=probs.device))
+        for c0 in range(0, pairs.shape[0], per_chunk):
+            t, c = pairs[c0:c0 + per_chunk].unbind(-1)
+            bx, by = cut[c].unbind(-1)
+            patch = _read_patches(probs, t, bx * tile, by * tile, tile)
+            patch *= _read_patches(keep.unsqueeze(0), torch.zeros_like(t), bx * tile, by * tile, tile)
+            occupied[t, bx, by] = patch.flatten(1).amax(1) > 0
     k = -(-h // tile)  # tiles within reach
     active = F.max_pool2d(occupied.to(torch.float32).unsqueeze(1), 2 * k + 1, 1, k).squeeze(1) > 0
     return active.nonzero()
@@ -271,15 +304,29 @@ def _write_tiles(out: Tensor, t: Tensor, bx: Tensor, by: Tensor, values: Tensor)
         out.view(-1)[lin[keep]] = values[cut][keep]
 
 
-def body_grid(grid: OccupancyGrid, radius: float) -> OccupancyGrid:
+def masked_grid(grid: OccupancyGrid, ignore: Tensor) -> OccupancyGrid:
+    """``grid`` with the cells of ``ignore (NX, NY)`` (bool) at 0 in every slice, cached on ``grid`` (one per mask)."""
+    key = ("masked", id(ignore))
+    cached = grid._cache.get(key)
+    if cached is None or cached.device != grid.device:
+        keep = (~ignore).to(device=grid.device, dtype=grid.probs.dtype)
+        cached = grid.with_probs(grid.probs * keep)
+        grid._cache[key] = cached
+    return cached
+
+
+def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = None) -> OccupancyGrid:
     """The disc-dilated grid ``D_radius`` of ``grid`` (module docstring), cached on ``grid``; ``grid`` itself for
-    ``radius = 0``."""
+    ``radius = 0``. ``ignore (NX, NY)`` (bool): cells that count as free (a road scene's off-road cells; the masked
+    grid is not formed for ``radius > 0``, :func:`dilate_sparse`; :func:`masked_grid` for ``radius = 0``). Cached per
+    ``ignore`` tensor (by identity: pass the same mask object, as :func:`~density_planner.environment.commonroad.
+    offroad_mask` does)."""
     if radius < 0 or not math.isfinite(radius):
         raise ValueError(f"radius must be a finite number >= 0 [m], got {radius}")
     rho = radius / grid.cell_size
     if disc_kernel_rows(rho) == {0: 0}:
-        return grid
-    key = ("body_grid", round(rho, 9))
+        return grid if ignore is None else masked_grid(grid, ignore)
+    key = ("body_grid", round(rho, 9), None if ignore is None else id(ignore))
     cached = grid._cache.get(key)
     if cached is not None and cached.device == grid.device:
         return cached
@@ -287,6 +334,7 @@ def body_grid(grid: OccupancyGrid, radius: float) -> OccupancyGrid:
         # quantised up to multiples of 1/255 (conservative by < 0.004): the max-filter runs on uint8, ~10x faster
         # than on float32; only the tiles within reach of an occupied cell are dilated (the grids are large, 50M
         # cells for a 13-s urban scene, and ~1 % occupied)
-        out = grid.with_probs(dilate_sparse(grid.probs, rho, levels=_LEVELS))
+        mask = None if ignore is None else ignore.to(grid.device)
+        out = grid.with_probs(dilate_sparse(grid.probs, rho, levels=_LEVELS, ignore=mask))
     grid._cache[key] = out
     return out

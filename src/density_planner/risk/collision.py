@@ -53,10 +53,10 @@ from torch import Tensor
 from ..checks import check_choice, check_tensor
 from ..environment.grid import OccupancyGrid
 from ..systems.base import System
-from .body import DiscCover, body_grid
+from .body import DiscCover, body_grid, masked_grid
 
-__all__ = ["RiskConfig", "CollisionModel", "CollisionReport", "collision_probability", "collision_grid", "ESTIMATORS",
-           "ROAD_EDGES"]
+__all__ = ["RiskConfig", "CollisionModel", "CollisionReport", "collision_probability", "collision_grid",
+           "collision_mask", "ESTIMATORS", "ROAD_EDGES"]
 
 ESTIMATORS = ("is", "paper")
 ROAD_EDGES = ("barrier", "occupied")
@@ -153,10 +153,14 @@ class CollisionModel:
         config: risk settings (estimator, body on/off, discs).
     """
 
-    def __init__(self, grid: OccupancyGrid, system: System | None = None, config: RiskConfig | None = None):
+    def __init__(self, grid: OccupancyGrid, system: System | None = None, config: RiskConfig | None = None, *,
+                 ignore: Tensor | None = None):
         self.grid = grid
         self.system = system
         self.config = config or RiskConfig()
+        #: ``(NX, NY)`` cells of ``grid`` that are not obstacles for collision (a road scene's off-road cells with
+        #: ``road_edge = "barrier"``: the road barrier's); ``None``: every cell counts
+        self.ignore = ignore
         if system is None or not self.config.body:
             from ..systems.base import Footprint
 
@@ -164,11 +168,23 @@ class CollisionModel:
         else:
             footprint, has_heading = system.footprint, system.heading_index is not None
         self.cover = DiscCover.of(footprint, has_heading=has_heading, n_discs=self.config.n_discs)
-        self.body_grid = body_grid(grid, self.cover.radius)
+        self.body_grid = body_grid(grid, self.cover.radius, ignore=ignore)
+
+    @classmethod
+    def for_scene(cls, scene, system: System | None = None, config: RiskConfig | None = None, *,
+                  device: torch.device | str | None = None, road_edge: str | None = None) -> CollisionModel:
+        """The model of ``scene``'s grid (on ``device``) with the cells :func:`collision_mask` leaves to the road
+        barrier ignored; equal to ``CollisionModel(collision_grid(scene, ...), ...)`` without forming that grid."""
+        grid = scene.grid if device is None else scene.grid.to(device)
+        mask = collision_mask(scene, config, road_edge=road_edge)
+        return cls(grid, system, config, ignore=mask)
 
     def to(self, device: torch.device | str) -> CollisionModel:
         grid = self.grid.to(device)
-        return self if grid is self.grid else CollisionModel(grid, self.system, self.config)
+        if grid is self.grid:
+            return self
+        return CollisionModel(grid, self.system, self.config,
+                              ignore=None if self.ignore is None else self.ignore.to(grid.device))
 
     # ------------------------------------------------------------------ geometry
     def positions(self, x: Tensor) -> Tensor:
@@ -329,28 +345,24 @@ def importance_weights(x: Tensor, log_rho0: Tensor | None, log_q0: Tensor | None
     return torch.softmax(lw, dim=-1)
 
 
-def collision_grid(scene, config: RiskConfig | None = None, *, road_edge: str | None = None) -> OccupancyGrid:
-    """The grid collision reads on ``scene``: the scene's own grid, or, with ``road_edge = "barrier"`` (default
-    ``config.road_edge``) on a scene whose grid marks its off-road cells (:func:`~density_planner.environment.
-    commonroad.offroad_mask`), the same grid with those cells at 0 (road users and static obstacles only), cached
-    on the scene's grid."""
+def collision_mask(scene, config: RiskConfig | None = None, *, road_edge: str | None = None) -> Tensor | None:
+    """``(NX, NY)`` cells of ``scene``'s grid that collision does not read as obstacles: with ``road_edge =
+    "barrier"`` (default ``config.road_edge``) on a scene whose grid marks its off-road cells, those cells
+    (:func:`~density_planner.environment.commonroad.offroad_mask`, one tensor per road and grid geometry); else
+    ``None``."""
     from ..environment.commonroad import offroad_mask
 
     edge = road_edge or (config or RiskConfig()).road_edge
     check_choice("road_edge", edge, ROAD_EDGES)
-    grid = scene.grid
-    if edge == "occupied":
-        return grid
-    mask = offroad_mask(scene)
-    if mask is None:
-        return grid
-    key = ("road_users", id(mask))
-    cached = grid._cache.get(key)
-    if cached is None or cached.device != grid.device:
-        keep = (~mask).to(device=grid.device, dtype=grid.probs.dtype)
-        cached = grid.with_probs(grid.probs * keep)
-        grid._cache[key] = cached
-    return cached
+    return None if edge == "occupied" else offroad_mask(scene)
+
+
+def collision_grid(scene, config: RiskConfig | None = None, *, road_edge: str | None = None) -> OccupancyGrid:
+    """The grid collision reads on ``scene``: the scene's own grid, or that grid with the cells of
+    :func:`collision_mask` at 0 (road users and static obstacles only), cached on the scene's grid. The planners
+    build :meth:`CollisionModel.for_scene`, which reads the same values without forming this grid."""
+    mask = collision_mask(scene, config, road_edge=road_edge)
+    return scene.grid if mask is None else masked_grid(scene.grid, mask)
 
 
 def collision_probability(
