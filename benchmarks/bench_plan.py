@@ -42,6 +42,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--stage1-repeats", type=int, default=5)
     p.add_argument("--epochs-density", type=int, default=100)
+    p.add_argument("--samples", type=int, default=500, help="stage-2 samples (the paper's 500; the default is 200)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the CLI; 0 = torch's default)")
     args = p.parse_args()
     if args.threads:
@@ -50,7 +51,7 @@ def main() -> None:
     scene = random_scene(args.seed)
     problem = PlanningProblem.from_scene(scene, seed=args.seed)
     predictor = make_predictor(args.density, args.controller)
-    config = DensityPlannerConfig(epochs_density=args.epochs_density)
+    config = DensityPlannerConfig(epochs_density=args.epochs_density, n_samples=args.samples)
     planner = DensityPlanner(predictor, config)
     load = os.getloadavg()[0]
     print(f"density planner on random scene {args.seed}: {config.n_candidates} candidates x {config.epochs_init} "
