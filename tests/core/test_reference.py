@@ -63,6 +63,13 @@ def test_a_stopping_reference_stands_instead_of_reversing():
     for k in range(ref.n_steps):
         model.append(model[-1] + ref.dt * car.f(model[-1], ref.u[:, k]))
     torch.testing.assert_close(ref.x, torch.stack(model, dim=-2), atol=1e-10, rtol=0)
+    # per segment the mean applied input: the turn rates as commanded, the braking that stopped the car, 0 at rest
+    seg = ref.segment_inputs[0]
+    assert torch.equal(seg[0], params[0, 0]) and torch.equal(seg[1, 6:], torch.zeros(4, dtype=torch.float64))
+    v_seg = ref.x[0, ::100, 3]
+    torch.testing.assert_close(seg[1], (v_seg[1:] - v_seg[:-1]) / 1.0, atol=1e-9, rtol=0)
+    moving = make_reference(car, start, params.abs())  # never stops: the commanded inputs themselves
+    assert torch.equal(moving.segment_inputs, moving.params)
     standing = (v[:-1] == 0) & (v[1:] == 0)
     assert int(standing.sum()) > 300 and bool((ref.u[0, standing, 1] == 0).all())  # no braking feed-forward at rest
     assert bool((ref.u[0, ~standing, 1] >= params[0, 1].min()).all())

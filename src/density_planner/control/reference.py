@@ -132,6 +132,16 @@ class Reference:
     def start(self) -> Tensor:
         return self.x[..., 0, :]
 
+    @property
+    def segment_inputs(self) -> Tensor:
+        """``(*batch, nu, n_segments)``: per segment, the mean of the inputs the roll-out applied (``u``). Equal to
+        ``params`` (exactly) where the reference never stops; where it stops (:meth:`System.held_inputs`), the mean
+        braking that brought it to rest and 0 while it stands: the inputs consistent with ``x`` (what the learned
+        density predictors read, trained on references whose inputs and states agree)."""
+        par = self.parameterization
+        applied = self.u - par.inputs(self.params)  # exactly 0 wherever the hold did not act
+        return self.params + applied.unflatten(-2, (par.n_segments, par.steps_per_segment)).mean(-2).transpose(-1, -2)
+
     def detach(self) -> Reference:
         return Reference(self.params.detach(), self.x.detach(), self.u.detach(), self.parameterization)
 

@@ -620,6 +620,7 @@ class LearnedDensity(DensityPredictor):
             return DensityTrajectory(t=reference.t_plan, x=reference.x_plan.unsqueeze(-3) + xe,
                                      log_rho=log_rho0.unsqueeze(-1) + lr, log_rho0=log_rho0)
         x_start, log_start = x0, torch.zeros_like(x0[..., 0])
+        inputs = reference.segment_inputs  # the applied inputs (a reference that stops stands: no braking at rest)
         xs, logs, prev, covered = [], [], None, 0
         for first in self.windows(par.n_segments):
             k0 = first * per_seg
@@ -627,7 +628,7 @@ class LearnedDensity(DensityPredictor):
                 px, plog, pk0 = prev
                 x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
             ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
-            xe, lr = self._window(x_start, ref_x[..., 0, :], reference.params[..., first:first + size], ref_x)
+            xe, lr = self._window(x_start, ref_x[..., 0, :], inputs[..., first:first + size], ref_x)
             wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
             keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
             xs.append(wx[..., keep:, :])
@@ -649,7 +650,7 @@ class LearnedDensity(DensityPredictor):
         last one."""
         par = reference.parameterization
         n = par.n_plan
-        params = reference.params
+        params = reference.segment_inputs
         pad = params.new_zeros(*params.shape[:-1], size - par.n_segments)
         x_plan = reference.x_plan
         tail = x_plan[..., -1:, :].expand(*x_plan.shape[:-2], size * per_seg + 1 - n, x_plan.shape[-1])
