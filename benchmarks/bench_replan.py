@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             state = prev.reference.x_plan[k]
             mean = state.to(torch.float64).clone()
             mean[-1] = problem.initial_distribution.mean[-1]
-            sc = oracle.scene_at(t, problem.parameterization.horizon, start=tuple(state.tolist()))
+            sc = oracle.scene_at(t, problem.parameterization.horizon, start=car.pose(state))
             prob = PlanningProblem(sc, recentred(problem.initial_distribution, mean), car, problem.parameterization,
                                    problem.risk)
             v_end = float(prev.reference.x[-1, 3])
