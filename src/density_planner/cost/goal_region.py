@@ -138,7 +138,7 @@ class GoalRegionCost(CostTerm):
 
     def __init__(self, goal: Any, *, t0: float, dt: float, velocity_weight: float = 1.0,
                  orientation_weight: float = 25.0, far_factor: float = 1.0, close_threshold: float = 3.0,
-                 simplify: float = 0.05, margin: float = 0.0, time_margin: float = 0.0, margin_weight: float = 1.0,
+                 simplify: float = 0.05, margin: float = 0.0, time_margin: float = 0.0,
                  layout: tuple[int, int, int, int] | None = None):
         self.layout = tuple(layout) if layout is not None else _CAR_LAYOUT
         if not (math.isfinite(t0) and math.isfinite(dt) and dt > 0):
@@ -156,18 +156,10 @@ class GoalRegionCost(CostTerm):
         for name, value in (("margin", margin), ("time_margin", time_margin)):
             if not math.isfinite(value) or value < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
-        if not 0.0 <= margin_weight <= 1.0:
-            raise ValueError(f"margin_weight must lie in [0, 1], got {margin_weight!r}")
-        self.margin_weight = float(margin_weight)
-        self._true_edges: list[Tensor | None] = []
         for alt in alternatives:
             shapes = getattr(alt, "shapes", None)
-            true = None
             if shapes is not None and margin > 0:
-                if margin_weight < 1.0:
-                    true = torch.as_tensor(polygon_edges(shapes, simplify=simplify))
                 shapes = _erode(shapes, margin)
-            self._true_edges.append(true)
             edges = None if shapes is None else torch.as_tensor(polygon_edges(shapes, simplify=simplify))
             vel = getattr(alt, "velocity", None)
             if vel is not None and margin > 0:
@@ -203,13 +195,7 @@ class GoalRegionCost(CostTerm):
         if edges is not None:
             ix, iy = self.layout[:2]
             pos = x[..., ix:ix + 2] if iy == ix + 1 else x[..., [ix, iy]]
-            inner = distance_to_polygons(pos, edges.to(x)).pow(2)
-            true = self._true_edges[alt]
-            if true is None:
-                d = d + inner
-            else:  # a share of the distance to the shrunk region, the rest to the region itself
-                mu = self.margin_weight
-                d = d + mu * inner + (1.0 - mu) * distance_to_polygons(pos, true.to(x)).pow(2)
+            d = d + distance_to_polygons(pos, edges.to(x)).pow(2)
         if vel is not None and self.velocity_weight > 0:
             v = x[..., self.layout[3]]
             d = d + self.velocity_weight * (torch.relu(vel[0] - v) + torch.relu(v - vel[1])).pow(2)

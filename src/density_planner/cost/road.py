@@ -91,9 +91,6 @@ class RoadCostConfig:
     #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
     #: most), so that plans end inside with room for tracking errors
     goal_margin: float = 0.5
-    #: share of the squared position distance measured to the shrunk goal region; the rest, ``1 - mu``, to the
-    #: region itself (1: all to the shrunk one)
-    goal_margin_weight: float = 1.0
     #: the goal's time interval is shrunk by up to this much at both ends for the cost [s] (a quarter of its width at
     #: most; an instant stays an instant), so that executions a little early or late still meet it
     goal_time_margin: float = 0.3
@@ -135,9 +132,8 @@ class RoadCostConfig:
         for name in ("goal_weight", "goal_margin", "goal_time_margin", "goal_velocity_weight",
                      "goal_orientation_weight", "weight", "margin"):
             check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
-        for name in ("margin_weight", "goal_margin_weight"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"cost.road.{name} must lie in [0, 1], got {getattr(self, name)!r}")
+        if not 0.0 <= self.margin_weight <= 1.0:
+            raise ValueError(f"cost.road.margin_weight must lie in [0, 1], got {self.margin_weight!r}")
         for name in ("collision_weight", "sample_weight"):
             if getattr(self, name) is not None:
                 check_positive(f"cost.road.{name}", getattr(self, name), allow_zero=True)
@@ -291,8 +287,7 @@ def with_road_terms(
             goal, t0=scene.grid.t0, dt=scene.grid.dt,
             velocity_weight=rc.goal_velocity_weight, orientation_weight=rc.goal_orientation_weight,
             far_factor=config.goal_far_factor if optimisation else 1.0, close_threshold=config.goal_close_threshold,
-            margin=rc.goal_margin, time_margin=rc.goal_time_margin, margin_weight=rc.goal_margin_weight,
-            layout=layout,
+            margin=rc.goal_margin, time_margin=rc.goal_time_margin, layout=layout,
         )
         terms = [region if t.name == "goal" else t for t in terms]
         weights["goal"] = rc.goal_weight
