@@ -647,6 +647,10 @@ def risk_aware_profiles(
     speeds differ from a kept one by less than 1 m/s RMS (diverse seeds). Returns ``(s, v, cost)`` of the kept profiles.
     """
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
+    # the family repeats profiles (a switch to the speed already held, ramps that end alike): each is scored once,
+    # in the family's order (the first of equal profiles is the one the stable ranking below would keep)
+    _, first = np.unique(np.round(v, 9), axis=0, return_index=True)
+    v = v[np.sort(first)]
     s = _integrate(v, tau)
     if speed_limit is not None:  # the road's curves and end (path_speed_limit)
         pairs = [_rate_pair(r) for r in rates]
