@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..systems.base import System, hold_speeds
+from ..systems.base import System
 from ..systems.car import ACC, BIAS, OMEGA, CarConfig, KinematicCar, V
 from .reference import PiecewiseConstantInputs, Reference, make_reference
 
@@ -125,7 +125,7 @@ def sample_feasible_references(
         p = scale[:, None] * torch.randn(m, system.nu, par.n_segments, generator=generator, dtype=torch.float64)
         p = torch.maximum(torch.minimum(p, u_hi), u_lo)
         if isinstance(cfg, CarConfig) and math.isfinite(cfg.lateral_accel_max):
-            p[:, OMEGA] = _lateral_limited_turn_rates(cfg, st[:, V], p, par, generator)
+            p[:, OMEGA] = _lateral_limited_turn_rates(system, cfg, st[:, V], p, par, generator)
         drawn += m
         ref = make_reference(system, st, p, par)
         ok = box_violation_fraction(ref.x, x_lo, x_hi) <= max_violation
@@ -143,17 +143,16 @@ def sample_feasible_references(
     return make_reference(system, starts.to(dtype=dtype, device=device), params.to(dtype=dtype, device=device), par)
 
 
-def _lateral_limited_turn_rates(cfg: CarConfig, v0: Tensor, p: Tensor, par: PiecewiseConstantInputs,
-                                generator: torch.Generator) -> Tensor:
+def _lateral_limited_turn_rates(system: System, cfg: CarConfig, v0: Tensor, p: Tensor,
+                                par: PiecewiseConstantInputs, generator: torch.Generator) -> Tensor:
     """Turn rates ``(m, S)`` of references under a lateral-acceleration limit: on segment ``k`` uniform in
     ``+-turn_rate_limit(max(|v_k|, |v_k+1|))``, with ``v_k`` the speed at the segment's start (from the
-    acceleration parameters ``p[:, ACC]``, held at rest once it stops as the roll-out holds it,
-    :func:`~density_planner.systems.base.hold_speeds`), so that ``|omega| <= turn_rate_limit(|v|)`` at every instant
-    (the bound decreases with the speed, and ``v`` is linear within a segment, or linear and then 0)."""
+    acceleration parameters ``p[:, ACC]``, held at rest once it stops as ``system``'s roll-out holds it,
+    :meth:`~density_planner.systems.base.System.held_speeds`), so that ``|omega| <= turn_rate_limit(|v|)`` at every
+    instant (the bound decreases with the speed, and ``v`` is linear within a segment, or linear and then 0)."""
     acc = p[:, ACC]
     v = torch.cat([v0[:, None], v0[:, None] + torch.cumsum(acc * par.segment_duration, dim=-1)], dim=-1)
-    if cfg.state_min[V] >= 0:  # a car that cannot reverse: its roll-out stops (System.standstill)
-        v = hold_speeds(v)
+    v = system.held_speeds(v)
     v_seg = torch.maximum(v[:, :-1].abs(), v[:, 1:].abs())
     frac = 2.0 * torch.rand(v_seg.shape, generator=generator, dtype=torch.float64) - 1.0
     return cfg.turn_rate_limit(v_seg) * frac

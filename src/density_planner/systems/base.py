@@ -284,6 +284,12 @@ class System(ABC):
         """:meth:`rollout` returned only every ``stride``-th state: ``(*batch, K // stride + 1, nx)``."""
         return self.rollout(x0, u, dt)[..., ::stride, :]
 
+    def held_speeds(self, v: Tensor) -> Tensor:
+        """Speeds ``v (..., K + 1)`` of a roll-out computed without the hold -> those of this system's roll-out:
+        :func:`hold_speeds` for a vehicle that cannot reverse (:attr:`standstill_index`), else ``v``. The loop-free
+        roll-outs of the car and the single-track model call it."""
+        return v if self.standstill_index is None else hold_speeds(v)
+
     def held_inputs(self, x: Tensor, u: Tensor, dt: float) -> Tensor:
         """The inputs ``(*batch, K, nu)`` a roll-out ``x (*batch, K + 1, nx)`` of ``u`` over steps ``dt`` applied:
         where :meth:`standstill` held the vehicle at rest, the acceleration input is replaced by the speed change it

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ..checks import broadcast_shape
-from .base import ConfigBoxes, ControlAffineSystem, Footprint, hold_speeds
+from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
 __all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "wrap_heading", "PX",
@@ -263,11 +263,6 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         )
 
     # ------------------------------------------------------------ references
-    def _hold(self, v: Tensor) -> Tensor:
-        """Speeds of a roll-out held at rest once stopped (:func:`~density_planner.systems.base.hold_speeds`) when
-        the speed box starts at 0 (:attr:`standstill_index`), else ``v``."""
-        return v if self.standstill_index is None else hold_speeds(v)
-
     def rollout(self, x0: Tensor, u: Tensor, dt: float) -> Tensor:
         """Loop-free explicit-Euler rollout of the nominal car (no bias), identical to the step-by-step loop with the
         plant's hold at rest (:meth:`standstill`: a car that brakes to a stop stays stopped).
@@ -279,7 +274,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
-        v = self._hold(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
+        v = self.held_speeds(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
         px = _exclusive_cumsum(dt * v[..., :-1] * torch.cos(theta[..., :-1]), x0[..., PX])
         py = _exclusive_cumsum(dt * v[..., :-1] * torch.sin(theta[..., :-1]), x0[..., PY])
         bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
@@ -296,7 +291,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         theta = _exclusive_cumsum(dt * u[..., OMEGA], x0[..., THETA])
-        v = self._hold(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
+        v = self.held_speeds(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
         vc = (dt * v[..., :-1] * torch.cos(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
         vs = (dt * v[..., :-1] * torch.sin(theta[..., :-1])).unflatten(-1, (k // stride, stride)).sum(-1)
         px = _exclusive_cumsum(vc, x0[..., PX])
@@ -329,15 +324,16 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         theta = theta_seg[..., :-1, None] + omega[..., None] * j  # (*batch, S, n)
         v = v_seg[..., :-1, None] + acc[..., None] * j
         # linear within a segment: a negative speed shows at a segment's end
+        v_end = v_seg[..., -1:]
         if self.standstill_index is not None and bool((v_seg[..., 1:] < 0).any()):
-            v, v_seg = _hold_piecewise(v, v_seg)
+            v, v_end = _hold_piecewise(v, v_seg)
         blocks = (*theta.shape[:-1], n // stride, stride)
         vc = (dt * v * torch.cos(theta)).reshape(blocks).sum(-1).flatten(-2)
         vs = (dt * v * torch.sin(theta)).reshape(blocks).sum(-1).flatten(-2)
         px = _exclusive_cumsum(vc, x0[..., PX])
         py = _exclusive_cumsum(vs, x0[..., PY])
         theta = torch.cat([theta[..., ::stride].flatten(-2), theta_seg[..., -1:]], dim=-1)
-        v = torch.cat([v[..., ::stride].flatten(-2), v_seg[..., -1:]], dim=-1)
+        v = torch.cat([v[..., ::stride].flatten(-2), v_end], dim=-1)
         bias = x0[..., BIAS].unsqueeze(-1).expand_as(theta)
         return torch.stack([px, py, theta, v, bias], dim=-1)
 
@@ -348,16 +344,14 @@ def _hold_piecewise(v: Tensor, v_seg: Tensor) -> tuple[Tensor, Tensor]:
     the end. The running minimum ``m_k = min(0, min_{1 <= j <= k} v_j)`` of a piecewise-linear sequence is attained
     at step 1, a segment start or ``k`` itself, so ``v_k - m_k = max(v_k - M_s, 0)`` with ``M_s`` the cumulative
     minimum over ``0``, step 1 and the segment starts up to ``s`` (``S`` values, not the fine grid); the first step
-    keeps ``v_0``. Returns the held ``(v, v_seg)`` (of ``v_seg`` only the end is held; its interior entries are
-    returned unchanged: the caller reads the end only)."""
+    keeps ``v_0``. Returns the held ``v (..., S, n)`` and the held end speed ``(..., 1)``."""
     first = v[..., 0, 1] if v.shape[-1] > 1 else v_seg[..., 1]  # v_1
     starts = torch.cat([first.clamp(max=0.0).unsqueeze(-1), v_seg[..., 1:-1]], dim=-1)  # (..., S)
     low = torch.cummin(starts, dim=-1).values.unsqueeze(-1)  # (..., S, 1): M_s
     head = torch.cat([v[..., :1, :1], (v[..., :1, 1:] - low[..., :1, :]).clamp(min=0.0)], dim=-1)
     held = torch.cat([head, (v[..., 1:, :] - low[..., 1:, :]).clamp(min=0.0)], dim=-2)
     end = v_seg[..., -1:]
-    end_held = (end - torch.minimum(low[..., -1, :], v[..., -1, -1:])).clamp(min=0.0)
-    return held, torch.cat([v_seg[..., :-1], end_held], dim=-1)
+    return held, (end - torch.minimum(low[..., -1, :], v[..., -1, -1:])).clamp(min=0.0)
 
 
 def _exclusive_cumsum(increments: Tensor, start: Tensor) -> Tensor:

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import ConfigBoxes, ControlAffineSystem, Footprint, hold_speeds
+from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
 __all__ = ["KSVehicle", "KS_VEHICLES", "KSConfig", "KS_DOMAINS", "ks_domain", "KinematicSingleTrack"]
@@ -256,9 +256,7 @@ class KinematicSingleTrack(ConfigBoxes, ControlAffineSystem):
         x0 = x0.expand(*batch, x0.shape[-1])
         u = u.expand(*batch, *u.shape[-2:])
         delta = _exclusive_cumsum(dt * u[..., STEER_RATE], x0[..., DELTA])
-        v = _exclusive_cumsum(dt * u[..., ACC], x0[..., V])
-        if self.standstill_index is not None:
-            v = hold_speeds(v)
+        v = self.held_speeds(_exclusive_cumsum(dt * u[..., ACC], x0[..., V]))
         psi = _exclusive_cumsum(dt * v[..., :-1] * torch.tan(delta[..., :-1]) / self.wheelbase, x0[..., PSI])
         px = _exclusive_cumsum(dt * v[..., :-1] * torch.cos(psi[..., :-1]), x0[..., PX])
         py = _exclusive_cumsum(dt * v[..., :-1] * torch.sin(psi[..., :-1]), x0[..., PY])
