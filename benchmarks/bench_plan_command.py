@@ -75,8 +75,8 @@ def main() -> None:
             if runs:
                 med = {k: statistics.median(r.get(k, 0.0) for r in runs) for k in runs[0]}
                 rows.append((f.stem, med))
-    keys = ("wall", "cpu", "startup", "scene", "setup", "plan", "verdict", "solution", "plan_png", "costs_png",
-            "gif_wait")
+    keys = ("wall", "cpu", "startup", "scene", "setup", "plan", "verdict", "solution", "plan_png",
+            "child_wait")
     print(f"{'scenario':28s} " + " ".join(f"{k:>9s}" for k in keys))
     for name, med in rows:
         print(f"{name:28s} " + " ".join(f"{med.get(k, 0.0):9.2f}" for k in keys))

@@ -1,7 +1,5 @@
 """``python -m density_planner``: same as the ``density-planner`` console script."""
 
-import sys
+from .cli import console
 
-from .cli import main
-
-sys.exit(main())
+console()

@@ -41,6 +41,28 @@ def test_plan_writes_outputs_and_config(tmp_path, capsys):
     assert data2["params"] == data["params"]
 
 
+def test_console_script_exits_fast_with_every_file_written(tmp_path):
+    """``python -m density_planner plan`` (the console path) ends with ``os._exit`` after ``plan``: the exit code,
+    the printed line and every file (the figures of the child process included) are still there."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "p"
+    proc = subprocess.run([sys.executable, "-m", "density_planner", "plan", "--env", "random", "--seed", "1",
+                           "--controller", "analytic", "--density", "exact", *FAST, "--no-progress",
+                           "--out", str(out)], capture_output=True, text=True)
+    data = json.loads((out / "plan.json").read_text())
+    assert proc.returncode == (0 if data["status"] == "success" else 3), proc.stderr
+    assert f"{data['status']}" in proc.stdout and str(out / "costs.png") in proc.stdout
+    assert {"plan_png", "child_wait"} <= set(data["command_timings"])
+    for name in ("plan.png", "plan.gif", "costs.png", "config.toml", "plan.json"):
+        assert (out / name).stat().st_size > 0
+    # an error still exits normally with its code and one line
+    bad = subprocess.run([sys.executable, "-m", "density_planner", "plan", "--env", "random", "--planner", "magic",
+                          "--out", str(tmp_path / "q")], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "unknown planner" in bad.stderr
+
+
 @pytest.mark.parametrize(
     "args,match",
     [

@@ -12,12 +12,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
 from ..errors import DensityPlannerError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "console", "build_parser"]
 
 #: command modules, in the order they appear in ``--help``
 COMMAND_MODULES = ("env", "density", "controller", "density_nn", "plan", "drive", "risk", "bench")
@@ -104,11 +105,45 @@ def _remove_if_created_empty(path, existed: bool) -> None:
         pass
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def console() -> None:
+    """The ``density-planner`` console script and ``python -m density_planner``: :func:`main`, then exit.
+
+    Commands that set ``fast_exit`` (``plan``, ``drive``: every file written, no worker processes left) end with
+    ``os._exit`` once the output streams and logs are flushed: the interpreter's teardown (freeing the scene's
+    grids, finalising torch and matplotlib) took 0.5-1 s of a ``plan`` command's wall time
+    (``benchmarks/bench_plan_command.py``). Other commands exit normally (their worker pools shut down at exit)."""
+    code = main(fast_exit=True)
+    sys.exit(code)
+
+
+def _exit_now(code: int) -> None:
+    """Flush what the command printed or logged, then end the process without the interpreter's teardown."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # pragma: no cover - a closed pipe
+            pass
+    os._exit(code)
+
+
+def main(argv: Sequence[str] | None = None, *, fast_exit: bool = False) -> int:
+    """Run one command; returns its exit code. ``fast_exit`` (the console script): end the process at once after
+    a command that allows it (:func:`console`)."""
+    code, allowed = _main(argv)
+    if fast_exit and allowed:
+        _exit_now(code)
+    return code
+
+
+def _main(argv: Sequence[str] | None) -> tuple[int, bool]:
+    """Exit code of the command, and whether the command allows :func:`_exit_now` (``set_defaults(fast_exit=
+    True)``)."""
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     args.argv = argv
+    allowed = bool(getattr(args, "fast_exit", False))
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     out = getattr(args, "out", None)
@@ -122,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _remove_if_created_empty(out, out_existed)
         print("density-planner: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return EXIT_INTERRUPTED, False
     except Exception as exc:  # noqa: BLE001 - every error becomes one line and an exit code (--debug: traceback)
         _remove_if_created_empty(out, out_existed)
         if args.debug:
@@ -136,11 +171,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif code != EXIT_BAD_INPUT:
             message = f"internal error: {type(exc).__name__}: {message} (run with --debug for the traceback)"
         print(f"density-planner: error: {message}", file=sys.stderr)
-        return code
+        return code, False
     if result and out is not None:
         _remove_if_created_empty(out, out_existed)
-    return int(result or 0)
+    return int(result or 0), allowed
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()

@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--no-gif", action="store_true", help="skip run.gif")
     add_progress(p)
     add_out(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, fast_exit=True)
 
 
 def _scene_for_drive(args, run_config):

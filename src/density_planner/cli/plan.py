@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--no-gif", action="store_true", help="skip plan.gif")
     add_progress(p)
     add_out(p)
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, fast_exit=True)
 
 
 def versions() -> dict[str, str]:
@@ -183,8 +183,8 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
                        body=None) -> list[str]:
     """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written.
 
-    The GIF is drawn in a forked child process while this one draws the PNGs (where ``fork`` exists; else in
-    turn): the command's wall time then holds only the slower of the two."""
+    The GIF and costs.png are drawn in a forked child process while this one draws plan.png (where ``fork``
+    exists; else in turn): the command's wall time then holds only the slower of the two."""
     import multiprocessing as mp
 
     from ..viz.plan import animate_plan, plot_costs, plot_plan
@@ -200,38 +200,41 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
              f"{result.timings.get('total', float('nan')):.1f} s")
     label = "reference" if result.reference is not None else "executed (nominal model)"
     written = []
-    child = None
+    later = []  # figures drawn beside plan.png: (file name, lap name, draw)
     if gif:
-        def draw_gif() -> None:
-            animate_plan(scene, states, out / "plan.gif", samples_x=sx, samples_log_rho=slx)
-
-        if "fork" in mp.get_all_start_methods():
-            child = mp.get_context("fork").Process(target=_run_quietly, args=(draw_gif,), daemon=True)
-            child.start()
-        else:
-            draw_gif()
-            clock.lap("gif")
+        later.append(("plan.gif", "gif", lambda: animate_plan(scene, states, out / "plan.gif", samples_x=sx,
+                                                               samples_log_rho=slx)))
+    if result.cost_history:
+        later.append(("costs.png", "costs_png", lambda: plot_costs(result.cost_history, out / "costs.png",
+                                                                    title=f"{result.planner}: cost per iteration")))
+    child = None
+    if later and "fork" in mp.get_all_start_methods():
+        child = mp.get_context("fork").Process(target=_run_quietly, args=([draw for _, _, draw in later],),
+                                               daemon=True)
+        child.start()
     plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
               verdict=verdict, body=body)
     written.append("plan.png")
     clock.lap("plan_png")
-    if result.cost_history:
-        plot_costs(result.cost_history, out / "costs.png", title=f"{result.planner}: cost per iteration")
-        written.append("costs.png")
-        clock.lap("costs_png")
-    if child is not None:
+    if child is None:
+        for _, lap, draw in later:
+            draw()
+            clock.lap(lap)
+    else:
         child.join()
-        clock.lap("gif_wait")
+        clock.lap("child_wait")
         if child.exitcode != 0:
-            raise RuntimeError(f"drawing {out / 'plan.gif'} failed (exit code {child.exitcode}); rerun with --no-gif")
-    if gif:
-        written.append("plan.gif")
+            names = " and ".join(str(out / name) for name, _, _ in later)
+            raise RuntimeError(f"drawing {names} failed (exit code {child.exitcode})"
+                               + ("; rerun with --no-gif" if gif else ""))
+    written += [name for name, _, _ in later]
     return written
 
 
-def _run_quietly(fn) -> None:
-    """Target of the GIF process: one torch thread, then ``fn()``."""
+def _run_quietly(draws) -> None:
+    """Target of the figure process: one torch thread, then each of ``draws`` in turn."""
     import torch
 
     torch.set_num_threads(1)
-    fn()
+    for draw in draws:
+        draw()
