@@ -11,6 +11,8 @@ into ``OUT/<scenario>/`` (skipped when its ``risk_report.json`` exists: an inter
   (:func:`density_planner.viz.risk.plot_calibration`).
 
     python benchmarks/bench_calibration.py --scenarios ../shared/data/commonroad-suite --out results/calibration
+    python benchmarks/bench_calibration.py --scenarios ../shared/data/commonroad-suite --every 7 --samples 10000 \
+        --out results/risk-10000      # 10 scenarios with the validator's default 10 000 closed loops
 
 Scenarios refused as out of the models' domain, or whose planning fails, are listed with their reason.
 """
@@ -33,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=2000, help="closed loops of the Monte-Carlo risk check")
     p.add_argument("--calibration-samples", type=int, default=1000, help="closed loops of the calibration")
     p.add_argument("--limit", type=int, default=0, help="first N scenarios only (sorted by name; 0 = all)")
+    p.add_argument("--every", type=int, default=1, metavar="K",
+                   help="every K-th scenario of the sorted folder (0-based index 0, K, 2K, ...; before --limit)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="configuration override passed to every run")
     args = p.parse_args(argv)
@@ -46,6 +50,10 @@ def main(argv: list[str] | None = None) -> int:
     if not files:
         print(f"no .xml scenarios in {args.scenarios}", file=sys.stderr)
         return 2
+    if args.every < 1:
+        print(f"--every must be >= 1, got {args.every}", file=sys.stderr)
+        return 2
+    files = files[:: args.every]
     if args.limit:
         files = files[: args.limit]
     out = Path(args.out)
