@@ -346,3 +346,60 @@ def test_collision_at_some_time_importance_weighted_agrees_with_monte_carlo():
     ref = collision_probability(grid, torch.einsum("tij,nj->nti", flows, y0), system=system)
     assert 0.1 < float(ref.any_time) < 0.6 and float(rep.any_time) >= float(rep.max)
     assert abs(float(rep.any_time - ref.any_time)) < 4 * math.hypot(float(rep.any_time_se), float(ref.any_time_se))
+
+
+def _blobs(T=12, NX=70, NY=60, seed=0):
+    """A grid with a few random blobs per slice (values in [0, 1], zeros elsewhere)."""
+    g = torch.Generator().manual_seed(seed)
+    probs = torch.zeros(T, NX, NY)
+    for t in range(T):
+        for _ in range(3):
+            i, j = int(torch.randint(5, NX - 5, (1,), generator=g)), int(torch.randint(5, NY - 5, (1,), generator=g))
+            probs[t, i - 3 : i + 4, j - 2 : j + 3] = torch.rand(7, 5, generator=g)
+    return OccupancyGrid(probs, origin=(-3.0, 2.0), cell_size=0.25, dt=0.1, t0=1.0)
+
+
+@pytest.mark.parametrize("k0,n", [(0, 12), (3, 6), (8, 7), (15, 3)])  # inside, inside, past the end, beyond it
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_window_reads_the_parents_derived_grids_exactly(k0, n, with_mask, monkeypatch):
+    """A window's body grid (and masked grid) are rows of the parent's, equal cell for cell to deriving them from a
+    fresh grid of the window's slices; the parent is dilated once for any number of windows."""
+    from density_planner.risk import body as body_mod
+
+    grid = _blobs()
+    mask = None
+    if with_mask:
+        mask = torch.zeros(grid.shape[1:], dtype=torch.bool)
+        mask[:, :9] = True
+        mask[40:47, 20:33] = True
+    win = grid.window(k0, n)
+    idx = torch.arange(k0, k0 + n).clamp(max=grid.n_slices - 1)
+    assert torch.equal(win.probs, grid.probs[idx]) and win.t0 == pytest.approx(grid.t0 + k0 * grid.dt)
+    fresh = OccupancyGrid(grid.probs[idx].clone(), grid.origin, grid.cell_size, grid.dt, win.t0)
+    calls = []
+    real = body_mod.dilate_sparse
+    monkeypatch.setattr(body_mod, "dilate_sparse", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for radius in (0.0, 1.1):
+        got = body_mod.body_grid(win, radius, ignore=mask)
+        want = body_mod.body_grid(fresh, radius, ignore=mask)
+        assert torch.equal(got.probs, want.probs) and got.t0 == want.t0 and got.shape == want.shape
+    n_before = len(calls)  # the parent's dilation and the fresh grid's
+    assert n_before == 2
+    other = grid.window(max(k0 - 1, 0), n)
+    body_mod.body_grid(other, 1.1, ignore=mask)
+    assert len(calls) == n_before  # read from the parent's cached dilation
+    # the oracle prediction's windows are such windows
+    from density_planner.environment.prediction import OraclePrediction
+    from density_planner.environment.scene import Scene
+
+    scene = Scene(grid, (0.0, 5.0, 0.0, 1.0), (10.0, 10.0), (-2.0, 13.0, 3.0, 15.0), name="blobs")
+    w = OraclePrediction(scene).window(grid.t0 + 0.2, 0.5)
+    assert w._cache[OccupancyGrid.WINDOW_OF][0] is scene.grid and torch.equal(w.probs, grid.probs[2:8])
+
+
+def test_window_rejects_bad_ranges():
+    grid = _blobs(T=3)
+    with pytest.raises(ValueError, match="k0 >= 0 and n >= 1"):
+        grid.window(-1, 2)
+    with pytest.raises(ValueError, match="k0 >= 0 and n >= 1"):
+        grid.window(0, 0)

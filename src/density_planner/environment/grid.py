@@ -328,6 +328,32 @@ class OccupancyGrid:
         """Same geometry with new probabilities (validated)."""
         return OccupancyGrid(probs, self.origin, self.cell_size, self.dt, self.t0)
 
+    #: key of :meth:`window`'s record of where a window's slices come from (``(parent, k0, n)``)
+    WINDOW_OF = "window_of"
+
+    def window(self, k0: int, n: int) -> OccupancyGrid:
+        """Slices ``k0 .. k0 + n - 1`` as a grid whose slice 0 is at ``t0 + k0 dt`` (past the last slice, the last
+        one is held). The window remembers its parent (``_cache[WINDOW_OF]``), so grids derived slice by slice
+        (the body's dilated grid, the masked grid: :mod:`density_planner.risk.body`) are read from the parent's
+        cached ones instead of being derived again for every window (online replans: one dilation per scene, not
+        one per replan)."""
+        k0, n = int(k0), int(n)
+        if k0 < 0 or n < 1:
+            raise ValueError(f"a window needs k0 >= 0 and n >= 1 slices, got k0 = {k0}, n = {n}")
+        out = OccupancyGrid(self.window_rows(self.probs, k0, n), self.origin, self.cell_size, self.dt,
+                            self.t0 + k0 * self.dt)
+        out._cache[self.WINDOW_OF] = (self, k0, n)
+        return out
+
+    @staticmethod
+    def window_rows(probs: Tensor, k0: int, n: int) -> Tensor:
+        """Rows ``k0 .. k0 + n - 1`` of ``probs (T, ...)``, the last row held past the end (a view when they all
+        exist)."""
+        if k0 + n <= probs.shape[0]:
+            return probs[k0 : k0 + n]
+        idx = torch.arange(k0, k0 + n, device=probs.device).clamp(max=probs.shape[0] - 1)
+        return probs.index_select(0, idx)
+
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain numpy arrays of the grid (the ``.npz`` layout of :meth:`save`)."""

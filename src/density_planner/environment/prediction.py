@@ -134,17 +134,11 @@ class OraclePrediction(Prediction):
         grid = self.scene.grid
         n = self.n_slices(horizon)
         k0 = int(grid.slice_index(t))
-        idx = torch.arange(k0, k0 + n)
-        if int(idx[-1]) >= grid.n_slices:
-            if not self._warned:
-                log.warning("%s: the oracle window [%g, %g] s leaves the scene's grid (ends %g s); its last slice is "
-                            "held", self.scene.name, t, t + horizon, grid.t_end)
-                self._warned = True
-            idx = idx.clamp(max=grid.n_slices - 1)
-            probs = grid.probs.index_select(0, idx.to(grid.probs.device))
-        else:
-            probs = grid.probs[k0 : k0 + n]
-        return OccupancyGrid(probs, grid.origin, grid.cell_size, grid.dt, grid.t0 + k0 * grid.dt)
+        if k0 + n > grid.n_slices and not self._warned:
+            log.warning("%s: the oracle window [%g, %g] s leaves the scene's grid (ends %g s); its last slice is "
+                        "held", self.scene.name, t, t + horizon, grid.t_end)
+            self._warned = True
+        return grid.window(k0, n)  # shares the scene grid's derived grids (the body's dilation) with every window
 
 
 @dataclass(frozen=True)
