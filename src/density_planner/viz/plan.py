@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from matplotlib.ticker import NullLocator
 
 from ..environment.scene import Scene
 from ..io.atomic import _atomic
@@ -425,7 +426,10 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
                weights: Mapping[str, float] | None = None, title: str | None = None) -> Path:
     """Cost curves per term and stage (one panel per stage, log scale, unweighted terms and weighted total)."""
     stages = [s for s in cost_history if cost_history[s].get("total")]
-    fig, axes = plt.subplots(1, max(len(stages), 1), figsize=(5.2 * max(len(stages), 1), 3.8), squeeze=False)
+    n = max(len(stages), 1)
+    fig, axes = plt.subplots(1, n, figsize=(5.2 * n, 3.8), squeeze=False)
+    # fixed margins (the panels' labels have known sizes): one draw when saved; a layout engine draws twice
+    fig.subplots_adjust(left=0.55 / (5.2 * n), right=1 - 0.06 / n, bottom=0.13, top=0.87, wspace=0.16)
     for ax, stage in zip(axes[0], stages):
         hist = cost_history[stage]
         for name, series in hist.items():
@@ -433,7 +437,8 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
             if values.size < 2:
                 continue
             style = {"lw": 2.0, "color": "black"} if name == "total" else {"lw": 1.2}
-            label = "total (weighted)" if name == "total" else f"J_{name[0].upper()} ({name})"
+            base = name.removeprefix("reference_")  # stage 2's terms of the reference itself
+            label = "total (weighted)" if name == "total" else f"J_{base[0].upper()} ({name.replace('_', ' ')})"
             if weights and name in weights:
                 label += f", alpha={weights[name]:g}"
             shown = np.where(values > 0, values, np.nan)  # zero (or switched-off) terms leave gaps on a log axis
@@ -441,11 +446,12 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
                 label += ": 0 throughout"
             ax.plot(np.arange(values.size), shown, label=label, **style)
         ax.set_yscale("log")
+        # no minor ticks on the log axis: over many decades they are ~70 tick texts per axis, each laid out per draw
+        ax.yaxis.set_minor_locator(NullLocator())
         ax.set_xlabel("iteration")
         ax.set_title(stage, fontsize=9)
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
     fig.suptitle((title or "cost per iteration") + " (terms unweighted; gaps: term zero or not yet switched on)",
                  fontsize=10)
-    fig.tight_layout()
-    return save_figure(fig, path)
+    return _save_laid_out(fig, path)
