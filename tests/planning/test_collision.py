@@ -387,7 +387,9 @@ def test_window_reads_the_parents_derived_grids_exactly(k0, n, with_mask, monkey
     assert n_before == 2
     other = grid.window(max(k0 - 1, 0), n)
     body_mod.body_grid(other, 1.1, ignore=mask)
-    assert len(calls) == n_before  # read from the parent's cached dilation
+    win.drop_caches()  # forgets the window's derived grids, not where its slices come from
+    assert torch.equal(body_mod.body_grid(win, 1.1, ignore=mask).probs, want.probs)
+    assert len(calls) == n_before  # both read from the parent's cached dilation
     # the oracle prediction's windows are such windows
     from density_planner.environment.prediction import OraclePrediction
     from density_planner.environment.scene import Scene

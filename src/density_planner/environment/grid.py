@@ -79,8 +79,11 @@ class OccupancyGrid:
     def drop_caches(self) -> None:
         """Forget what was derived from this grid and kept on it (its gradient, the road users' grid, the body's
         dilated grids): each is a full-size copy, recomputed on the next use. Long runs that plan on many grids
-        (``drive``) call it when a grid's plan is done."""
+        (``drive``) call it when a grid's plan is done. A :meth:`window` keeps the record of its parent."""
+        parent = self._cache.get(self.WINDOW_OF)
         self._cache.clear()
+        if parent is not None:
+            self._cache[self.WINDOW_OF] = parent
 
     def __post_init__(self) -> None:
         probs = self.probs
