@@ -323,6 +323,35 @@ def test_collision_at_some_time_counts_each_execution_once():
     assert rep.to_dict()["any_time"] == pytest.approx(1.0)
 
 
+def test_collision_at_some_time_union_bound():
+    """The upper bound sum_i w_i min(1, sum_k P_body): one execution that reads 0.3 at one instant and 0.4 at
+    another lies in [0.4, 0.7] (the joint law decides where); capped at 1; equal to the lower bound when each
+    execution meets occupancy at one instant only."""
+    probs = torch.zeros(3, 10, 10)
+    probs[1, 2, 2] = 0.3
+    probs[2, 2, 2] = 0.4
+    probs[0, 7, 7] = 0.9
+    probs[2, 7, 7] = 0.8
+    grid = _grid(probs)
+    x = torch.tensor([[[2.0, 2.0]] * 3, [[7.0, 7.0]] * 3])  # (N=2, T=3, 2)
+    one = collision_probability(grid, x[:1])
+    assert one.any_time == pytest.approx(0.4) and one.any_time_upper == pytest.approx(0.7)
+    assert one.any_time_upper_se == 0
+    both = collision_probability(grid, x)  # second execution: 0.9 + 0.8 capped at 1
+    assert both.any_time == pytest.approx((0.4 + 0.9) / 2) and both.any_time_upper == pytest.approx((0.7 + 1.0) / 2)
+    # SE^2 = sum_i w_i^2 (v_i - m)^2 = 2 * 0.25 * 0.15^2
+    assert both.any_time_upper_se == pytest.approx(math.sqrt(2 * 0.25 * 0.15**2), abs=1e-6)
+    d = both.to_dict()
+    assert d["any_time_upper"] == pytest.approx(0.85) and d["any_time"] <= d["any_time_upper"]
+    # hits confined to one instant per execution: the bounds meet
+    probs2 = torch.zeros(3, 10, 10)
+    probs2[1, 2, 2] = 1.0
+    probs2[2, 7, 7] = 0.6
+    rep = collision_probability(_grid(probs2), x)
+    assert rep.any_time == pytest.approx(rep.any_time_upper) == pytest.approx(0.8)
+    assert collision_probability(grid, x, config=RiskConfig(estimator="paper")).any_time_upper is None
+
+
 def test_collision_at_some_time_importance_weighted_agrees_with_monte_carlo():
     """The importance-weighted P_any from a proposal twice as wide agrees, within its standard errors, with plain
     Monte Carlo from the law itself; and it is never below the worst instant."""

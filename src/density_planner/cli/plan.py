@@ -132,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_json(out / "plan.json", summary)
     dist = float("nan") if verdict is None else verdict.details.get("final_goal_distance", float("nan"))
     p_max = float(result.collision.max) if result.collision is not None else float("nan")
-    any_time = None if result.collision is None else result.collision.any_time
-    p_any = "" if any_time is None else f" (at some time >= {float(any_time):.3f})"
+    coll = result.collision
+    p_any = "" if coll is None or coll.any_time is None else (
+        f" (at some time >= {float(coll.any_time):.3f}" + (
+            "" if coll.any_time_upper is None else f", <= {float(coll.any_time_upper):.3f}") + ")")
     print(f"{result.planner} on {scene.name}: {'no plan' if verdict is None else verdict.summary()}; final "
           f"distance to the goal {dist:.2f} m; collision probability max {p_max:.3f}{p_any}; planning time "
           f"{result.timings.get('total', float('nan')):.2f} s; wrote {', '.join(str(out / w) for w in written)}")

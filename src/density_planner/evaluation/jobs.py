@@ -159,6 +159,9 @@ def _plan_summary(plan: PlanResult | None) -> dict[str, Any] | None:
         else float(plan.collision.any_time),
         "collision_probability_any_se": None if plan.collision is None or plan.collision.any_time_se is None
         else float(plan.collision.any_time_se),
+        # its upper (union) bound sum_i w_i min(1, sum_k P_body)
+        "collision_probability_any_upper": None if plan.collision is None or plan.collision.any_time_upper is None
+        else float(plan.collision.any_time_upper),
         # the learned predictor's own estimate when the exact re-check reported instead (report_exact)
         "collision_probability_any_predictor": _predictor_any(plan),
         "iterations": plan.iterations,
