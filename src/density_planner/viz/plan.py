@@ -280,6 +280,11 @@ def _save_laid_out(fig, path: str | Path) -> Path:
     already fits; the extra pass costs a whole draw)."""
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
+    engine = fig.get_layout_engine()
+    if engine is not None:  # lay out once and freeze: savefig would otherwise draw the whole figure twice
+        fig.canvas.get_renderer()
+        engine.execute(fig)
+        fig.set_layout_engine("none")
     _atomic(path, lambda fh: fig.savefig(fh, format=fmt))
     plt.close(fig)
     return path
