@@ -4,7 +4,7 @@ verdict, solution.xml, figures and GIF), as a user runs it, on suite scenarios.
 Runs the command ``--repeats`` times on each scenario (fresh processes; the first run of each scenario is also
 counted) and prints per scenario the median wall time with the breakdown from ``plan.json``'s
 ``command_timings`` (start-up = wall time - the in-process total: interpreter, imports, argument parsing),
-then the median over all runs, with the CPU time (user + sys of the command and its GIF process: the wall time a
+then the median over all runs, with the CPU time (user + sys of the command and its figure process: the wall time a
 command would take on an idle machine with one core for it, roughly) and the load average, since wall times on a
 shared machine measure the other processes too. Target (issue 13): <= 5 s median wall time.
 
@@ -82,7 +82,7 @@ def main() -> None:
         print(f"{name:28s} " + " ".join(f"{med.get(k, 0.0):9.2f}" for k in keys))
     if walls:
         print(f"median wall time over {len(walls)} runs: {statistics.median(walls):.2f} s (target <= 5 s), median "
-              f"CPU time (user + sys, GIF process included) {statistics.median(cpus):.2f} s; cores {os.cpu_count()}, "
+              f"CPU time (user + sys, figure process included) {statistics.median(cpus):.2f} s; cores {os.cpu_count()}, "
               f"threads {args.threads}, load average before/after {load0} / {os.getloadavg()[0]:.1f}")
 
 
