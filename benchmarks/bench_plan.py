@@ -8,7 +8,7 @@ Targets: stage 1 <= 0.5 s (issue 5); whole plan <= 3 s median with the learned p
 The paper reports ~131 s per plan on a GPU workstation.
 
     python benchmarks/bench_plan.py [--density exact|learned|NAME] [--controller c3m|analytic] [--seed 0]
-                                    [--repeats 3] [--threads 1]
+                                    [--repeats 3] [--threads 1] [--point]
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from density_planner.density.registry import load_predictor
 from density_planner.environment import random_scene
 from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
 from density_planner.planners.problem import PlanningProblem
+from density_planner.risk import RiskConfig
 from density_planner.systems.car import KinematicCar
 
 
@@ -44,19 +45,22 @@ def main() -> None:
     p.add_argument("--epochs-density", type=int, default=100)
     p.add_argument("--samples", type=int, default=500, help="stage-2 samples (the paper's 500; the default is 200)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the CLI; 0 = torch's default)")
+    p.add_argument("--point", action="store_true",
+                   help="a point vehicle (risk.body = false, the paper's) instead of the car's body (the default)")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
 
     scene = random_scene(args.seed)
-    problem = PlanningProblem.from_scene(scene, seed=args.seed)
+    problem = PlanningProblem.from_scene(scene, seed=args.seed, risk=RiskConfig(body=not args.point))
     predictor = make_predictor(args.density, args.controller)
     config = DensityPlannerConfig(epochs_density=args.epochs_density, n_samples=args.samples)
     planner = DensityPlanner(predictor, config)
     load = os.getloadavg()[0]
     print(f"density planner on random scene {args.seed}: {config.n_candidates} candidates x {config.epochs_init} "
           f"epochs, then {config.epochs_density} epochs x {config.n_samples} samples; predictor "
-          f"{getattr(predictor, 'name', type(predictor).__name__)}; torch {torch.__version__}, "
+          f"{getattr(predictor, 'name', type(predictor).__name__)}; {'point vehicle' if args.point else 'body'}; "
+          f"torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads; load average {load:.2f} on {os.cpu_count()} cores")
 
     planner.initialise(problem, torch.Generator().manual_seed(0))  # warm-up (lazy imports, allocator)
