@@ -8,7 +8,7 @@ Targets: stage 1 <= 0.5 s (issue 5); whole plan <= 3 s median with the learned p
 The paper reports ~131 s per plan on a GPU workstation.
 
     python benchmarks/bench_plan.py [--density exact|learned|NAME] [--controller c3m|analytic] [--seed 0]
-                                    [--repeats 3] [--threads 1] [--point]
+                                    [--repeats 3] [--threads 1] [--point | --paper]
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import argparse
 import os
 import statistics
 import time
+from dataclasses import replace
 
 import torch
 
@@ -47,19 +48,26 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the CLI; 0 = torch's default)")
     p.add_argument("--point", action="store_true",
                    help="a point vehicle (risk.body = false, the paper's) instead of the car's body (the default)")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's whole setting (`--config paper` with the report on the optimisation samples): a "
+                   "point vehicle, the paper's estimator, density weights, no fresh evaluation draw")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
 
     scene = random_scene(args.seed)
-    problem = PlanningProblem.from_scene(scene, seed=args.seed, risk=RiskConfig(body=not args.point))
+    risk = RiskConfig(body=False, estimator="paper") if args.paper else RiskConfig(body=not args.point)
+    problem = PlanningProblem.from_scene(scene, seed=args.seed, risk=risk)
     predictor = make_predictor(args.density, args.controller)
     config = DensityPlannerConfig(epochs_density=args.epochs_density, n_samples=args.samples)
+    if args.paper:
+        config = replace(config, weighting="density", fresh_evaluation_samples=False)
     planner = DensityPlanner(predictor, config)
     load = os.getloadavg()[0]
     print(f"density planner on random scene {args.seed}: {config.n_candidates} candidates x {config.epochs_init} "
           f"epochs, then {config.epochs_density} epochs x {config.n_samples} samples; predictor "
-          f"{getattr(predictor, 'name', type(predictor).__name__)}; {'point vehicle' if args.point else 'body'}; "
+          f"{getattr(predictor, 'name', type(predictor).__name__)}; "
+          f"{'paper setting' if args.paper else 'point vehicle' if args.point else 'body'}; "
           f"torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads; load average {load:.2f} on {os.cpu_count()} cores")
 
