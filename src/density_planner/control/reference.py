@@ -140,6 +140,8 @@ class Reference:
         density predictors read, trained on references whose inputs and states agree)."""
         par = self.parameterization
         applied = self.u - par.inputs(self.params)  # exactly 0 wherever the hold did not act
+        if not bool((applied.detach() != 0).any()):  # never stopped: the parameters themselves (no extra graph)
+            return self.params
         return self.params + applied.unflatten(-2, (par.n_segments, par.steps_per_segment)).mean(-2).transpose(-1, -2)
 
     def detach(self) -> Reference:
