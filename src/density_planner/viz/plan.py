@@ -276,8 +276,9 @@ def plot_plan(
 
 
 def _save_laid_out(fig, path: str | Path) -> Path:
-    """Save a figure with constrained layout atomically, without a second 'tight' bounding-box pass (the layout
-    already fits; the extra pass costs a whole draw)."""
+    """Save a figure atomically in one draw: no 'tight' bounding-box pass (the layout already fits), and a layout
+    engine (constrained layout) is executed once and frozen first (savefig would draw the figure once more to run
+    it). Figures with fixed margins (no engine) are saved as they are."""
     path = Path(path)
     fmt = path.suffix.lstrip(".") or "png"
     engine = fig.get_layout_engine()
