@@ -82,8 +82,9 @@ def main() -> None:
         print(f"{name:28s} " + " ".join(f"{med.get(k, 0.0):9.2f}" for k in keys))
     if walls:
         print(f"median wall time over {len(walls)} runs: {statistics.median(walls):.2f} s (target <= 5 s), median "
-              f"CPU time (user + sys, figure process included) {statistics.median(cpus):.2f} s; cores {os.cpu_count()}, "
-              f"threads {args.threads}, load average before/after {load0} / {os.getloadavg()[0]:.1f}")
+              f"CPU time (user + sys, figure process included) {statistics.median(cpus):.2f} s; "
+              f"cores {os.cpu_count()}, threads {args.threads}, load average before/after {load0} / "
+              f"{os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
