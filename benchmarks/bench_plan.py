@@ -46,11 +46,13 @@ def main() -> None:
     p.add_argument("--epochs-density", type=int, default=100)
     p.add_argument("--samples", type=int, default=500, help="stage-2 samples (the paper's 500; the default is 200)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1, as the CLI; 0 = torch's default)")
-    p.add_argument("--point", action="store_true",
-                   help="a point vehicle (risk.body = false, the paper's) instead of the car's body (the default)")
-    p.add_argument("--paper", action="store_true",
-                   help="the paper's whole setting (`--config paper` with the report on the optimisation samples): a "
-                   "point vehicle, the paper's estimator, density weights, no fresh evaluation draw")
+    vehicle = p.add_mutually_exclusive_group()
+    vehicle.add_argument("--point", action="store_true",
+                         help="a point vehicle (risk.body = false, the paper's) instead of the car's body "
+                         "(the default)")
+    vehicle.add_argument("--paper", action="store_true",
+                         help="the paper's whole setting (`--config paper` with the report on the optimisation "
+                         "samples): a point vehicle, the paper's estimator, density weights, no fresh evaluation draw")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

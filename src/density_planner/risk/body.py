@@ -309,24 +309,23 @@ def masked_grid(grid: OccupancyGrid, ignore: Tensor) -> OccupancyGrid:
     key = ("masked", id(ignore))
     cached = grid._cache.get(key)
     if cached is None or cached.device != grid.device:
-        parent = _window_parent(grid)
-        if parent is not None:  # a window of a grid: the rows of the parent's masked grid
-            base, k0, n = parent
-            cached = grid.with_probs(grid.window_rows(masked_grid(base, ignore).probs, k0, n))
-        else:
+        cached = _rows_of_parent(grid, lambda base: masked_grid(base, ignore))
+        if cached is None:
             keep = (~ignore).to(device=grid.device, dtype=grid.probs.dtype)
             cached = grid.with_probs(grid.probs * keep)
         grid._cache[key] = cached
     return cached
 
 
-def _window_parent(grid: OccupancyGrid) -> tuple[OccupancyGrid, int, int] | None:
-    """``(parent, k0, n)`` when ``grid`` is :meth:`~density_planner.environment.grid.OccupancyGrid.window` of a grid
-    on the same device (its per-slice derived grids are then rows of the parent's), else ``None``."""
+def _rows_of_parent(grid: OccupancyGrid, derive) -> OccupancyGrid | None:
+    """When ``grid`` is :meth:`~density_planner.environment.grid.OccupancyGrid.window` of a grid on the same device,
+    the window's rows of ``derive(parent)`` (a grid derived slice by slice, cached on the parent: derived once for
+    every window); else ``None``."""
     rec = grid._cache.get(grid.WINDOW_OF)
     if rec is None or rec[0].device != grid.device:
         return None
-    return rec
+    base, k0, n = rec
+    return grid.with_probs(grid.window_rows(derive(base).probs, k0, n))
 
 
 def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = None) -> OccupancyGrid:
@@ -344,10 +343,8 @@ def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = Non
     cached = grid._cache.get(key)
     if cached is not None and cached.device == grid.device:
         return cached
-    parent = _window_parent(grid)
-    if parent is not None:  # a window of a grid: the rows of the parent's (cached) dilated grid, dilated once
-        base, k0, n = parent
-        out = grid.with_probs(grid.window_rows(body_grid(base, radius, ignore=ignore).probs, k0, n))
+    out = _rows_of_parent(grid, lambda base: body_grid(base, radius, ignore=ignore))
+    if out is not None:
         grid._cache[key] = out
         return out
     with torch.no_grad():
