@@ -31,7 +31,10 @@ from .density import (
     propagate_density,
     simulate_closed_loop,
 )
+from .memory import tune_allocator
 from .systems import CarConfig, KinematicCar, LinearSystem, System
+
+tune_allocator()  # glibc's malloc thresholds for a planner's alloc/free pattern (DENSITY_PLANNER_TUNE_MALLOC=0: off)
 
 try:
     __version__ = version("density-planner")

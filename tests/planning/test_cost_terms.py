@@ -156,3 +156,27 @@ def test_inactive_terms_are_zero_and_skipped():
 def test_bad_cost_config(kwargs):
     with pytest.raises(ValueError):
         CostConfig(**kwargs)
+
+
+@pytest.mark.parametrize("memo", [True, False])
+def test_point_collision_cost_is_the_paper_sum_with_its_gradient(memo):
+    """The point vehicle's J_C reads every state at once: its value is ``sum_ik w P_occ ||p - p_des||^2`` and its
+    gradient ``2 w P_occ (p - p_des)`` (P_occ, p_des constants), free cells and states off the map included."""
+    g = torch.Generator().manual_seed(3)
+    probs = torch.rand(4, 30, 20, generator=g) ** 3
+    probs[:, 10:20, :] = 0.0  # a free band
+    grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=0.5)
+    x = torch.zeros(2, 6, 4, 5, dtype=torch.float64)  # (batch, N, T, nx)
+    x[..., :2] = torch.rand(2, 6, 4, 2, generator=g, dtype=torch.float64) * torch.tensor([17.0, 12.0]) - 1.0
+    w = torch.rand(2, 6, 4, generator=g, dtype=torch.float64)
+    term = CollisionCost(grid, beta=2.0, memo=memo)
+    xr = x.clone().requires_grad_(True)
+    j = term(CostInputs(x=xr, weights=w, u_ref=torch.zeros(2, 3, 2, dtype=torch.float64), slices=torch.arange(4)))
+    k = torch.arange(4).expand(2, 6, 4)
+    p_des, p_occ = desired_positions(grid, x[..., :2], k, beta=2.0)
+    expected = (w * p_occ * (x[..., :2] - p_des).pow(2).sum(-1)).sum(dim=(-1, -2))
+    assert float((p_occ == 0).double().mean()) > 0.2 and float((p_occ > 0).double().mean()) > 0.2
+    torch.testing.assert_close(j, expected)
+    (grad,) = torch.autograd.grad(j.sum(), xr)
+    torch.testing.assert_close(grad[..., :2], 2 * (w * p_occ)[..., None] * (x[..., :2] - p_des))
+    assert float(grad[..., 2:].abs().max()) == 0.0

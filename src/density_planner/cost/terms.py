@@ -317,6 +317,13 @@ class CollisionCost(CostTerm):
         occupied cell are evaluated again on the autograd graph (the others contribute zero value and zero
         gradient, ``P_j = 0``), so value and gradients are those of the full sum at a fraction of the cost."""
         x, w = inputs.x, inputs.weights
+        if self.collision.is_point:
+            # one centre, the position: every state is read at once (cheaper than selecting the occupied ones,
+            # whose boolean masks cost more than the lookups they save); free cells have P_occ = 0
+            pos = self.collision.positions(x)  # (*batch, N, T, 2), on the autograd graph
+            k_pt = inputs.slices.to(pos.device).clamp(0, self.grid.n_slices - 1)
+            p_des, p_occ = self.desired(pos.detach(), k_pt)
+            return (w * p_occ * (pos - p_des).pow(2).sum(-1)).sum(dim=(-1, -2))
         with torch.no_grad():
             centres = self.collision.centres(x.detach())  # (*batch, N, T, m, 2)
         k = inputs.slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
