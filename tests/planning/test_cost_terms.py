@@ -180,3 +180,30 @@ def test_point_collision_cost_is_the_paper_sum_with_its_gradient(memo):
     (grad,) = torch.autograd.grad(j.sum(), xr)
     torch.testing.assert_close(grad[..., :2], 2 * (w * p_occ)[..., None] * (x[..., :2] - p_des))
     assert float(grad[..., 2:].abs().max()) == 0.0
+
+
+def test_body_collision_cost_dense_and_selected_paths_agree():
+    """With the memo every disc centre is read at once; without it only the occupied states are evaluated on the
+    autograd graph: the same value and gradient (positions and heading), centres off the map included."""
+    from density_planner.risk import CollisionModel
+    from density_planner.systems.car import CarConfig, KinematicCar
+
+    g = torch.Generator().manual_seed(5)
+    probs = torch.rand(4, 60, 40, generator=g) ** 4
+    probs[:, 20:40, :] = 0.0
+    grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=0.25)
+    model = CollisionModel(grid, KinematicCar(CarConfig(length=2.0, width=0.8)))
+    x = torch.zeros(2, 8, 4, 5, dtype=torch.float64)
+    x[..., :2] = torch.rand(2, 8, 4, 2, generator=g, dtype=torch.float64) * torch.tensor([16.0, 11.0]) - 0.5
+    x[..., 2] = torch.rand(2, 8, 4, generator=g, dtype=torch.float64) * 6.3
+    w = torch.rand(2, 8, 4, generator=g, dtype=torch.float64)
+    out = []
+    for memo in (True, False):
+        term = CollisionCost(model, beta=2.0, plateau_scales=(3,), memo=memo)
+        assert (term._memo is not None) == memo
+        xr = x.clone().requires_grad_(True)
+        j = term(CostInputs(x=xr, weights=w, u_ref=torch.zeros(2, 3, 2, dtype=torch.float64), slices=torch.arange(4)))
+        out.append((j, torch.autograd.grad(j.sum(), xr)[0]))
+    assert float(out[0][0].detach().min()) > 0 and float(out[0][1][..., 2].abs().sum()) > 0
+    torch.testing.assert_close(out[0][0], out[1][0])
+    torch.testing.assert_close(out[0][1], out[1][1])
