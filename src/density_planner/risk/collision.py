@@ -226,10 +226,9 @@ class CollisionModel:
         c = self.centres(x)  # (..., T, m, 2)
         idx, _ = grid.cell_index(c)  # nearest cell, clamped to the map
         _, nx, ny = grid.shape
-        flat = grid.probs.reshape(grid.n_slices, nx * ny)
-        lin = idx[..., 0] * ny + idx[..., 1]  # (..., T, m)
-        k = slices[:, None].expand_as(lin)
-        vals = flat[k, lin].to(x.dtype).amax(-1)
+        lin = (slices[:, None] * nx + idx[..., 0]) * ny + idx[..., 1]  # (..., T, m) into the flat grid
+        vals = grid.probs.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)  # 4x advanced indexing
+        vals = vals.to(x.dtype).amax(-1)
         _, inside = grid.cell_index(self.positions(x))
         return torch.where(inside, vals, torch.ones_like(vals))
 
@@ -251,7 +250,7 @@ class CollisionModel:
         xmin, xmax, ymin, ymax = self.grid.bounds
         lo = torch.tensor([xmin, ymin], dtype=centres.dtype, device=centres.device)
         hi = torch.tensor([xmax, ymax], dtype=centres.dtype, device=centres.device)
-        return torch.maximum(torch.minimum(centres, hi), lo)
+        return torch.clamp(centres, lo, hi)
 
     @property
     def is_point(self) -> bool:
