@@ -308,7 +308,7 @@ class CollisionCost(CostTerm):
         only the states with a disc centre in an occupied cell are evaluated again on the autograd graph (the others
         contribute zero value and zero gradient, ``P_j = 0``). Both give the value and gradients of the full sum;
         the selection's boolean masks cost more than the memo lookups they save (random scene 0, 500 samples, the
-        body: 27 ms per evaluation with gradient selected, 17 ms dense)."""
+        body, one evaluation with gradient: 27 ms selected, 17 ms reading every centre)."""
         x, w = inputs.x, inputs.weights
         if self._memo is not None or self.collision.is_point:
             centres = self.collision.centres(x)  # (*batch, N, T, m, 2), on the autograd graph
