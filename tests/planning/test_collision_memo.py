@@ -49,3 +49,34 @@ def test_collision_terms_of_one_grid_share_their_memo():
         a = term.desired(xy + 0.3, k)
         b = desired_positions(scene.grid, xy + 0.3, k, beta=beta, plateau_scales=cfg.plateau_scales)
         assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_windows_read_their_parents_memo():
+    """Replans read windows of the scene's grid: their collision terms share the scene's memo (slice k of a window
+    is slice min(k0 + k, T - 1) of the scene, past its end included), give the direct values on the window, for the
+    point and the body (whose dilated window is itself a window of the scene's dilated grid), and a second window
+    finds the cells the first one filled."""
+    from density_planner.risk import CollisionModel
+    from density_planner.systems.car import KinematicCar
+
+    scene = random_scene(2)
+    cfg = CostConfig()
+    g = torch.Generator().manual_seed(2)
+    for body in (None, KinematicCar()):
+        windows = [scene.grid.window(30, 101), scene.grid.window(35, 101)]  # the second one runs past the end
+        terms = [CollisionCost(CollisionModel(w, body), beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+                 for w in windows]
+        parent = terms[0]._memo.parent
+        assert terms[1]._memo.parent is parent and parent.grid.n_slices == scene.grid.n_slices
+        k = torch.arange(101)
+        xy = torch.tensor([0.0, -10.0]) + torch.randn(30, 101, 2, generator=g) * torch.tensor([8.0, 16.0])
+        # the second window 5 slices later sees the same positions at the same times (its slice k is the first
+        # window's k + 5), and new ones for its last 5 slices
+        later = torch.cat([xy[:, 5:], xy[:, -5:] + 1.0], dim=1)
+        known = []
+        for term, pos in zip(terms, (xy, later)):
+            a = term.desired(pos, k)
+            b = desired_positions(term.grid, pos, k, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+            assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+            known.append(int(parent._known.sum()))
+        assert known[1] - known[0] < known[0] / 10  # the second window found the first one's cells

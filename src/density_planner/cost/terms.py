@@ -218,7 +218,8 @@ class _DesiredPositionMemo:
         key = ("desired_position_memo", float(beta), tuple(plateau_scales))
         memo = grid._cache.get(key)
         if memo is None:
-            memo = grid._cache[key] = cls(grid, beta, plateau_scales)
+            memo = _WindowMemo.of(grid, beta, plateau_scales) or cls(grid, beta, plateau_scales)
+            grid._cache[key] = memo
         return memo
 
     @property
@@ -260,6 +261,39 @@ class _DesiredPositionMemo:
             values[out, 2] = p
         values = values.reshape(*c.shape[:-1], 3)
         return values[..., :2], values[..., 2]
+
+
+class _WindowMemo(_DesiredPositionMemo):
+    """The memo of a window's slices (:meth:`OccupancyGrid.window`, and the grids derived from one row by row:
+    :func:`~density_planner.risk.body.body_grid`) read through its parent's memo: slice ``k`` of the window is slice
+    ``min(k0 + k, T - 1)`` of the parent, the same cells with the same values (the stencils are spatial), so the
+    replans of one scene share one table and each starts with the cells the earlier ones saw."""
+
+    def __init__(self, grid: OccupancyGrid, parent: _DesiredPositionMemo, k0: int):
+        super().__init__(grid, parent.beta, parent.plateau_scales)
+        self.parent, self.k0, self.last = parent, int(k0), parent.grid.n_slices - 1
+
+    @classmethod
+    def of(cls, grid: OccupancyGrid, beta: float, plateau_scales: tuple[int, ...]) -> _WindowMemo | None:
+        """The window memo of ``grid`` when it is a window of a grid with the same cells whose memo is enabled;
+        else ``None``."""
+        rec = grid._cache.get(grid.WINDOW_OF)
+        if rec is None:
+            return None
+        base, k0, _ = rec
+        if (base.device != grid.device or base.shape[1:] != grid.shape[1:] or base.origin != grid.origin
+                or base.cell_size != grid.cell_size):
+            return None
+        parent = _DesiredPositionMemo.shared(base, beta, plateau_scales)
+        return cls(grid, parent, k0) if parent.enabled else None
+
+    @property
+    def enabled(self) -> bool:
+        return True
+
+    def __call__(self, xy: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        k = torch.as_tensor(k, device=xy.device).long()
+        return self.parent(xy, (k + self.k0).clamp(max=self.last))
 
 
 class CollisionCost(CostTerm):

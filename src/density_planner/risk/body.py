@@ -327,7 +327,10 @@ def _rows_of_parent(grid: OccupancyGrid, derive) -> OccupancyGrid | None:
     if rec is None or rec[0].device != grid.device:
         return None
     base, k0, n = rec
-    return grid.with_probs(grid.window_rows(derive(base).probs, k0, n))
+    derived = derive(base)
+    out = grid.with_probs(grid.window_rows(derived.probs, k0, n))
+    out._cache[grid.WINDOW_OF] = (derived, k0, n)  # itself a window of the derived parent (memos read through it)
+    return out
 
 
 def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = None) -> OccupancyGrid:
