@@ -58,9 +58,17 @@ def test_import_serves_mid_sized_tensors_from_the_heap_and_keeps_them():
 
 
 @glibc
-@pytest.mark.parametrize("env", [{"DENSITY_PLANNER_TUNE_MALLOC": "0"}, {"MALLOC_TRIM_THRESHOLD_": "131072"}])
-def test_opt_out_leaves_glibc_defaults(env):
-    r = probe(**env)
+def test_opt_out_leaves_the_allocator_alone():
+    r = probe(DENSITY_PLANNER_TUNE_MALLOC="0")
+    assert r["tuned"] is False and r["again"] is False  # glibc's adaptive thresholds: where 20 MiB go depends on
+    # what the imports freed, so only the flag is checked here
+
+
+@glibc
+def test_glibc_settings_of_the_user_win():
+    """A glibc threshold variable set by the user disables the tuning; glibc then keeps its 128 KiB mmap threshold
+    (setting any threshold turns its adaptation off): 20 MiB get their own mapping, returned on ``del``."""
+    r = probe(MALLOC_TRIM_THRESHOLD_="131072")
     assert r["tuned"] is False and r["again"] is False
-    assert r["mapped"] >= 19.9 and r["heap"] < 1  # glibc's initial 128 KiB threshold: its own mapping
+    assert r["mapped"] >= 19.9 and r["heap"] < 1
     assert r["kept"] < 1
