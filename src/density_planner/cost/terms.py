@@ -134,9 +134,7 @@ def _gather(grid: OccupancyGrid, k: Tensor, i: Tensor, j: Tensor, fill: float) -
     """``probs[k, i, j]`` with ``fill`` for indices outside the map (broadcasting long tensors)."""
     _, nx, ny = grid.shape
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
-    idx = (k * nx + i.clamp(0, nx - 1)) * ny + j.clamp(0, ny - 1)
-    values = grid.probs.reshape(-1).index_select(0, idx.reshape(-1)).reshape(idx.shape)  # 4x advanced indexing
-    return values.masked_fill_(~inside, fill)
+    return grid.cell_values(k, i.clamp(0, nx - 1), j.clamp(0, ny - 1)).masked_fill_(~inside, fill)
 
 
 def _stencil_differences(grid: OccupancyGrid, k: Tensor, c: Tensor, scales: Tensor, fill: float) -> Tensor:
@@ -346,23 +344,23 @@ class CollisionCost(CostTerm):
         x, w = inputs.x, inputs.weights
         if self._memo is not None or self.collision.is_point:
             centres = self.collision.centres(x)  # (*batch, N, T, m, 2), on the autograd graph
-            read = centres.detach()
-            if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
-                read = self.collision.clamp_to_map(read)
-            k = inputs.slices.to(read.device).clamp(0, self.grid.n_slices - 1)[:, None]
+            read, k = self._reads(centres.detach(), inputs.slices)
             p_des, p_occ = self.desired(read, k.expand(read.shape[:-1]))  # free cells: P_occ = 0
             d = centres - p_des  # squares summed per coordinate: a reduction over the trailing axis of 2 is slower
             return (w * ((d[..., 0].square() + d[..., 1].square()) * p_occ).sum(-1)).sum(dim=(-1, -2))
         return self._selected(x, w, inputs.slices)
 
+    def _reads(self, centres: Tensor, slices: Tensor) -> tuple[Tensor, Tensor]:
+        """Where disc centres ``(..., T, m, 2)`` read the grid (beyond the border, the border: CollisionModel) and
+        their slices ``(T, 1)`` (clamped to the grid)."""
+        read = centres if self.collision.is_point else self.collision.clamp_to_map(centres)
+        return read, slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
+
     def _selected(self, x: Tensor, w: Tensor, slices: Tensor) -> Tensor:
         """:meth:`__call__` evaluated on the states with a disc centre in an occupied cell only."""
         with torch.no_grad():
             centres = self.collision.centres(x.detach())  # (*batch, N, T, m, 2)
-        k = slices.to(centres.device).clamp(0, self.grid.n_slices - 1)[:, None]
-        read = centres
-        if not self.collision.is_point:  # disc centres beyond the border read the border (CollisionModel)
-            read = self.collision.clamp_to_map(read)
+        read, k = self._reads(centres, slices)
         with torch.no_grad():
             # only centres in occupied cells contribute: the desired positions are looked up for those alone
             # (most of a cloud is usually in free space; identical values)

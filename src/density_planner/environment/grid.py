@@ -255,6 +255,14 @@ class OccupancyGrid:
             )
 
     # ------------------------------------------------------------------ queries
+    def cell_values(self, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
+        """P_occ of the cells ``(k, i, j)`` (long tensors, broadcast together, already inside the grid: no checks,
+        the hot paths' read), in the grid's dtype. One ``index_select`` on the flat grid, 2-4x faster here than
+        advanced indexing."""
+        _, nx, ny = self.shape
+        lin = (k * nx + i) * ny + j
+        return self.probs.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)
+
     def lookup(self, xy: Tensor, k: int | Tensor, *, fill: float = 1.0) -> Tensor:
         """P_occ at positions ``xy (..., 2)`` [m] in slice(s) ``k`` (int or long tensor broadcastable to
         ``xy[..., 0]``).

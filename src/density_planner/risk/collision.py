@@ -225,10 +225,7 @@ class CollisionModel:
         grid = self.body_grid.to(x.device)
         c = self.centres(x)  # (..., T, m, 2)
         idx, _ = grid.cell_index(c)  # nearest cell, clamped to the map
-        _, nx, ny = grid.shape
-        lin = (slices[:, None] * nx + idx[..., 0]) * ny + idx[..., 1]  # (..., T, m) into the flat grid
-        vals = grid.probs.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)  # 4x advanced indexing
-        vals = vals.to(x.dtype).amax(-1)
+        vals = grid.cell_values(slices[:, None], idx[..., 0], idx[..., 1]).to(x.dtype).amax(-1)  # (..., T)
         _, inside = grid.cell_index(self.positions(x))
         return torch.where(inside, vals, torch.ones_like(vals))
 
