@@ -14,7 +14,7 @@ DATA = Path(__file__).resolve().parents[2] / "src" / "density_planner" / "data" 
 TINY = ["--set", "density_planner.n_candidates=5", "--set", "density_planner.epochs_init=3", "--set",
         "density_planner.epochs_density=3", "--set", "density_planner.n_samples=20",
         "--set", "density_planner.evaluation_samples=20", "--set",
-        "online.replan_epochs=1", "--set", "online.replan_samples=20", "--set", "online.enforce_budget=false"]
+        "online.replan_epochs=1", "--set", "online.replan_samples=20", "--set", "online.overrun=use"]
 
 
 @pytest.mark.parametrize("argv, needle", [

@@ -198,22 +198,44 @@ def test_failed_replans_fall_back_and_are_recorded(setup):
     assert res_end.states.shape[0] == 106 and res_end.states[-1, 3] < res_end.states[100, 3] - 0.5  # it brakes
 
 
-def test_overrunning_replans_are_discarded(setup):
+def test_overrunning_replans_are_discarded_used_or_delayed(setup):
     car, ctrl, scene, problem, planner, plan = setup
     cfg = OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20, time_budget=1e-9,
-                       unsafe_p_coll=1.0)
+                       unsafe_p_coll=1.0, overrun="discard")
     res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
     r = res.replans[1]
     assert r.status == "overrun" and r.fallback == "previous" and "time_budget" in r.reason
-    # not enforced: the overrun is recorded and the plan used
-    res2 = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, enforce_budget=False),
+    assert math.isnan(r.t_effective) and res.replans[0].t_effective == 0.0
+    # "use": the overrun is recorded and the plan tracked from its measurement time
+    res2 = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, overrun="use"),
                  initial_plan=plan)
     assert res2.replans[1].status == "overrun" and res2.replans[1].fallback is None
+    assert res2.replans[1].t_effective == pytest.approx(0.5)
+    # "delay" (default): tracked from the first planning step after it finished, the previous reference meanwhile
+    # (the discarded run's states up to then), and no replan starts while one runs
+    long = dataclasses.replace(cfg, duration=4.0)
+    discard = drive(scene, planner, ctrl, system=car, config=long, initial_plan=plan, keep_snapshots=False)
+    delay = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(long, overrun="delay"),
+                  initial_plan=plan, keep_snapshots=False)
+    assert OnlineConfig().overrun == "delay"
+    ran = delay.replans[1:]
+    assert ran and all(r.status == "overrun" and r.fallback is None and "online.overrun" in r.reason for r in ran)
+    first = ran[0]
+    assert first.t == pytest.approx(0.5)
+    lag = max(1, math.ceil(first.wall_time / 0.1 - 1e-9))
+    if 5 + lag < delay.states.shape[0]:
+        assert first.t_effective == pytest.approx(0.5 + 0.1 * lag)
+        k = 5 + lag
+        np.testing.assert_array_equal(delay.states[: k + 1], discard.states[: k + 1])
+    for prev, nxt in zip(ran, ran[1:]):
+        assert nxt.t >= prev.t_effective - 1e-9 and math.isfinite(prev.t_effective)
+    with pytest.raises(ValueError, match="online.overrun must be one of"):
+        OnlineConfig(overrun="late")
 
 
 def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     car, ctrl, scene, problem, planner, plan = setup
-    cfg = OnlineConfig(duration=3.0, period=0.5, replan_epochs=2, replan_samples=30, enforce_budget=False)
+    cfg = OnlineConfig(duration=3.0, period=0.5, replan_epochs=2, replan_samples=30, overrun="use")
     res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
     assert res.states.shape == (31, car.nx) and res.inputs.shape == (30, car.nu)
     np.testing.assert_allclose(res.times, 0.1 * np.arange(31), atol=1e-9)
@@ -240,7 +262,7 @@ def test_warm_replans_continue_the_previous_reference(setup):
     car, ctrl, scene, problem, planner, plan = setup
     true = plan.reference.x_plan[0].double().clone()
     true[1] += 0.4  # a true start 0.4 m beside the reference: the tracking error is still > 0.05 m at 0.5 s
-    cfg = OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20, enforce_budget=False)
+    cfg = OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20, overrun="use")
     on = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, true_state=true)
     off = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, continue_reference=False),
                 initial_plan=plan, true_state=true)
@@ -271,7 +293,7 @@ def test_online_planner_executes_in_receding_mode(setup):
 
     car, ctrl, scene, problem, planner, plan = setup
     cfg = RunConfig(density_planner=planner.config,
-                    online=OnlineConfig(duration=1.0, replan_epochs=1, replan_samples=20, enforce_budget=False))
+                    online=OnlineConfig(duration=1.0, replan_epochs=1, replan_samples=20, overrun="use"))
     ctx = PlannerContext(system=car, controller=ctrl, config=cfg, predictor_factory=lambda: planner.predictor)
     online = make_planner("density_online", ctx)
     assert execution_mode(online) == ExecutionMode.RECEDING

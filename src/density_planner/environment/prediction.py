@@ -97,6 +97,9 @@ class Prediction(ABC):
 
     #: name recorded in results
     name: str = "prediction"
+    #: the windows are views of the scene's grid and read what is derived from it (the body's dilated grid), so the
+    #: scene grid's caches serve every window; otherwise each window is a grid of its own
+    windows_share_scene_grid: bool = False
 
     def __init__(self, scene: Scene):
         self.scene = scene
@@ -125,6 +128,7 @@ class OraclePrediction(Prediction):
     whole run (``density-planner drive`` does)."""
 
     name = "oracle"
+    windows_share_scene_grid = True
 
     def __init__(self, scene: Scene):
         super().__init__(scene)

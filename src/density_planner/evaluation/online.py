@@ -13,10 +13,12 @@
    plan shifted by ``t - t_plan`` (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on
    ``replan_samples`` samples. Stage 1 (candidates) runs only when the warm start is invalid: no previous plan,
    or the measurement lies farther than ``restart_distance`` from the previous reference at ``t``.
-3. A replan that fails (exception, no finite cost) or overruns its wall-time budget (``time_budget``, enforced
-   unless ``enforce_budget = false``) is discarded: the controller keeps tracking the previous reference, unless
-   that reference is unsafe under the current prediction (its nominal path's collision probability exceeds
-   ``unsafe_p_coll``) or has ended; then it tracks the least-risk braking manoeuvre (full braking with each
+3. A replan that overruns its wall-time budget (``time_budget``) is, by ``overrun``: tracked from the first
+   planning step after it finished (``"delay"``, default: the controller tracks the previous reference meanwhile
+   and no replan starts while one runs), discarded as a failure (``"discard"``) or used at once (``"use"``: the
+   compute taken as instantaneous). A replan that fails (exception, no finite cost) or is discarded leaves the
+   controller tracking the previous reference, unless that reference is unsafe under the current prediction (its
+   nominal path's collision probability exceeds ``unsafe_p_coll``) or has ended; then it tracks the least-risk braking manoeuvre (full braking with each
    steering rate of ``brake_steer``, the one with the smallest nominal collision probability) when that is safer
    than the previous reference (an ended reference is always replaced). Every fallback is recorded with its
    reason.
@@ -64,6 +66,9 @@ __all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "shift_parameters",
 
 log = logging.getLogger(__name__)
 
+#: values of ``online.overrun`` (:class:`OnlineConfig`)
+OVERRUN_MODES = ("delay", "discard", "use")
+
 
 @dataclass(frozen=True)
 class OnlineConfig:
@@ -82,9 +87,13 @@ class OnlineConfig:
     replan_update_clip: float = 0.1
     #: wall-time budget of one replan [s] (prediction rendering excluded: the perception stack's work)
     time_budget: float = 0.5
-    #: discard replans that overrun ``time_budget`` (false: record the overrun, use the plan anyway: the compute
-    #: is then treated as instantaneous, e.g. to measure what the method would do on a faster machine)
-    enforce_budget: bool = True
+    #: what becomes of a replan that overruns ``time_budget``: "delay" (it takes effect at the first planning step
+    #: after it finished, ``ceil(wall / plan_dt)`` steps after its measurement; the controller tracks the previous
+    #: reference meanwhile and no replan starts while one runs: one planning thread, as on a vehicle), "discard"
+    #: (dropped: the previous reference or the braking fallback), "use" (in effect at its measurement time, as if the
+    #: compute took no time: what the method does on a fast enough machine, and the only deterministic choice
+    #: whatever the machine's speed)
+    overrun: str = "delay"
     #: run length [s] on scenes without a goal time interval; 0 = the planning horizon
     duration: float = 0.0
     #: cap on the run length [s] (road scenes run until the goal's time interval ends)
@@ -132,6 +141,9 @@ class OnlineConfig:
             raise ValueError(f"online.replan_samples must be an integer >= 0, got {self.replan_samples!r}")
         if not self.brake_steer or not all(math.isfinite(s) and -1 <= s <= 1 for s in self.brake_steer):
             raise ValueError(f"online.brake_steer must be fractions in [-1, 1], got {self.brake_steer!r}")
+        if self.overrun not in OVERRUN_MODES:
+            raise ValueError(f"online.overrun must be one of {', '.join(map(repr, OVERRUN_MODES))}, got "
+                             f"{self.overrun!r}")
         check_seed("online.seed", self.seed)
 
 
@@ -157,6 +169,9 @@ class Replan:
     reason: str = ""
     #: nominal collision probability of the kept previous reference under the current prediction (fallbacks)
     previous_p_coll: float = math.nan
+    #: absolute time [s] from which the controller tracked this plan: ``t``, later for a delayed overrun
+    #: (``online.overrun = "delay"``), NaN for a plan never tracked
+    t_effective: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         def num(v: float) -> float | None:
@@ -164,7 +179,8 @@ class Replan:
 
         return {"t": self.t, "status": self.status, "wall_time": self.wall_time, "prediction_time":
                 self.prediction_time, "p_coll": num(self.p_coll), "warm_start": self.warm_start,
-                "fallback": self.fallback, "reason": self.reason, "previous_p_coll": num(self.previous_p_coll)}
+                "fallback": self.fallback, "reason": self.reason, "previous_p_coll": num(self.previous_p_coll),
+                "t_effective": num(self.t_effective)}
 
 
 @dataclass
@@ -513,14 +529,15 @@ def drive(
     p0 = float(initial_plan.collision.max) if initial_plan.collision is not None else math.nan
     if initial_plan.ok and initial_plan.reference is not None:
         active = activate(initial_plan.reference, t_start, initial_plan.params, "plan")
-        replans.append(Replan(t_start, "initial", wall0, p_coll=p0, warm_start=False))
+        replans.append(Replan(t_start, "initial", wall0, p_coll=p0, warm_start=False, t_effective=t_start))
     else:
         active, p_b = brake(problem0.scene.grid, problem0.reference_start(dtype, device), t_start)
         replans.append(Replan(t_start, "initial", wall0, warm_start=False, fallback="brake",
                               reason=f"the initial plan failed: {initial_plan.message or initial_plan.status.value}",
                               previous_p_coll=p_b))
     snapshot(t_start, prediction.window(t_start, horizon), system.positions(torch.from_numpy(x_init)).numpy())
-    scene.grid.drop_caches()  # the initial plan's derived grids (the replans plan on their own windows)
+    if not prediction.windows_share_scene_grid:  # the replans plan on grids of their own: the initial plan's
+        scene.grid.drop_caches()  # derived grids would only hold memory (an oracle's windows read them: kept)
 
     states = [x.detach().cpu().numpy().astype(np.float64)]
     inputs: list[np.ndarray] = []
@@ -529,10 +546,17 @@ def drive(
     road = scene.road
     k = 0
     i_replan = 0
+    pending: tuple[PlanResult, Replan, int] | None = None  # a delayed overrun: (result, its record, step it is ready)
     while k < n_total:
         t = t_start + k * plan_dt
         step_extra = 0.0
-        if k > 0 and k % period_steps == 0:
+        if pending is not None and k >= pending[2]:  # the overrunning replan has finished: track it from now
+            res_p, rec_p, _ = pending
+            assert res_p.reference is not None  # only plans with a reference are delayed
+            active = activate(res_p.reference, rec_p.t, res_p.params, "plan")
+            rec_p.t_effective = t
+            pending = None
+        if k > 0 and k % period_steps == 0 and pending is None:  # one planning thread: none starts while one runs
             i_replan += 1
             x_hat = system.measure(x[None])[0]
             if iv is not None:  # plan from the state box (a tracking overshoot below standstill) and from the
@@ -602,12 +626,21 @@ def drive(
                     rec.status = "success"
                     if rec.wall_time > config.time_budget:
                         rec.status = "overrun"
-                        if config.enforce_budget:
-                            rec.reason = (f"replan took {rec.wall_time:.3f} s > online.time_budget = "
-                                          f"{config.time_budget:g} s")
+                        over = f"replan took {rec.wall_time:.3f} s > online.time_budget = {config.time_budget:g} s"
+                        if config.overrun == "discard":
+                            rec.reason = over
                             result = None
-            if result is not None and result.reference is not None:
+                        elif config.overrun == "delay" and result.reference is not None:
+                            lag = max(1, math.ceil(rec.wall_time / plan_dt - 1e-9))
+                            pending = (result, rec, k + lag)
+                            rec.reason = (f"{over}: tracked from {lag * plan_dt:.1f} s after its measurement "
+                                          "(online.overrun = 'delay'), the previous reference meanwhile")
+                            log.info("t = %.2f s: %s", t, rec.reason)
+            if pending is not None and pending[1] is rec:
+                pass  # tracked once it has finished (above); the previous reference until then
+            elif result is not None and result.reference is not None:
                 active = activate(result.reference, t, result.params, "plan")
+                rec.t_effective = t
             else:
                 offset = active.step_at(t, dt)
                 ended = offset + period_steps * per_plan > active.x_ref.shape[0]
