@@ -27,8 +27,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
         description="Drive the true vehicle (drawn from the initial distribution) through a scene: the first plan "
         "is the offline plan; every online.period seconds the planner replans from the current measurement (the "
         "initial law re-centred on it) with the current occupancy prediction (observed-only on recorded traffic, "
-        "or the oracle), warm-started from the shifted previous plan; failed or overrunning replans fall back to "
-        "the previous reference or a least-risk braking manoeuvre. Writes DIR/run.json (per replan: time, wall "
+        "or the oracle), warm-started from the shifted previous plan; a replan that overruns online.time_budget is "
+        "tracked once it has finished (online.overrun), a failed one falls back to the previous reference or a "
+        "least-risk braking manoeuvre. Writes DIR/run.json (per replan: time, wall "
         "time, status, P_coll, fallback; the executed trajectory and its verdict against the ground truth), "
         "DIR/run.png, DIR/run.gif and DIR/config.toml. Exit code 0: the executed trajectory passed its verdict; "
         "3: it failed it; 2: bad input.",
