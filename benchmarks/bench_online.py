@@ -62,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         files = [f for f in files if f.name in set(args.files)]
     else:
         files = files[:: args.every]
+    if not files:
+        p.error(f"no scenario to run: {args.scenarios} has no matching *.xml (check --scenarios / --files)")
     args.out.mkdir(parents=True, exist_ok=True)
     rec_path = args.out / "records.jsonl"
     done = set()
