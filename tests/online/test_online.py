@@ -17,6 +17,7 @@ from density_planner.evaluation.online import (
     braking_parameters,
     drive,
     recentred,
+    refit_shift,
     shift_parameters,
     warm_replan,
 )
@@ -40,6 +41,35 @@ def test_shift_by_half_a_segment_averages_over_time():
     out = shift_parameters(p, 0.5, 1.0, torch.tensor([10.0], dtype=torch.float64))
     # new segment j covers [0.5 + j, 1.5 + j]: half of old j and half of old j + 1 (the tail past 3 s)
     torch.testing.assert_close(out, torch.tensor([[1.0, 3.0, 7.0]], dtype=torch.float64))
+
+
+def test_refit_brings_a_half_segment_shift_back_onto_the_old_path():
+    """Inputs shifted by half a segment (time-averaged) leave the old path; the Gauss-Newton refit follows it closer,
+    stays within the input bounds, and leaves an exact (whole-segment) shift as it is."""
+    from density_planner.control.reference import PiecewiseConstantInputs, plan_grid_reference
+
+    car = KinematicCar()
+    par = PiecewiseConstantInputs(n_segments=6)
+    gen = torch.Generator().manual_seed(5)
+    lo, hi = (torch.as_tensor(b, dtype=torch.float64)[:, None] for b in car.input_bounds)
+    params = (lo + (hi - lo) * torch.rand(car.nu, 6, generator=gen, dtype=torch.float64)) * 0.6
+    start = torch.tensor([0.0, 0.0, 0.3, 9.0, 0.0], dtype=torch.float64)
+    x_old, _ = plan_grid_reference(car, start, params, par)
+
+    def error(p: torch.Tensor, k: int) -> float:
+        x_new, _ = plan_grid_reference(car, x_old[k], p, par)
+        n = x_old.shape[0] - k
+        return float((x_new[:n, :2] - x_old[k:, :2]).norm(dim=-1).max())
+
+    half = shift_parameters(params, 0.5, 1.0)
+    fit = refit_shift(car, par, x_old[5], half, x_old[5:], iterations=3)
+    assert error(half, 5) > 0.2  # the averaged inputs drift (steering changes inside the new segments)
+    assert error(fit, 5) < 0.5 * error(half, 5)
+    assert bool(((fit >= lo - 1e-12) & (fit <= hi + 1e-12)).all())
+    torch.testing.assert_close(refit_shift(car, par, x_old[5], half, x_old[5:], iterations=0), half)
+    whole = shift_parameters(params, 1.0, 1.0)
+    assert error(whole, 10) < 1e-9
+    torch.testing.assert_close(refit_shift(car, par, x_old[10], whole, x_old[10:]), whole, atol=1e-9, rtol=0)
 
 
 def test_replan_horizon_ends_with_the_goal():
