@@ -271,6 +271,10 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     np.testing.assert_allclose(res.times, 0.1 * np.arange(31), atol=1e-9)
     assert [round(r.t, 6) for r in res.replans] == [0.0, 0.5, 1.0, 1.5, 2.0, 2.5]
     assert all(r.warm_start for r in res.replans[1:])
+    # the best iterate is never worse than the warm start (stage 2 keeps the best; the warm start is iterate 0)
+    assert all(0.0 <= r.cost_reduction <= 1.0 for r in res.replans[1:])
+    summ = res.summary()
+    assert summ["replans_improved"] == pytest.approx(np.mean([r.cost_reduction > 0 for r in res.replans[1:]]))
     assert res.verdict is not None and res.verdict.basis == "occupancy"
     assert np.isfinite(res.states).all()
     # the true initial state is a draw from the initial law, and deterministic given online.seed

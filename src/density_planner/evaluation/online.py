@@ -180,6 +180,9 @@ class Replan:
     #: absolute time [s] from which the controller tracked this plan: ``t``, later for a delayed overrun
     #: (``online.overrun = "delay"``), NaN for a plan never tracked
     t_effective: float = math.nan
+    #: relative decrease of the stage-2 objective from the warm start (first iterate) to the returned plan (best
+    #: iterate): 0 when no step improved on the warm start; NaN without a stage-2 history
+    cost_reduction: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         def num(v: float) -> float | None:
@@ -188,7 +191,7 @@ class Replan:
         return {"t": self.t, "status": self.status, "wall_time": self.wall_time, "prediction_time":
                 self.prediction_time, "p_coll": num(self.p_coll), "warm_start": self.warm_start,
                 "fallback": self.fallback, "reason": self.reason, "previous_p_coll": num(self.previous_p_coll),
-                "t_effective": num(self.t_effective)}
+                "t_effective": num(self.t_effective), "cost_reduction": num(self.cost_reduction)}
 
 
 @dataclass
@@ -245,6 +248,7 @@ class DriveResult:
         walls = np.array([r.wall_time for r in self.replans if r.status != "initial"])
         fallbacks = [r for r in self.replans if r.fallback]
         pc = np.array([r.p_coll for r in self.replans if math.isfinite(r.p_coll)])
+        red = np.array([r.cost_reduction for r in self.replans if math.isfinite(r.cost_reduction)])
         return {
             "prediction": self.prediction,
             "status": None if self.verdict is None else self.verdict.status,
@@ -256,6 +260,9 @@ class DriveResult:
             "n_fallbacks": len(fallbacks),
             "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
             "p_coll_mean": float(pc.mean()) if pc.size else None,
+            # share of the replans that improved on their warm start, and their median relative improvement
+            "replans_improved": float((red > 0).mean()) if red.size else None,
+            "cost_reduction_median": float(np.median(red)) if red.size else None,
             "controller_step_time": self.controller_step_time,
             "step_times": self.step_times.tolist(),
             "true_initial_state": self.true_initial_state.tolist(),
@@ -683,6 +690,9 @@ def drive(
                     result = None
                 elif result is not None:
                     rec.p_coll = float(result.collision.max) if result.collision is not None else math.nan
+                    totals = [v for v in (result.cost_history.get("stage2") or {}).get("total", []) if math.isfinite(v)]
+                    if totals and totals[0] != 0:
+                        rec.cost_reduction = (totals[0] - min(totals)) / abs(totals[0])
                     rec.status = "success"
                     if rec.wall_time > config.time_budget:
                         rec.status = "overrun"
