@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(RunConfig, None, args.overrides)
     online = cfg.online
-    n_slices = int(round((10.0 + args.replans * online.period + 10.0) / 0.1)) + 1
+    period = online.period or cfg.planning.segment_duration
+    n_slices = int(round((10.0 + args.replans * period + 10.0) / 0.1)) + 1
     cfg = update(cfg, {"random_scene": {"n_slices": max(cfg.random_scene.n_slices, n_slices)}})
     ctx = build_context(cfg, kind="random", controller="c3m")
     car, pred = ctx.system, ctx.predictor()
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         oracle = OraclePrediction(scene)
         prev, t_prev = plan, 0.0
         for i in range(1, args.replans + 1):
-            t = i * online.period
+            t = i * period
             k = int(round((t - t_prev) / problem.parameterization.plan_dt))
             state = prev.reference.x_plan[k]
             mean = state.to(torch.float64).clone()

@@ -33,14 +33,14 @@ def test_bad_input_exits_2_with_one_line(tmp_path, capsys, argv, needle):
 
 def test_drive_random_scene(tmp_path, capsys):
     out = tmp_path / "run"
-    code = main(["drive", "--env", "random", "--seed", "3", *TINY, "--set", "online.duration=1.0", "--no-gif",
+    code = main(["drive", "--env", "random", "--seed", "3", *TINY, "--set", "online.duration=2.0", "--no-gif",
                  "--out", str(out)])
     assert code in (0, 3)
     run = json.loads((out / "run.json").read_text())
-    assert [r["t"] for r in run["replans"]] == [0.0, 0.5]
+    assert [r["t"] for r in run["replans"]] == [0.0, 1.0]  # the default period: one input segment
     assert run["replans"][0]["status"] == "initial" and run["prediction"] == "oracle"
     assert run["status"] == ("success" if code == 0 else "failed")
-    assert len(run["states"]) == 11
+    assert len(run["states"]) == 21
     assert (out / "run.png").stat().st_size > 10_000 and (out / "config.toml").exists()
     assert "replan_epochs = 1" in (out / "config.toml").read_text()
     assert "online (oracle prediction)" in capsys.readouterr().out
@@ -56,7 +56,7 @@ def test_drive_commonroad_observed(tmp_path):
     run = json.loads((out / "run.json").read_text())
     assert run["prediction"] == "observed"
     assert run["verdict"]["basis"] == "road"
-    assert len(run["replans"]) == 3  # initial, 0.5 s, 1.0 s
+    assert len(run["replans"]) == 2  # initial, 1.0 s
     assert (out / "run.gif").stat().st_size > 1_000
 
 

@@ -130,7 +130,10 @@ def test_braking_reaches_standstill_and_stays():
 
 def test_config_validation():
     with pytest.raises(ValueError, match="period"):
-        OnlineConfig(period=0.0)
+        OnlineConfig(period=-0.5)
+    assert OnlineConfig().period == 0.0  # one input segment
+    with pytest.raises(ValueError, match="refit_iterations"):
+        OnlineConfig(refit_iterations=-1)
     with pytest.raises(ValueError, match="replan_epochs"):
         OnlineConfig(replan_epochs=0)
     with pytest.raises(ValueError, match="brake_steer"):
@@ -327,7 +330,8 @@ def test_online_planner_executes_in_receding_mode(setup):
 
     car, ctrl, scene, problem, planner, plan = setup
     cfg = RunConfig(density_planner=planner.config,
-                    online=OnlineConfig(duration=1.0, replan_epochs=1, replan_samples=20, overrun="use"))
+                    online=OnlineConfig(duration=1.0, period=0.5, replan_epochs=1, replan_samples=20,
+                                                        overrun="use"))
     ctx = PlannerContext(system=car, controller=ctrl, config=cfg, predictor_factory=lambda: planner.predictor)
     online = make_planner("density_online", ctx)
     assert execution_mode(online) == ExecutionMode.RECEDING

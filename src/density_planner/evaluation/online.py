@@ -4,8 +4,8 @@
 
 1. The true initial state is drawn from the scene's initial distribution (seeded). The first plan is the full
    two-stage plan from that distribution at the scene start (the offline plan: not timed against the budget).
-2. Every ``period`` seconds (default 0.5 s) at time ``t``: the vehicle's measurement ``x_hat`` (the car's biased
-   heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the measurement
+2. Every ``period`` seconds (default: one input segment, 1 s) at time ``t``: the vehicle's measurement ``x_hat``
+   (the car's biased heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the measurement
    error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders the
    occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
    (10 s with the learned predictors; a measured speed below the learned predictor's training range is raised to
@@ -74,8 +74,12 @@ OVERRUN_MODES = ("delay", "discard", "use")
 class OnlineConfig:
     """``[online]``: the receding-horizon runner (module docstring)."""
 
-    #: time between replans [s] (a multiple of the planning grid step)
-    period: float = 0.5
+    #: time between replans [s] (a multiple of the planning grid step); 0 (default): one input segment
+    #: (``planning.segment_duration``, 1 s), so that every warm start is an exact shift of the previous plan. With
+    #: 0.5 s (half a segment) the shifted inputs can only approximate the old path (:func:`refit_shift`): on 14
+    #: suite scenarios (docs/planner.md, stop 33) 0.5 s passed 10 (observed prediction) / 11 (oracle) verdicts and
+    #: 1 s 13 / 14, the offline plan 14; the half-segment replans left the road in three turns
+    period: float = 0.0
     #: stage-2 iterations of a warm-started replan
     replan_epochs: int = 10
     #: initial samples of a replan (0: density_planner.n_samples)
@@ -130,11 +134,11 @@ class OnlineConfig:
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
 
     def __post_init__(self) -> None:
-        for name in ("period", "time_budget", "max_duration"):
+        for name in ("time_budget", "max_duration"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"online.{name} must be a finite number > 0, got {v!r}")
-        for name in ("duration", "unsafe_p_coll", "restart_distance", "replan_lr", "replan_update_clip"):
+        for name in ("period", "duration", "unsafe_p_coll", "restart_distance", "replan_lr", "replan_update_clip"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"online.{name} must be a finite number >= 0, got {v!r}")
@@ -503,9 +507,10 @@ def drive(
     per_plan = int(round(ratio))
     if abs(ratio - per_plan) > 1e-6 or per_plan < 1:
         raise ValueError(f"evaluation.dt ({dt}) must divide planning.plan_dt ({plan_dt})")
-    steps_per_period = config.period / plan_dt
+    period = float(config.period or par.segment_duration)
+    steps_per_period = period / plan_dt
     if abs(steps_per_period - round(steps_per_period)) > 1e-6 or round(steps_per_period) < 1:
-        raise ValueError(f"online.period ({config.period} s) must be a whole number of planning steps of "
+        raise ValueError(f"online.period ({period:g} s) must be a whole number of planning steps of "
                          f"{plan_dt} s")
     period_steps = int(round(steps_per_period))
     length = _run_length(scene, config, horizon)
