@@ -4,24 +4,25 @@
 
 1. The true initial state is drawn from the scene's initial distribution (seeded). The first plan is the full
    two-stage plan from that distribution at the scene start (the offline plan: not timed against the budget).
-2. Every ``period`` seconds (default: one input segment, 1 s) at time ``t``: the vehicle's measurement ``x_hat``
-   (the car's biased heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the measurement
-   error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders the
-   occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
-   (10 s with the learned predictors; a measured speed below the learned predictor's training range is raised to
-   its lower end, and the predictor never falls back to exact Liouville online) *warm-started* from the previous
-   plan shifted by ``t - t_plan`` (:func:`shift_parameters`): stage 2 only, ``replan_epochs`` iterations on
-   ``replan_samples`` samples. Stage 1 (candidates) runs only when the warm start is invalid: no previous plan,
-   or the measurement lies farther than ``restart_distance`` from the previous reference at ``t``.
+2. Every ``period`` seconds (default: one input segment, 1 s) at time ``t``: the vehicle's measurement ``x_hat`` (the
+   car's biased heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the
+   measurement error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders
+   the occupancy over ``[t, t + H]`` from what was observed up to ``t``; the planner replans over its horizon ``H``
+   (10 s with the learned predictors; a measured speed below the learned predictor's training range is raised to its
+   lower end, and the predictor never falls back to exact Liouville online) *warm-started* from the previous plan
+   shifted by ``t - t_plan`` (:func:`shift_parameters`; a shift by part of a segment refitted to the previous
+   path, :func:`refit_shift`): stage 2 only, ``replan_epochs`` iterations on
+   ``replan_samples`` samples. Stage 1 (candidates) runs only when the warm start is invalid: no previous plan, or
+   the measurement lies farther than ``restart_distance`` from the previous reference at ``t``.
 3. A replan that overruns its wall-time budget (``time_budget``) is, by ``overrun``: tracked from the first
    planning step after it finished (``"delay"``, default: the controller tracks the previous reference meanwhile
    and no replan starts while one runs), discarded as a failure (``"discard"``) or used at once (``"use"``: the
    compute taken as instantaneous). A replan that fails (exception, no finite cost) or is discarded leaves the
    controller tracking the previous reference, unless that reference is unsafe under the current prediction (its
-   nominal path's collision probability exceeds ``unsafe_p_coll``) or has ended; then it tracks the least-risk braking manoeuvre (full braking with each
-   steering rate of ``brake_steer``, the one with the smallest nominal collision probability) when that is safer
-   than the previous reference (an ended reference is always replaced). Every fallback is recorded with its
-   reason.
+   nominal path's collision probability exceeds ``unsafe_p_coll``) or has ended; then it tracks the least-risk
+   braking manoeuvre (full braking with each steering rate of ``brake_steer``, the one with the smallest nominal
+   collision probability) when that is safer than the previous reference (an ended reference is always replaced).
+   Every fallback is recorded with its reason.
 4. The controller tracks the newest reference (explicit Euler at ``evaluation.dt``, one state, as on the car;
    a braking car stops instead of reversing: :meth:`System.standstill`).
    The run ends when the goal's time interval has ended, or earlier when the vehicle is inside the goal region
