@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="occupancy the replans read: observed (built only from what was seen so far; default) or "
                         "oracle (the recorded future, known in advance: the paper's setting); sets "
                         "online.prediction.kind")
-    p.add_argument("--period", type=float, default=None, metavar="S", help="replanning period [s] (online.period; default 0: one input segment, 1 s)")
+    p.add_argument("--period", type=float, default=None, metavar="S",
+                   help="replanning period [s] (online.period; default 0: one input segment, 1 s)")
     add_system(p)
     add_config(p, example="online.replan_epochs=5")
     add_device(p)
