@@ -125,9 +125,9 @@ class OnlineConfig:
     #: NumpyC3M`, equal to the torch controller to 1e-6; false: the torch controller)
     fast_controller: bool = True
     #: Gauss-Newton iterations that refit a warm start shifted by part of a segment to the previous reference's
-    #: path (:func:`refit_shift`; 0: the time-averaged inputs alone). With the default 0.5-s period and 1-s segments
-    #: the averaged inputs drift off the old path (CHN_Sha-12_1: 1.2 m, 2 m^2 of the body off the road in the turn
-    #: 11 s ahead), and 10 stage-2 steps did not repair it: every replan added its drift and the run left the road
+    #: path (:func:`refit_shift`; 0: the time-averaged inputs alone). With a 0.5-s period and 1-s segments the
+    #: averaged inputs drift off the old path (CHN_Sha-12_1: 1.2 m, 2 m^2 of the body off the road in the turn 11 s
+    #: ahead), and 10 stage-2 steps did not repair it: every replan added its drift and the run left the road
     refit_iterations: int = 3
     #: seed of the true initial state
     seed: int = 0
