@@ -78,8 +78,9 @@ class OnlineConfig:
     #: time between replans [s] (a multiple of the planning grid step); 0 (default): one input segment
     #: (``planning.segment_duration``, 1 s), so that every warm start is an exact shift of the previous plan. With
     #: 0.5 s (half a segment) the shifted inputs can only approximate the old path (:func:`refit_shift`): on 14
-    #: suite scenarios (docs/planner.md, stop 33) 0.5 s passed 10 (observed prediction) / 11 (oracle) verdicts and
-    #: 1 s 13 / 14, the offline plan 14; the half-segment replans left the road in three turns
+    #: suite scenarios (docs/planner.md, stop 33; the replan step of then, 5x today's) 0.5 s passed 10 (observed
+    #: prediction) / 11 (oracle) verdicts and 1 s 13 / 14, the offline plan 14; the half-segment replans left the
+    #: road in three turns
     period: float = 0.0
     #: stage-2 iterations of a warm-started replan
     replan_epochs: int = 10
