@@ -46,6 +46,18 @@ def test_drive_random_scene(tmp_path, capsys):
     assert "online (oracle prediction)" in capsys.readouterr().out
 
 
+def test_drive_reports_replans_tracked_late(tmp_path, capsys):
+    """With the default ``online.overrun = "delay"`` a replan over its budget is tracked late, and the line says so."""
+    out = tmp_path / "run"
+    code = main(["drive", "--env", "random", "--seed", "3", *TINY, "--set", "online.overrun=delay", "--set",
+                 "online.time_budget=1e-9", "--set", "online.duration=3.0", "--no-gif", "--out", str(out)])
+    assert code in (0, 3)
+    run = json.loads((out / "run.json").read_text())
+    late = [r for r in run["replans"][1:] if r["t_effective"] is not None and r["t_effective"] > r["t"]]
+    assert late and all(r["status"] == "overrun" for r in late)
+    assert f"{len(late)} tracked late (online.overrun = delay)" in capsys.readouterr().out
+
+
 @pytest.mark.slow
 def test_drive_commonroad_observed(tmp_path):
     pytest.importorskip("commonroad")
