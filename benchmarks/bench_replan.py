@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cfg = load_config(RunConfig, None, args.overrides)
     online = cfg.online
-    period = online.period or cfg.planning.segment_duration
+    period = online.replan_period(cfg.planning.segment_duration)
     n_slices = int(round((10.0 + args.replans * period + 10.0) / 0.1)) + 1
     cfg = update(cfg, {"random_scene": {"n_slices": max(cfg.random_scene.n_slices, n_slices)}})
     ctx = build_context(cfg, kind="random", controller="c3m")

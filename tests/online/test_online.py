@@ -132,6 +132,7 @@ def test_config_validation():
     with pytest.raises(ValueError, match="period"):
         OnlineConfig(period=-0.5)
     assert OnlineConfig().period == 0.0  # one input segment
+    assert OnlineConfig().replan_period(1.0) == 1.0 and OnlineConfig(period=0.5).replan_period(1.0) == 0.5
     with pytest.raises(ValueError, match="refit_iterations"):
         OnlineConfig(refit_iterations=-1)
     with pytest.raises(ValueError, match="replan_epochs"):

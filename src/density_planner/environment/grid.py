@@ -292,12 +292,10 @@ class OccupancyGrid:
         j0 = torch.floor(cy.detach()).clamp(0, NY - 2).long()
         fx = (cx - i0.to(cx.dtype)).clamp(0.0, 1.0)
         fy = (cy - j0.to(cy.dtype)).clamp(0.0, 1.0)
-        i0, j0, k, fx, fy, inside = torch.broadcast_tensors(i0, j0, k.long(), fx, fy, inside)
-        flat = self.probs.reshape(-1)
-        base = (k * NX + i0) * NY + j0
-        # the four corners in one flat index_select (cell_values' read; 2-4x faster than advanced indexing)
-        corners = torch.stack([base, base + 1, base + NY, base + NY + 1])
-        p00, p01, p10, p11 = flat.index_select(0, corners.reshape(-1)).reshape(corners.shape).to(xy.dtype)
+        i0, j0, kb, fx, fy, inside = torch.broadcast_tensors(i0, j0, k.long(), fx, fy, inside)
+        # the four corners (i0 + a, j0 + b) in one read
+        p00, p01, p10, p11 = self.cell_values(kb, torch.stack([i0, i0, i0 + 1, i0 + 1]),
+                                              torch.stack([j0, j0 + 1, j0, j0 + 1])).to(xy.dtype)
         value = (1 - fx) * ((1 - fy) * p00 + fy * p01) + fx * ((1 - fy) * p10 + fy * p11)
         return torch.where(inside, value, torch.full_like(value, fill))
 

@@ -164,6 +164,10 @@ class OnlineConfig:
                              f"{self.overrun!r}")
         check_seed("online.seed", self.seed)
 
+    def replan_period(self, segment_duration: float) -> float:
+        """The replanning period [s]: ``period``, or one input segment of ``segment_duration`` [s] when 0."""
+        return float(self.period or segment_duration)
+
 
 @dataclass
 class Replan:
@@ -259,6 +263,7 @@ class DriveResult:
         fallbacks = [r for r in self.replans if r.fallback]
         pc = np.array([r.p_coll for r in self.replans if math.isfinite(r.p_coll)])
         red = np.array([r.cost_reduction for r in self.replans if math.isfinite(r.cost_reduction)])
+        late = sum(1 for r in self.replans if math.isfinite(r.t_effective) and r.t_effective > r.t + 1e-9)
         return {
             "prediction": self.prediction,
             "status": None if self.verdict is None else self.verdict.status,
@@ -268,6 +273,8 @@ class DriveResult:
             "replan_wall_time_median": float(np.median(walls)) if walls.size else None,
             "replan_wall_time_p95": float(np.percentile(walls, 95)) if walls.size else None,
             "n_fallbacks": len(fallbacks),
+            # replans tracked after their measurement time (online.overrun = "delay")
+            "n_tracked_late": late,
             "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
             "p_coll_mean": float(pc.mean()) if pc.size else None,
             # share of the replans that improved on their warm start, and their median relative improvement
@@ -513,7 +520,7 @@ def drive(
     per_plan = int(round(ratio))
     if abs(ratio - per_plan) > 1e-6 or per_plan < 1:
         raise ValueError(f"evaluation.dt ({dt}) must divide planning.plan_dt ({plan_dt})")
-    period = float(config.period or par.segment_duration)
+    period = config.replan_period(par.segment_duration)
     steps_per_period = period / plan_dt
     if abs(steps_per_period - round(steps_per_period)) > 1e-6 or round(steps_per_period) < 1:
         raise ValueError(f"online.period ({period:g} s) must be a whole number of planning steps of "
@@ -641,7 +648,7 @@ def drive(
             par_t = _replan_parameterization(par, goal_end, t, config.shrink_horizon)
             grid_t = prediction.window(t, par_t.horizon)
             rec.prediction_time = time.perf_counter() - tp
-            warm, origin = None, None
+            warm, origin, refit_target = None, None, None
             offset = active.step_at(t, dt)
             if active.kind == "plan" and active.params is not None and offset < active.x_ref.shape[0]:
                 gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
@@ -667,10 +674,7 @@ def drive(
                     whole = abs(shift / par.segment_duration - round(shift / par.segment_duration)) < 1e-6
                     if config.refit_iterations and not whole:  # the averaged inputs drift off the old path
                         k_old = int(round(shift / active.reference.parameterization.plan_dt))
-                        start_w = system.nominal_state(
-                            (origin if origin is not None else x_hat.detach().to(torch.float64)).clone())
-                        warm = refit_shift(system, par_t, start_w, warm, active.reference.x_plan[k_old:],
-                                           iterations=config.refit_iterations)
+                        refit_target = active.reference.x_plan[k_old:]
             try:
                 scene_t = replace(prediction.scene, grid=grid_t, t_start=grid_t.t0, start=centre)
                 mean = x_hat.detach().to(torch.float64).clone()
@@ -680,10 +684,13 @@ def drive(
                                        start_threshold=math.inf, reference_origin=origin)
             except ValueError as exc:
                 rec.reason = f"no planning problem at the measurement: {exc}"
-            result = None
+            result, delayed = None, False
             if prob is not None:
                 t1 = time.perf_counter()
                 try:
+                    if warm is not None and refit_target is not None:  # part of the replan's compute (timed)
+                        warm = refit_shift(system, par_t, prob.reference_start(torch.float64), warm, refit_target,
+                                           iterations=config.refit_iterations)
                     if warm_capable:
                         dp = cast("DensityPlanner", planner)  # it has initialise, refine and evaluate
                         result, rec.warm_start = warm_replan(dp, prob, warm, epochs=config.replan_epochs,
@@ -714,10 +721,11 @@ def drive(
                         elif config.overrun == "delay" and result.reference is not None:
                             lag = max(1, math.ceil(rec.wall_time / plan_dt - 1e-9))
                             pending = (result, rec, k + lag)
+                            delayed = True
                             rec.reason = (f"{over}: tracked from {lag * plan_dt:.1f} s after its measurement "
                                           "(online.overrun = 'delay'), the previous reference meanwhile")
                             log.info("t = %.2f s: %s", t, rec.reason)
-            if pending is not None and pending[1] is rec:
+            if delayed:
                 pass  # tracked once it has finished (above); the previous reference until then
             elif result is not None and result.reference is not None:
                 active = activate(result.reference, t, result.params, "plan")
