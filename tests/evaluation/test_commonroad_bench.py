@@ -139,6 +139,15 @@ def test_solution_config_rejects_unknown_names():
         SolutionConfig(vehicle_model="PM", cost_function="SM1")
 
 
+def test_solution_config_default_pair_is_supported_by_commonroad():
+    """The default vehicle model and cost function are not checked against commonroad-io at construction (the
+    import costs ~0.1 s of every command): they must be a pair it supports."""
+    from commonroad.common.solution import SupportedCostFunctions
+
+    default = SolutionConfig()
+    assert default.cost_function in [c.name for c in SupportedCostFunctions[default.vehicle_model].value]
+
+
 @pytest.mark.slow
 def test_plan_commonroad_writes_verdict_and_solution(tmp_path, capsys):
     out = tmp_path / "p"

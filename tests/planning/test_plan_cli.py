@@ -54,13 +54,50 @@ def test_console_script_exits_fast_with_every_file_written(tmp_path):
     data = json.loads((out / "plan.json").read_text())
     assert proc.returncode == (0 if data["status"] == "success" else 3), proc.stderr
     assert f"{data['status']}" in proc.stdout and str(out / "costs.png") in proc.stdout
-    assert {"plan_png", "child_wait"} <= set(data["command_timings"])
+    # solution.xml and the figures came from the process forked before planning (it drew plan.png, its own child
+    # the GIF)
+    assert "outputs" in data["command_timings"]
+    assert {"plan_png", "child_wait"} <= set(data["output_process_timings"])
     for name in ("plan.png", "plan.gif", "costs.png", "config.toml", "plan.json"):
         assert (out / name).stat().st_size > 0
     # an error still exits normally with its code and one line
     bad = subprocess.run([sys.executable, "-m", "density_planner", "plan", "--env", "random", "--planner", "magic",
                           "--out", str(tmp_path / "q")], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "unknown planner" in bad.stderr
+
+
+def test_plan_output_process_failure_and_fallback(tmp_path, capsys, monkeypatch):
+    """A failure in the process that draws the figures is one line naming it (exit 1), no process is left behind;
+    a planner error ends that process too; without fork the files are written here, in turn."""
+    import multiprocessing as mp
+
+    import density_planner.viz.plan as viz_plan
+    from density_planner.cli import plan as plan_cli
+    from density_planner.planners.density_planner import DensityPlanner
+
+    args = ["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density", "exact", *FAST, "-q"]
+
+    def broken(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(viz_plan, "plot_plan", broken)  # inherited by the forked process
+    assert main([*args, "--no-gif", "--out", str(tmp_path / "a")]) == 1
+    err = capsys.readouterr().err
+    assert "writing the figures and solution of the plan failed (OSError: disk full)" in err and err.count("\n") == 1
+    assert mp.active_children() == []
+    monkeypatch.undo()
+
+    monkeypatch.setattr(DensityPlanner, "plan", broken)
+    assert main([*args, "--out", str(tmp_path / "b")]) == 1
+    assert "disk full" in capsys.readouterr().err and mp.active_children() == []
+    monkeypatch.undo()
+
+    monkeypatch.setattr(plan_cli._OutputProcess, "start", classmethod(lambda cls, *a, **k: None))
+    assert main([*args, "--out", str(tmp_path / "c")]) in (0, 3)
+    data = json.loads((tmp_path / "c" / "plan.json").read_text())
+    assert "plan_png" in data["command_timings"] and "output_process_timings" not in data
+    for name in ("plan.png", "plan.gif", "costs.png"):
+        assert (tmp_path / "c" / name).stat().st_size > 0
 
 
 @pytest.mark.parametrize(

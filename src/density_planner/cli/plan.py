@@ -72,10 +72,8 @@ def versions() -> dict[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from ..checks import check_seed
-    from ..config import dumps_toml, load_config, to_dict
-    from ..evaluation.verdict import judge_plan
-    from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import run_model_set, run_system
+    from ..config import load_config
+    from ..planners.context import run_system
     from ..planners.problem import PlanningProblem
     from ..planners.registry import make_planner
     from ..settings import RunConfig
@@ -95,7 +93,27 @@ def run(args: argparse.Namespace) -> int:
                             system=system)
     planner = make_planner(args.planner, ctx)
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
+    # the process that will draw the figures (and write solution.xml) loads its libraries while this one plans
+    outputs = _OutputProcess.start(out, scene, problem, run_config, gif=not args.no_gif,
+                                   solution=args.kind == "commonroad")
     clock.lap("setup")
+    try:
+        return _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
+                               dist_seed)
+    except BaseException:
+        if outputs is not None:
+            outputs.cancel()
+        raise
+
+
+def _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
+                    dist_seed) -> int:
+    """The rest of :func:`run`: plan, judge, write (through ``outputs``, an :class:`_OutputProcess`, if given)."""
+    from ..config import dumps_toml, to_dict
+    from ..evaluation.verdict import judge_plan
+    from ..io.atomic import atomic_write_json, atomic_write_text
+    from ..planners.context import run_model_set
+
     result = planner.plan(problem)
     clock.lap("plan")
 
@@ -120,11 +138,16 @@ def run(args: argparse.Namespace) -> int:
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
-    if result.states is not None and args.kind == "commonroad":
-        write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
-        written.append("solution.xml")
-        clock.lap("solution")
-    if result.states is not None:
+    if result.states is not None and outputs is not None:
+        body = problem.collision().outline(result.states.detach().cpu()).numpy()
+        written += outputs.finish(result, verdict, body)
+        clock.lap("outputs")
+        summary["output_process_timings"] = outputs.laps
+    elif result.states is not None:  # no fork: in turn, here
+        if args.kind == "commonroad":
+            write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
+            written.append("solution.xml")
+            clock.lap("solution")
         body = problem.collision().outline(result.states.detach().cpu()).numpy()
         written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock, body=body)
     # wall time of each step of this command (start-up before run() excluded), for benchmarks/bench_plan_command.py
@@ -160,6 +183,99 @@ class _Clock:
         self.laps["total"] = now - self.t0
         self.t = now
         return dt
+
+
+class _OutputProcess:
+    """solution.xml and the figures of a plan (:func:`write_plan_solution`, :func:`write_plan_figures`), written by a
+    process forked before planning: it imports and warms the plotting and CommonRoad writing libraries on the
+    second core while this process plans (~0.5-0.8 s of the command's wall time otherwise), then waits for the plan
+    (:meth:`finish`: the result, verdict and footprint are sent through a pipe, ~1 MB). ``None`` from
+    :meth:`start` where ``fork`` does not exist."""
+
+    def __init__(self, proc, conn) -> None:
+        self.proc, self.conn = proc, conn
+        self.laps: dict[str, float] = {}
+
+    @classmethod
+    def start(cls, out, scene, problem, run_config, *, gif: bool, solution: bool) -> _OutputProcess | None:
+        import multiprocessing as mp
+        import sys
+
+        if "fork" not in mp.get_all_start_methods():
+            return None
+        ctx = mp.get_context("fork")
+        here, there = ctx.Pipe()
+        for stream in (sys.stdout, sys.stderr):  # the child would print what is still buffered here once more
+            stream.flush()
+        # not a daemon: it forks the process that draws the GIF (write_plan_figures); it ends when this one closes
+        # its end of the pipe (cancel, or this process's death)
+        proc = ctx.Process(target=_output_process, args=(there, here, out, scene, problem, run_config, gif, solution))
+        proc.start()
+        there.close()
+        return cls(proc, here)
+
+    def finish(self, result, verdict, body) -> list[str]:
+        """Send the plan, wait until its files are written; returns their names."""
+        try:
+            self.conn.send((result, verdict, body))
+            status, value, laps = self.conn.recv()
+        except (EOFError, OSError, BrokenPipeError):
+            status, value, laps = "error", None, {}
+        self.proc.join()
+        self.conn.close()
+        self.laps = laps or {}
+        if status != "ok":
+            cause = value or f"the process writing them ended with exit code {self.proc.exitcode}"
+            raise RuntimeError(f"writing the figures and solution of the plan failed ({cause}); rerun with --no-gif "
+                               "or --debug")
+        return value
+
+    def cancel(self) -> None:
+        """No plan to write (or an error here): let the process end. Nothing happens after :meth:`finish`."""
+        if self.conn.closed:
+            return
+        try:
+            self.conn.send(None)
+        except (OSError, BrokenPipeError):
+            pass
+        self.conn.close()
+        self.proc.join(timeout=5.0)
+        if self.proc.is_alive():  # pragma: no cover - stuck in an import
+            self.proc.terminate()
+
+
+def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
+    """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (``None``: nothing to
+    write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
+    import torch
+
+    parent_end.close()  # the parent's end, inherited: else the pipe never reports the parent's end
+    torch.set_num_threads(1)
+    from ..viz.plan import warm_up
+
+    warm_up()
+    if solution:
+        from ..io.commonroad_solution import preload
+
+        preload(run_config.solution)
+    try:
+        message = conn.recv()
+    except EOFError:
+        return
+    if message is None:
+        return
+    result, verdict, body = message
+    clock = _Clock()
+    try:
+        written = []
+        if solution:
+            write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
+            written.append("solution.xml")
+            clock.lap("solution")
+        written += write_plan_figures(out, scene, result, verdict, gif=gif, clock=clock, body=body)
+        conn.send(("ok", written, clock.laps))
+    except Exception as exc:  # noqa: BLE001 - reported by the parent as one line
+        conn.send(("error", f"{type(exc).__name__}: {exc}", clock.laps))
 
 
 def write_plan_solution(path, scene, result, problem, run_config) -> None:

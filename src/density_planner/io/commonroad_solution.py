@@ -56,6 +56,8 @@ class SolutionConfig:
                               f"{self.vehicle_model!r}")
         if self.vehicle_type not in _TYPES:
             raise ConfigError(f"solution.vehicle_type must be one of {', '.join(_TYPES)}, got {self.vehicle_type!r}")
+        if (self.vehicle_model, self.cost_function) == (SolutionConfig.vehicle_model, SolutionConfig.cost_function):
+            return  # the defaults (a valid pair, tests/io): no import of commonroad's solution module (~0.1 s)
         try:
             from commonroad.common.solution import SupportedCostFunctions
         except ImportError:  # checked again when writing
@@ -139,6 +141,17 @@ def solution_states(
         else:
             out.append(STState(**common, yaw_rate=float(omega[k]), slip_angle=0.0))
     return out
+
+
+def preload(config: SolutionConfig | None = None) -> None:
+    """Import what :func:`write_solution` needs (~0.2 s), e.g. in a process that waits for a plan to write."""
+    try:
+        from commonroad.common import common_scenario, solution  # noqa: F401
+        from commonroad.scenario import trajectory  # noqa: F401
+
+        _vehicle_parameters((config or SolutionConfig()).vehicle_type)
+    except ImportError:  # write_solution says what is missing
+        pass
 
 
 def write_solution(

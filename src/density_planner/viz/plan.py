@@ -154,6 +154,18 @@ def _mark_failures(ax, states: np.ndarray, verdict, plan_dt: float) -> None:
                 label=f"{label} (t = {t:.1f} s)")
 
 
+def warm_up() -> None:
+    """Load what the first figure of a process would (fonts, layout and text machinery: ~0.2-0.3 s) by laying out
+    and rendering a small figure, e.g. in a process that waits for a plan to draw."""
+    fig, ax = plt.subplots(figsize=(2.0, 1.5), dpi=30, layout="constrained")
+    ax.plot([0.0, 1.0], [0.0, 1.0], "o-")
+    ax.set_title("t = 0.0 s", fontsize=8)
+    ax.set_xlabel("x [m]")
+    fig.suptitle("warm-up", fontsize=10)
+    agg_canvas(fig).draw()
+    plt.close(fig)
+
+
 def plot_plan(
     scene: Scene,
     states: np.ndarray,
