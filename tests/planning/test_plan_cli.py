@@ -32,6 +32,9 @@ def test_plan_writes_outputs_and_config(tmp_path, capsys):
     for name in ("plan.png", "plan.gif", "costs.png", "config.toml"):
         assert (out / name).stat().st_size > 0
     assert verdict["status"] in capsys.readouterr().out
+    from density_planner.density.split import prediction_processes
+
+    assert prediction_processes() == 1  # the command's execution setting does not outlive it
     # the effective configuration, [system] included (the flags wrote it), reproduces the run on its own
     assert data["config"]["system"] == {"name": "car", "models": "auto", "controller": "analytic", "density": "exact"}
     out2 = tmp_path / "p2"
@@ -76,6 +79,10 @@ def test_plan_output_process_failure_and_fallback(tmp_path, capsys, monkeypatch)
     from density_planner.planners.density_planner import DensityPlanner
 
     args = ["plan", "--env", "random", "--seed", "1", "--controller", "analytic", "--density", "exact", *FAST, "-q"]
+    before = set(mp.active_children())  # pools of earlier tests may live on
+
+    def _new_children(before: set) -> list:
+        return [p for p in mp.active_children() if p not in before]
 
     def broken(*a, **k):
         raise OSError("disk full")
@@ -84,12 +91,12 @@ def test_plan_output_process_failure_and_fallback(tmp_path, capsys, monkeypatch)
     assert main([*args, "--no-gif", "--out", str(tmp_path / "a")]) == 1
     err = capsys.readouterr().err
     assert "writing the figures and solution of the plan failed (OSError: disk full)" in err and err.count("\n") == 1
-    assert mp.active_children() == []
+    assert _new_children(before) == []
     monkeypatch.undo()
 
     monkeypatch.setattr(DensityPlanner, "plan", broken)
     assert main([*args, "--out", str(tmp_path / "b")]) == 1
-    assert "disk full" in capsys.readouterr().err and mp.active_children() == []
+    assert "disk full" in capsys.readouterr().err and _new_children(before) == []
     monkeypatch.undo()
 
     monkeypatch.setattr(plan_cli._OutputProcess, "start", classmethod(lambda cls, *a, **k: None))

@@ -97,6 +97,12 @@ def run(args: argparse.Namespace) -> int:
     outputs = _OutputProcess.start(out, scene, problem, run_config, gif=not args.no_gif,
                                    solution=args.kind == "commonroad")
     clock.lap("setup")
+    from ..density.split import prediction_processes, set_prediction_processes
+    from ..parallel import default_workers
+
+    before = prediction_processes()
+    if ctx.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
+        set_prediction_processes(min(2, default_workers()))
     try:
         return _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
                                dist_seed)
@@ -104,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         if outputs is not None:
             outputs.cancel()
         raise
+    finally:
+        set_prediction_processes(before)
 
 
 def _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,

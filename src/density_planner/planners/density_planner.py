@@ -42,6 +42,7 @@ from ..cost.composite import CostBreakdown, CostConfig, WeightedCost, build_cost
 from ..cost.terms import CostInputs
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
 from ..density.distributions import rejection_sample
+from ..density.split import predict_split, prediction_processes
 from ..risk.collision import CollisionReport
 from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
@@ -357,14 +358,19 @@ class DensityPlanner(Planner):
 
     # ------------------------------------------------------------------ stage 2
     def _predict(self, predictor: DensityPredictor, problem: PlanningProblem, params: Tensor, x0: Tensor,
-                 log_rho0: Tensor, *, states_only: bool = False) -> tuple[Reference, DensityTrajectory]:
+                 log_rho0: Tensor, *, states_only: bool = False,
+                 processes: int = 1) -> tuple[Reference, DensityTrajectory]:
         """Reference and prediction of ``params``; ``states_only``: the log-densities along the trajectories may
-        be left out (NaN; :meth:`DensityPredictor.predict_states`), for costs that do not read them."""
+        be left out (NaN; :meth:`DensityPredictor.predict_states`), for costs that do not read them; ``processes``:
+        the samples split between that many processes (:func:`~density_planner.density.split.predict_split`, no
+        gradient)."""
         start = problem.reference_start(self.dtype, self.device)
         ref = make_reference(problem.system, start, params.unsqueeze(0), problem.parameterization)
-        predict = predictor.predict_states if states_only else predictor.predict
-        traj = predict(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
-        return ref, traj
+        if states_only:
+            return ref, predictor.predict_states(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
+        if processes > 1:
+            return ref, predict_split(predictor, x0.unsqueeze(0), log_rho0.unsqueeze(0), ref, processes=processes)
+        return ref, predictor.predict(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
 
     def _inputs(self, ref: Reference, traj: DensityTrajectory, log_q0: Tensor, slices: Tensor) -> CostInputs:
         w = sample_weights(traj.log_rho, traj.log_rho0, mode=self.config.weighting, log_q0=log_q0.unsqueeze(0))
@@ -486,8 +492,9 @@ class DensityPlanner(Planner):
         extras: dict = {"predictor": predictor_name, "reported_by": predictor_name}
         if self.exact_check is not None and self.exact_check is not self.predictor:
             t3 = time.perf_counter()
-            with torch.no_grad():
-                ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0)
+            with torch.no_grad():  # an execution setting: the command line's plan splits it over 2 cores
+                ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0,
+                                              processes=prediction_processes())
             cost_e, coll_e = self.evaluate(problem, ref_e, traj_e, log_q0, slices)
             exact_name = getattr(self.exact_check, "name", type(self.exact_check).__name__)
             extras["exact_check"] = {
