@@ -106,6 +106,7 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
 def _predict_part(conn, predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference) -> None:
     """Target of a helper of :func:`predict_split`: predict, answer ``("ok", trajectory)`` or ``("error", text)``."""
     torch.set_num_threads(1)
+    answer: tuple[str, DensityTrajectory | str]
     try:
         with torch.no_grad():
             traj = predictor.predict(x0, log_rho0, reference)
