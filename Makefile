@@ -14,6 +14,9 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[$(EXTRAS)]"
+	# byte-compile the package (an editable install does not; pip does for a regular one): where the environment
+	# sets PYTHONDONTWRITEBYTECODE, every command would otherwise compile ~28 000 lines at start-up (~0.2 s)
+	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q src
 	touch $(STAMP)
 
 install: $(STAMP)
