@@ -406,8 +406,8 @@ def test_window_reads_the_parents_derived_grids_exactly(k0, n, with_mask, monkey
     assert torch.equal(win.probs, grid.probs[idx]) and win.t0 == pytest.approx(grid.t0 + k0 * grid.dt)
     fresh = OccupancyGrid(grid.probs[idx].clone(), grid.origin, grid.cell_size, grid.dt, win.t0)
     calls = []
-    real = body_mod.dilate_sparse
-    monkeypatch.setattr(body_mod, "dilate_sparse", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = body_mod.LazyDilatedGrid
+    monkeypatch.setattr(body_mod, "LazyDilatedGrid", lambda *a, **k: calls.append(1) or real(*a, **k))
     for radius in (0.0, 1.1):
         got = body_mod.body_grid(win, radius, ignore=mask)
         want = body_mod.body_grid(fresh, radius, ignore=mask)
@@ -426,6 +426,40 @@ def test_window_reads_the_parents_derived_grids_exactly(k0, n, with_mask, monkey
     scene = Scene(grid, (0.0, 5.0, 0.0, 1.0), (10.0, 10.0), (-2.0, 13.0, 3.0, 15.0), name="blobs")
     w = OraclePrediction(scene).window(grid.t0 + 0.2, 0.5)
     assert w._cache[OccupancyGrid.WINDOW_OF][0] is scene.grid and torch.equal(w.probs, grid.probs[2:8])
+
+
+@pytest.mark.parametrize("with_mask", [False, True])
+def test_lazy_body_grid_dilates_what_is_read_and_equals_the_sparse_dilation(with_mask):
+    """The body grid dilates a tile when a cell of it is first read; every read (cells, lookups, the whole grid)
+    equals dilate_sparse's values (levels of 1/255) cell for cell, and only the tiles read are dilated."""
+    from density_planner.risk.body import _LEVELS, LazyDilatedGrid, body_grid
+
+    grid = _blobs(T=9, NX=150, NY=130)
+    mask = None
+    if with_mask:
+        mask = torch.zeros(grid.shape[1:], dtype=torch.bool)
+        mask[:, :20] = True
+        mask[60:80, 40:90] = True
+    rho = 1.1 / grid.cell_size
+    want = dilate_sparse(grid.probs, rho, levels=_LEVELS, ignore=mask)
+    lazy = body_grid(grid, 1.1, ignore=mask)
+    assert isinstance(lazy, LazyDilatedGrid) and body_grid(grid, 1.1, ignore=mask) is lazy  # cached on the grid
+    total = lazy.remaining_tiles
+    assert lazy.shape == grid.shape and lazy.device == grid.device and lazy.to(grid.device) is lazy
+    assert lazy.remaining_tiles == total  # nothing dilated by shape, device or to()
+    g = torch.Generator().manual_seed(5)
+    k = torch.randint(0, 9, (40,), generator=g)
+    i, j = torch.randint(0, 150, (40,), generator=g), torch.randint(0, 130, (40,), generator=g)
+    assert torch.equal(lazy.cell_values(k, i, j), want[k, i, j])
+    read = total - lazy.remaining_tiles
+    assert 0 < read <= 40 and read == len({(int(a), int(b) // 32, int(c) // 32) for a, b, c in zip(k, i, j)})
+    xy = grid.cell_to_world(torch.rand(200, 2, generator=g) * torch.tensor([149.0, 129.0]))
+    kk = torch.randint(0, 9, (200,), generator=g)
+    assert torch.equal(lazy.lookup(xy, kk), OccupancyGrid(want, grid.origin, grid.cell_size, grid.dt, grid.t0)
+                       .lookup(xy, kk))
+    assert torch.equal(lazy.probs, want) and lazy.remaining_tiles == 0  # the whole grid on demand
+    assert torch.equal(lazy.cell_values(k, i, j), want[k, i, j])
+    assert lazy.to(dtype=torch.float64).probs.dtype == torch.float64
 
 
 def test_window_rejects_bad_ranges():

@@ -49,7 +49,7 @@ from ..environment.grid import OccupancyGrid
 from ..systems.base import Footprint
 
 __all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "masked_grid", "disc_kernel_rows", "quantise_up",
-           "dequantise"]
+           "dequantise", "LazyDilatedGrid"]
 
 #: quantisation levels of the dilated grid (values rounded up to multiples of 1 / _LEVELS)
 _LEVELS = 255
@@ -191,6 +191,15 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
         keep = (~ignore).to(device=probs.device, dtype=probs.dtype).contiguous()
     out = torch.zeros_like(probs)
     idx = _active_tiles(probs, tile, h, keep)  # (N, 3): slice, tile row, tile column
+    _dilate_tiles(probs, keep, idx, tile, h, radius_cells, levels, max_chunk, out)
+    return out
+
+
+def _dilate_tiles(probs: Tensor, keep: Tensor | None, idx: Tensor, tile: int, h: int, radius_cells: float,
+                  levels: int | None, max_chunk: int, out: Tensor) -> None:
+    """Dilate the tiles ``idx (N, 3)`` (slice, tile row, tile column) of ``probs`` (times ``keep``) into ``out``:
+    each with its halo of ``h`` cells, batched in chunks of at most ``max_chunk`` cells. ``out`` holds
+    ``probs``' dtype, or the level counts (``uint8``) when ``levels`` is given and ``out`` is ``uint8``."""
     size = tile + 2 * h
     per_chunk = max(1, max_chunk // (size * size))
     for c0 in range(0, idx.shape[0], per_chunk):
@@ -201,10 +210,9 @@ def dilate_sparse(probs: Tensor, radius_cells: float, *, tile: int = 32, levels:
         if levels is not None:
             patch = quantise_up(patch, levels, out=patch)
         d = dilate(patch, radius_cells)[:, h:h + tile, h:h + tile]
-        if levels is not None:
+        if levels is not None and out.dtype != torch.uint8:
             d = dequantise(d, levels, probs.dtype)
         _write_tiles(out, t, bx, by, d)
-    return out
 
 
 def quantise_up(probs: Tensor, levels: int, *, out: Tensor | None = None) -> Tensor:
@@ -352,11 +360,125 @@ def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = Non
     if out is not None:
         grid._cache[key] = out
         return out
-    with torch.no_grad():
-        # quantised up to multiples of 1/255 (conservative by < 0.004): the max-filter runs on uint8, ~10x faster
-        # than on float32; only the tiles within reach of an occupied cell are dilated (the grids are large, 50M
-        # cells for a 13-s urban scene, and ~1 % occupied)
-        mask = None if ignore is None else ignore.to(grid.device)
-        out = grid.with_probs(dilate_sparse(grid.probs, rho, levels=_LEVELS, ignore=mask))
+    # quantised up to multiples of 1/255 (conservative by < 0.004): the max-filter runs on uint8, ~10x faster than
+    # on float32; only the tiles within reach of an occupied cell are dilated (the grids are large, 50M cells for a
+    # 13-s urban scene, and ~1 % occupied), and each only when a cell of it is first read (LazyDilatedGrid)
+    mask = None if ignore is None else ignore.to(grid.device)
+    out = LazyDilatedGrid(grid, rho, ignore=mask)
     grid._cache[key] = out
     return out
+
+
+class LazyDilatedGrid(OccupancyGrid):
+    """The grid :func:`dilate_sparse` makes of ``source`` (levels of 1/255), dilated tile by tile as it is read.
+
+    A planner reads the body's grid only near its samples and candidates: a corridor of the map (1-3 % of its
+    tiles on suite scenes). Here a tile is dilated the first time :meth:`cell_values` (the read of
+    :meth:`~OccupancyGrid.lookup`, the collision cost and the collision probability) asks for one of its cells.
+    Any other read of :attr:`probs` (the MPC's interpolants, windows, figures, saving) first dilates every
+    remaining tile within reach of an occupied cell (the others are 0) and sees the whole grid. The values equal
+    :func:`dilate_sparse`'s cell for cell (the same tiles, halos and quantisation); they are kept as level counts
+    (bytes), a quarter of the memory of the float grid. Measured on recorded traffic: docs/planner.md
+    ("Speed")."""
+
+    _source: Tensor
+    _keep: Tensor | None
+    _rho: float
+    _tile: int
+    _h: int
+    _max_chunk: int
+    _nbx: int
+    _nby: int
+    _todo: Tensor
+    _counts: Tensor
+    _dense: Tensor | None
+
+    def __init__(self, source: OccupancyGrid, radius_cells: float, *, ignore: Tensor | None = None,
+                 tile: int = 32, max_chunk: int = 1 << 22):
+        # the geometry of ``source``, without OccupancyGrid's validation pass (the values are source's, dilated)
+        for name in ("origin", "cell_size", "dt", "t0"):
+            object.__setattr__(self, name, getattr(source, name))
+        object.__setattr__(self, "_cache", {})
+        probs = source.probs.contiguous()
+        if probs.dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"a dilated grid needs float32 or float64 probabilities, got {probs.dtype}")
+        h, tile = _reach_and_tile(radius_cells, tile)
+        keep = None if ignore is None else (~ignore).to(device=probs.device, dtype=probs.dtype).contiguous()
+        T, nx, ny = probs.shape
+        nbx, nby = -(-nx // tile), -(-ny // tile)
+        # tiles not dilated yet (flat over slice, tile row, tile column). No pass over the whole grid to find the
+        # tiles within reach of an occupied cell (it took longer than dilating what a plan reads): a tile read is
+        # dilated, occupied or not (those far from any road user come out 0)
+        todo = torch.ones(T * nbx * nby, dtype=torch.bool, device=probs.device)
+        state = {"_source": probs, "_keep": keep, "_rho": float(radius_cells), "_tile": tile, "_h": h,
+                 "_max_chunk": max_chunk, "_nbx": nbx, "_nby": nby, "_todo": todo,
+                 "_counts": torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), "_dense": None}
+        for name, value in state.items():  # a frozen dataclass underneath
+            object.__setattr__(self, name, value)
+
+    # the tensor properties read the counts' shape and device without dilating anything
+    @property
+    def probs(self) -> Tensor:
+        """The whole dilated grid (every remaining tile is dilated first), in the source's dtype."""
+        if self._dense is None:  # the remaining tiles within reach of an occupied cell (the others are 0)
+            with torch.no_grad():
+                active = _active_tiles(self._source, self._tile, self._h, self._keep)
+            ids = (active[:, 0] * self._nbx + active[:, 1]) * self._nby + active[:, 2]
+            self._dilate(ids[self._todo.index_select(0, ids)])
+            self._todo.zero_()
+            object.__setattr__(self, "_dense", dequantise(self._counts, _LEVELS, self._source.dtype))
+        assert self._dense is not None
+        return self._dense
+
+    @probs.setter
+    def probs(self, value: Tensor) -> None:  # pragma: no cover - the dataclass machinery; never used
+        raise AttributeError("a LazyDilatedGrid's values are derived from its source")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self._counts.shape)  # type: ignore[return-value]
+
+    @property
+    def n_slices(self) -> int:
+        return int(self._counts.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self._counts.device
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
+        """``self`` where nothing changes (nothing is dilated); else a full copy (:meth:`OccupancyGrid.to`)."""
+        if (device is None or torch.device(device) == self.device) and (dtype is None or dtype == self._source.dtype):
+            return self
+        return super().to(device, dtype)
+
+    @property
+    def remaining_tiles(self) -> int:
+        """Tiles within reach of an occupied cell not dilated yet."""
+        return int(self._todo.sum())
+
+    def cell_values(self, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
+        """As :meth:`OccupancyGrid.cell_values`, after dilating the tiles of the cells not dilated yet."""
+        if self._dense is not None:
+            return super().cell_values(k, i, j)
+        tile = self._tile
+        ids = ((k * self._nbx + torch.div(i, tile, rounding_mode="floor")) * self._nby
+               + torch.div(j, tile, rounding_mode="floor")).reshape(-1)
+        need = self._todo.index_select(0, ids)
+        if bool(need.any()):
+            self._dilate(torch.unique(ids.masked_select(need)))
+        _, nx, ny = self._counts.shape
+        lin = (k * nx + i) * ny + j
+        counts = self._counts.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)
+        return dequantise(counts, _LEVELS, self._source.dtype)
+
+    def _dilate(self, ids: Tensor) -> None:
+        """Dilate the tiles of flat indices ``ids`` (all still to do) into the counts."""
+        if ids.numel() == 0:
+            return
+        per_slice = self._nbx * self._nby
+        idx = torch.stack([ids // per_slice, (ids // self._nby) % self._nbx, ids % self._nby], dim=-1)
+        with torch.no_grad():
+            _dilate_tiles(self._source, self._keep, idx, self._tile, self._h, self._rho, _LEVELS, self._max_chunk,
+                          self._counts)
+        self._todo[ids] = False
