@@ -255,8 +255,11 @@ class _OutputProcess:
 def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
     """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (``None``: nothing to
     write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
+    import signal
+
     import torch
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
     parent_end.close()  # the parent's end, inherited: else the pipe never reports the parent's end
     torch.set_num_threads(1)
     from ..viz.plan import warm_up

@@ -105,6 +105,9 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
 
 def _predict_part(conn, predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference) -> None:
     """Target of a helper of :func:`predict_split`: predict, answer ``("ok", trajectory)`` or ``("error", text)``."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it terminates this process
     torch.set_num_threads(1)
     answer: tuple[str, DensityTrajectory | str]
     try:
