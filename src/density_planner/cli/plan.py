@@ -224,8 +224,10 @@ class _OutputProcess:
 
     def finish(self, result, verdict, body) -> list[str]:
         """Send the plan, wait until its files are written; returns their names."""
-        try:
-            self.conn.send((result, verdict, body))
+        import pickle
+
+        try:  # plain pickling (torch's multiprocessing reductions would pass shared memory by file descriptor)
+            self.conn.send_bytes(pickle.dumps((result, verdict, body), protocol=pickle.HIGHEST_PROTOCOL))
             status, value, laps = self.conn.recv()
         except (EOFError, OSError, BrokenPipeError):
             status, value, laps = "error", None, {}
@@ -239,21 +241,18 @@ class _OutputProcess:
         return value
 
     def cancel(self) -> None:
-        """No plan to write (or an error here): let the process end. Nothing happens after :meth:`finish`."""
+        """No plan to write (or an error or Ctrl-C here): end the process now (its files are written atomically, so
+        none is left half-written). Nothing happens after :meth:`finish`."""
         if self.conn.closed:
             return
-        try:
-            self.conn.send(None)
-        except (OSError, BrokenPipeError):
-            pass
         self.conn.close()
-        self.proc.join(timeout=5.0)
-        if self.proc.is_alive():  # pragma: no cover - stuck in an import
+        if self.proc.is_alive():
             self.proc.terminate()
+        self.proc.join()
 
 
 def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
-    """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (``None``: nothing to
+    """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (the pipe's end: nothing to
     write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
     import signal
 
@@ -269,13 +268,12 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
         from ..io.commonroad_solution import preload
 
         preload(run_config.solution)
+    import pickle
+
     try:
-        message = conn.recv()
-    except EOFError:
+        result, verdict, body = pickle.loads(conn.recv_bytes())
+    except EOFError:  # the parent ended or cancelled
         return
-    if message is None:
-        return
-    result, verdict, body = message
     clock = _Clock()
     try:
         written = []
