@@ -406,8 +406,13 @@ def test_window_reads_the_parents_derived_grids_exactly(k0, n, with_mask, monkey
     assert torch.equal(win.probs, grid.probs[idx]) and win.t0 == pytest.approx(grid.t0 + k0 * grid.dt)
     fresh = OccupancyGrid(grid.probs[idx].clone(), grid.origin, grid.cell_size, grid.dt, win.t0)
     calls = []
-    real = body_mod.LazyDilatedGrid
-    monkeypatch.setattr(body_mod, "LazyDilatedGrid", lambda *a, **k: calls.append(1) or real(*a, **k))
+
+    class Counting(body_mod.LazyDilatedGrid):
+        def __init__(self, *a, **k):
+            calls.append(1)
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(body_mod, "LazyDilatedGrid", Counting)
     for radius in (0.0, 1.1):
         got = body_mod.body_grid(win, radius, ignore=mask)
         want = body_mod.body_grid(fresh, radius, ignore=mask)
@@ -457,6 +462,14 @@ def test_lazy_body_grid_dilates_what_is_read_and_equals_the_sparse_dilation(with
     kk = torch.randint(0, 9, (200,), generator=g)
     assert torch.equal(lazy.lookup(xy, kk), OccupancyGrid(want, grid.origin, grid.cell_size, grid.dt, grid.t0)
                        .lookup(xy, kk))
+    # a window's body grid reads through the parent: its cells equal the parent's rows, the last one held
+    left = lazy.remaining_tiles
+    win = body_grid(grid.window(6, 5), 1.1, ignore=mask)
+    assert win.shape == (5, 150, 130) and lazy.remaining_tiles == left and win.to(grid.device) is win
+    kw = torch.randint(0, 5, (40,), generator=g)
+    assert torch.equal(win.cell_values(kw, i, j), want[(kw + 6).clamp(max=8), i, j])
+    assert 0 < left - lazy.remaining_tiles <= 40
+    assert torch.equal(win.probs, want[torch.tensor([6, 7, 8, 8, 8])])
     assert torch.equal(lazy.probs, want) and lazy.remaining_tiles == 0  # the whole grid on demand
     assert torch.equal(lazy.cell_values(k, i, j), want[k, i, j])
     assert lazy.to(dtype=torch.float64).probs.dtype == torch.float64

@@ -336,7 +336,10 @@ def _rows_of_parent(grid: OccupancyGrid, derive) -> OccupancyGrid | None:
         return None
     base, k0, n = rec
     derived = derive(base)
-    out = grid.with_probs(grid.window_rows(derived.probs, k0, n))
+    if isinstance(derived, LazyDilatedGrid):  # read through the parent: only the cells read are dilated
+        out: OccupancyGrid = _LazyWindowRows(derived, k0, n, grid.t0)
+    else:
+        out = grid.with_probs(grid.window_rows(derived.probs, k0, n))
     out._cache[grid.WINDOW_OF] = (derived, k0, n)  # itself a window of the derived parent (memos read through it)
     return out
 
@@ -482,3 +485,55 @@ class LazyDilatedGrid(OccupancyGrid):
             _dilate_tiles(self._source, self._keep, idx, self._tile, self._h, self._rho, _LEVELS, self._max_chunk,
                           self._counts)
         self._todo[ids] = False
+
+
+class _LazyWindowRows(OccupancyGrid):
+    """Rows ``k0 .. k0 + n - 1`` of a :class:`LazyDilatedGrid` (the last one held past its end), slice 0 at ``t0``:
+    :meth:`cell_values` reads the parent's cells, so a replan's window dilates only the tiles it reads (an oracle
+    window of ``drive``); :attr:`probs` is the parent's whole grid's rows."""
+
+    _parent: LazyDilatedGrid
+    _k0: int
+    _n: int
+    _rows: Tensor | None
+
+    def __init__(self, parent: LazyDilatedGrid, k0: int, n: int, t0: float):
+        for name in ("origin", "cell_size", "dt"):
+            object.__setattr__(self, name, getattr(parent, name))
+        state = {"t0": float(t0), "_cache": {}, "_parent": parent, "_k0": int(k0), "_n": int(n), "_rows": None}
+        for name, value in state.items():  # a frozen dataclass underneath
+            object.__setattr__(self, name, value)
+
+    @property
+    def probs(self) -> Tensor:
+        if self._rows is None:
+            object.__setattr__(self, "_rows", OccupancyGrid.window_rows(self._parent.probs, self._k0, self._n))
+        assert self._rows is not None
+        return self._rows
+
+    @probs.setter
+    def probs(self, value: Tensor) -> None:  # pragma: no cover - the dataclass machinery; never used
+        raise AttributeError("a window's values are its parent's")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        _, nx, ny = self._parent.shape
+        return (self._n, nx, ny)
+
+    @property
+    def n_slices(self) -> int:
+        return self._n
+
+    @property
+    def device(self) -> torch.device:
+        return self._parent.device
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
+        """``self`` where nothing changes; else a full copy (:meth:`OccupancyGrid.to`)."""
+        if (device is None or torch.device(device) == self.device) and (
+                dtype is None or dtype == self._parent._source.dtype):
+            return self
+        return super().to(device, dtype)
+
+    def cell_values(self, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
+        return self._parent.cell_values((k + self._k0).clamp(max=self._parent.n_slices - 1), i, j)
