@@ -372,7 +372,20 @@ def body_grid(grid: OccupancyGrid, radius: float, *, ignore: Tensor | None = Non
     return out
 
 
-class LazyDilatedGrid(OccupancyGrid):
+class _ReadThroughGrid(OccupancyGrid):
+    """A grid whose values are derived (``probs`` a read-only property of the subclass) and read cell by cell:
+    :meth:`to` returns it unchanged where nothing changes, so that reading does not derive the whole grid."""
+
+    _value_dtype: torch.dtype
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
+        """``self`` where nothing changes (nothing is derived); else a full copy (:meth:`OccupancyGrid.to`)."""
+        if (device is None or torch.device(device) == self.device) and (dtype is None or dtype == self._value_dtype):
+            return self
+        return super().to(device, dtype)
+
+
+class LazyDilatedGrid(_ReadThroughGrid):
     """The grid :func:`dilate_sparse` makes of ``source`` (levels of 1/255), dilated tile by tile as it is read.
 
     A planner reads the body's grid only near its samples and candidates: a corridor of the map (1-3 % of its
@@ -413,7 +426,8 @@ class LazyDilatedGrid(OccupancyGrid):
         # tiles within reach of an occupied cell (it took longer than dilating what a plan reads): a tile read is
         # dilated, occupied or not (those far from any road user come out 0)
         todo = torch.ones(T * nbx * nby, dtype=torch.bool, device=probs.device)
-        state = {"_source": probs, "_keep": keep, "_rho": float(radius_cells), "_tile": tile, "_h": h,
+        state = {"_source": probs, "_value_dtype": probs.dtype, "_keep": keep, "_rho": float(radius_cells),
+                 "_tile": tile, "_h": h,
                  "_max_chunk": max_chunk, "_nbx": nbx, "_nby": nby, "_todo": todo,
                  "_counts": torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), "_dense": None}
         for name, value in state.items():  # a frozen dataclass underneath
@@ -433,10 +447,6 @@ class LazyDilatedGrid(OccupancyGrid):
         assert self._dense is not None
         return self._dense
 
-    @probs.setter
-    def probs(self, value: Tensor) -> None:  # pragma: no cover - the dataclass machinery; never used
-        raise AttributeError("a LazyDilatedGrid's values are derived from its source")
-
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self._counts.shape)  # type: ignore[return-value]
@@ -448,12 +458,6 @@ class LazyDilatedGrid(OccupancyGrid):
     @property
     def device(self) -> torch.device:
         return self._counts.device
-
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
-        """``self`` where nothing changes (nothing is dilated); else a full copy (:meth:`OccupancyGrid.to`)."""
-        if (device is None or torch.device(device) == self.device) and (dtype is None or dtype == self._source.dtype):
-            return self
-        return super().to(device, dtype)
 
     @property
     def remaining_tiles(self) -> int:
@@ -487,7 +491,7 @@ class LazyDilatedGrid(OccupancyGrid):
         self._todo[ids] = False
 
 
-class _LazyWindowRows(OccupancyGrid):
+class _LazyWindowRows(_ReadThroughGrid):
     """Rows ``k0 .. k0 + n - 1`` of a :class:`LazyDilatedGrid` (the last one held past its end), slice 0 at ``t0``:
     :meth:`cell_values` reads the parent's cells, so a replan's window dilates only the tiles it reads (an oracle
     window of ``drive``); :attr:`probs` is the parent's whole grid's rows."""
@@ -500,7 +504,8 @@ class _LazyWindowRows(OccupancyGrid):
     def __init__(self, parent: LazyDilatedGrid, k0: int, n: int, t0: float):
         for name in ("origin", "cell_size", "dt"):
             object.__setattr__(self, name, getattr(parent, name))
-        state = {"t0": float(t0), "_cache": {}, "_parent": parent, "_k0": int(k0), "_n": int(n), "_rows": None}
+        state = {"t0": float(t0), "_cache": {}, "_parent": parent, "_value_dtype": parent._value_dtype,
+                 "_k0": int(k0), "_n": int(n), "_rows": None}
         for name, value in state.items():  # a frozen dataclass underneath
             object.__setattr__(self, name, value)
 
@@ -510,10 +515,6 @@ class _LazyWindowRows(OccupancyGrid):
             object.__setattr__(self, "_rows", OccupancyGrid.window_rows(self._parent.probs, self._k0, self._n))
         assert self._rows is not None
         return self._rows
-
-    @probs.setter
-    def probs(self, value: Tensor) -> None:  # pragma: no cover - the dataclass machinery; never used
-        raise AttributeError("a window's values are its parent's")
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -527,13 +528,6 @@ class _LazyWindowRows(OccupancyGrid):
     @property
     def device(self) -> torch.device:
         return self._parent.device
-
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
-        """``self`` where nothing changes; else a full copy (:meth:`OccupancyGrid.to`)."""
-        if (device is None or torch.device(device) == self.device) and (
-                dtype is None or dtype == self._parent._source.dtype):
-            return self
-        return super().to(device, dtype)
 
     def cell_values(self, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
         return self._parent.cell_values((k + self._k0).clamp(max=self._parent.n_slices - 1), i, j)
