@@ -427,8 +427,7 @@ class LazyDilatedGrid(_ReadThroughGrid):
         # dilated, occupied or not (those far from any road user come out 0)
         todo = torch.ones(T * nbx * nby, dtype=torch.bool, device=probs.device)
         state = {"_source": probs, "_value_dtype": probs.dtype, "_keep": keep, "_rho": float(radius_cells),
-                 "_tile": tile, "_h": h,
-                 "_max_chunk": max_chunk, "_nbx": nbx, "_nby": nby, "_todo": todo,
+                 "_tile": tile, "_h": h, "_max_chunk": max_chunk, "_nbx": nbx, "_nby": nby, "_todo": todo,
                  "_counts": torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), "_dense": None}
         for name, value in state.items():  # a frozen dataclass underneath
             object.__setattr__(self, name, value)
