@@ -443,6 +443,9 @@ class LazyDilatedGrid(_ReadThroughGrid):
             self._dilate(ids[self._todo.index_select(0, ids)])
             self._todo.zero_()
             object.__setattr__(self, "_dense", dequantise(self._counts, _LEVELS, self._source.dtype))
+            # the counts' memory back (a quarter of the dense grid's); their shape and device stay readable
+            object.__setattr__(self, "_counts", torch.zeros(1, 1, 1, dtype=torch.uint8,
+                                                            device=self._counts.device).expand(self._counts.shape))
         assert self._dense is not None
         return self._dense
 
