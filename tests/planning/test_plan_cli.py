@@ -99,6 +99,14 @@ def test_plan_output_process_failure_and_fallback(tmp_path, capsys, monkeypatch)
     assert "disk full" in capsys.readouterr().err and _new_children(before) == []
     monkeypatch.undo()
 
+    from density_planner.planners.base import PlanResult, PlanStatus
+
+    monkeypatch.setattr(DensityPlanner, "plan", lambda self, problem: PlanResult(
+        "density", PlanStatus.FAILED, message="no finite cost"))  # no plan: nothing to draw, the process ends
+    assert main([*args, "--out", str(tmp_path / "n")]) == 1
+    assert "no finite cost" in capsys.readouterr().out and _new_children(before) == []
+    monkeypatch.undo()
+
     monkeypatch.setattr(plan_cli._OutputProcess, "start", classmethod(lambda cls, *a, **k: None))
     assert main([*args, "--out", str(tmp_path / "c")]) in (0, 3)
     data = json.loads((tmp_path / "c" / "plan.json").read_text())

@@ -106,11 +106,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         return _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
                                dist_seed)
-    except BaseException:
+    finally:  # an error, Ctrl-C or no plan: the output process ends here (after its files: nothing to do)
         if outputs is not None:
             outputs.cancel()
-        raise
-    finally:
         set_prediction_processes(before)
 
 
@@ -146,17 +144,16 @@ def _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
-    if result.states is not None and outputs is not None:
-        body = problem.collision().outline(result.states.detach().cpu()).numpy()
+    body = None if result.states is None else problem.collision().outline(result.states.detach().cpu()).numpy()
+    if body is not None and outputs is not None:
         written += outputs.finish(result, verdict, body)
         clock.lap("outputs")
         summary["output_process_timings"] = outputs.laps
-    elif result.states is not None:  # no fork: in turn, here
+    elif body is not None:  # no fork: in turn, here
         if args.kind == "commonroad":
             write_plan_solution(out / "solution.xml", scene, result, problem, run_config)
             written.append("solution.xml")
             clock.lap("solution")
-        body = problem.collision().outline(result.states.detach().cpu()).numpy()
         written += write_plan_figures(out, scene, result, verdict, gif=not args.no_gif, clock=clock, body=body)
     # wall time of each step of this command (start-up before run() excluded), for benchmarks/bench_plan_command.py
     summary["command_timings"] = clock.laps

@@ -39,6 +39,14 @@ GRID_FORMAT_VERSION = 1
 _RANGE_TOL = 1e-6
 
 
+def read_cells(values: Tensor, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
+    """``values[k, i, j]`` of a ``(T, NX, NY)`` tensor at long indices broadcast together (inside it: no checks),
+    by one ``index_select`` on the flat tensor: 2-4x faster here than advanced indexing."""
+    _, nx, ny = values.shape
+    lin = (k * nx + i) * ny + j
+    return values.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)
+
+
 def lattice_size(lo: float, hi: float, cell_size: float) -> int:
     """Number of lattice points (cell centres) from ``lo`` to ``hi`` inclusive at spacing ``cell_size`` [m].
 
@@ -145,7 +153,7 @@ class OccupancyGrid:
 
     @property
     def n_slices(self) -> int:
-        return int(self.probs.shape[0])
+        return int(self.shape[0])
 
     @property
     def device(self) -> torch.device:
@@ -259,9 +267,7 @@ class OccupancyGrid:
         """P_occ of the cells ``(k, i, j)`` (long tensors, broadcast together, already inside the grid: no checks,
         the hot paths' read), in the grid's dtype. One ``index_select`` on the flat grid, 2-4x faster here than
         advanced indexing."""
-        _, nx, ny = self.shape
-        lin = (k * nx + i) * ny + j
-        return self.probs.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)
+        return read_cells(self.probs, k, i, j)
 
     def lookup(self, xy: Tensor, k: int | Tensor, *, fill: float = 1.0) -> Tensor:
         """P_occ at positions ``xy (..., 2)`` [m] in slice(s) ``k`` (int or long tensor broadcastable to

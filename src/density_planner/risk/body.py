@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..environment.grid import OccupancyGrid
+from ..environment.grid import OccupancyGrid, read_cells
 from ..systems.base import Footprint
 
 __all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "masked_grid", "disc_kernel_rows", "quantise_up",
@@ -378,6 +378,11 @@ class _ReadThroughGrid(OccupancyGrid):
 
     _value_dtype: torch.dtype
 
+    def _set(self, **state) -> None:
+        """Set attributes (a frozen dataclass underneath; its ``__init__`` and validation pass are not run)."""
+        for name, value in state.items():
+            object.__setattr__(self, name, value)
+
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> OccupancyGrid:
         """``self`` where nothing changes (nothing is derived); else a full copy (:meth:`OccupancyGrid.to`)."""
         if (device is None or torch.device(device) == self.device) and (dtype is None or dtype == self._value_dtype):
@@ -411,10 +416,6 @@ class LazyDilatedGrid(_ReadThroughGrid):
 
     def __init__(self, source: OccupancyGrid, radius_cells: float, *, ignore: Tensor | None = None,
                  tile: int = 32, max_chunk: int = 1 << 22):
-        # the geometry of ``source``, without OccupancyGrid's validation pass (the values are source's, dilated)
-        for name in ("origin", "cell_size", "dt", "t0"):
-            object.__setattr__(self, name, getattr(source, name))
-        object.__setattr__(self, "_cache", {})
         probs = source.probs.contiguous()
         if probs.dtype not in (torch.float32, torch.float64):
             raise ValueError(f"a dilated grid needs float32 or float64 probabilities, got {probs.dtype}")
@@ -426,11 +427,11 @@ class LazyDilatedGrid(_ReadThroughGrid):
         # tiles within reach of an occupied cell (it took longer than dilating what a plan reads): a tile read is
         # dilated, occupied or not (those far from any road user come out 0)
         todo = torch.ones(T * nbx * nby, dtype=torch.bool, device=probs.device)
-        state = {"_source": probs, "_value_dtype": probs.dtype, "_keep": keep, "_rho": float(radius_cells),
-                 "_tile": tile, "_h": h, "_max_chunk": max_chunk, "_nbx": nbx, "_nby": nby, "_todo": todo,
-                 "_counts": torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), "_dense": None}
-        for name, value in state.items():  # a frozen dataclass underneath
-            object.__setattr__(self, name, value)
+        # the geometry of ``source`` (the values are source's, dilated: no validation pass)
+        self._set(origin=source.origin, cell_size=source.cell_size, dt=source.dt, t0=source.t0, _cache={},
+                  _source=probs, _value_dtype=probs.dtype, _keep=keep, _rho=float(radius_cells), _tile=tile, _h=h,
+                  _max_chunk=max_chunk, _nbx=nbx, _nby=nby, _todo=todo,
+                  _counts=torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), _dense=None)
 
     # the tensor properties read the counts' shape and device without dilating anything
     @property
@@ -442,10 +443,10 @@ class LazyDilatedGrid(_ReadThroughGrid):
             ids = (active[:, 0] * self._nbx + active[:, 1]) * self._nby + active[:, 2]
             self._dilate(ids[self._todo.index_select(0, ids)])
             self._todo.zero_()
-            object.__setattr__(self, "_dense", dequantise(self._counts, _LEVELS, self._source.dtype))
             # the counts' memory back (a quarter of the dense grid's); their shape and device stay readable
-            object.__setattr__(self, "_counts", torch.zeros(1, 1, 1, dtype=torch.uint8,
-                                                            device=self._counts.device).expand(self._counts.shape))
+            self._set(_dense=dequantise(self._counts, _LEVELS, self._source.dtype),
+                      _counts=torch.zeros(1, 1, 1, dtype=torch.uint8, device=self._counts.device).expand(
+                          self._counts.shape))
         assert self._dense is not None
         return self._dense
 
@@ -454,16 +455,12 @@ class LazyDilatedGrid(_ReadThroughGrid):
         return tuple(self._counts.shape)  # type: ignore[return-value]
 
     @property
-    def n_slices(self) -> int:
-        return int(self._counts.shape[0])
-
-    @property
     def device(self) -> torch.device:
         return self._counts.device
 
     @property
     def remaining_tiles(self) -> int:
-        """Tiles within reach of an occupied cell not dilated yet."""
+        """Tiles not dilated yet (occupied or not; 0 once the whole grid is formed)."""
         return int(self._todo.sum())
 
     def cell_values(self, k: Tensor, i: Tensor, j: Tensor) -> Tensor:
@@ -476,10 +473,7 @@ class LazyDilatedGrid(_ReadThroughGrid):
         need = self._todo.index_select(0, ids)
         if bool(need.any()):
             self._dilate(torch.unique(ids.masked_select(need)))
-        _, nx, ny = self._counts.shape
-        lin = (k * nx + i) * ny + j
-        counts = self._counts.reshape(-1).index_select(0, lin.reshape(-1)).reshape(lin.shape)
-        return dequantise(counts, _LEVELS, self._source.dtype)
+        return dequantise(read_cells(self._counts, k, i, j), _LEVELS, self._source.dtype)
 
     def _dilate(self, ids: Tensor) -> None:
         """Dilate the tiles of flat indices ``ids`` (all still to do) into the counts."""
@@ -504,17 +498,13 @@ class _LazyWindowRows(_ReadThroughGrid):
     _rows: Tensor | None
 
     def __init__(self, parent: LazyDilatedGrid, k0: int, n: int, t0: float):
-        for name in ("origin", "cell_size", "dt"):
-            object.__setattr__(self, name, getattr(parent, name))
-        state = {"t0": float(t0), "_cache": {}, "_parent": parent, "_value_dtype": parent._value_dtype,
-                 "_k0": int(k0), "_n": int(n), "_rows": None}
-        for name, value in state.items():  # a frozen dataclass underneath
-            object.__setattr__(self, name, value)
+        self._set(origin=parent.origin, cell_size=parent.cell_size, dt=parent.dt, t0=float(t0), _cache={},
+                  _parent=parent, _value_dtype=parent._value_dtype, _k0=int(k0), _n=int(n), _rows=None)
 
     @property
     def probs(self) -> Tensor:
         if self._rows is None:
-            object.__setattr__(self, "_rows", OccupancyGrid.window_rows(self._parent.probs, self._k0, self._n))
+            self._set(_rows=OccupancyGrid.window_rows(self._parent.probs, self._k0, self._n))
         assert self._rows is not None
         return self._rows
 
@@ -522,10 +512,6 @@ class _LazyWindowRows(_ReadThroughGrid):
     def shape(self) -> tuple[int, int, int]:
         _, nx, ny = self._parent.shape
         return (self._n, nx, ny)
-
-    @property
-    def n_slices(self) -> int:
-        return self._n
 
     @property
     def device(self) -> torch.device:
