@@ -20,6 +20,7 @@ from density_planner.planners.routes import (
     RouteSeedConfig,
     cap_profiles,
     find_routes,
+    first_distinct_rows,
     fit_reference_parameters,
     path_points,
     path_speed_limit,
@@ -218,6 +219,25 @@ def test_profile_family_ramps_within_its_rates_and_limits():
     v = profile_family(8.0, tau, v_limits=(0.0, 12.0), rates=((2.0, 5.0),), n_speeds=5, switch_times=(2.0,))
     dv = np.diff(v, axis=1)
     assert dv.max() == pytest.approx(2.0 * 0.1) and dv.min() == pytest.approx(-5.0 * 0.1)
+
+
+def test_first_distinct_rows_equals_numpy_unique():
+    """The first occurrence of each distinct row, as np.unique(axis=0) finds it: random rows with repeats and
+    signed zeros (equal as floats), and the speed-profile family that the risk-aware seeds thin out."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        base = np.round(rng.normal(size=(int(rng.integers(1, 30)), int(rng.integers(1, 8)))), 1)
+        a = base[rng.integers(0, len(base), size=int(rng.integers(1, 60)))]
+        a[rng.random(a.shape) < 0.1] *= -0.0  # -0.0 == 0.0
+        ref = np.sort(np.unique(a, axis=0, return_index=True)[1])
+        np.testing.assert_array_equal(first_distinct_rows(a), ref)
+    tau = np.arange(101) * 0.1
+    v = np.round(profile_family(6.0, tau, v_limits=(0.0, 40.0), rates=((2.0, 4.0), (1.0, 2.0)), n_speeds=25,
+                                switch_times=(1.0, 2.0, 4.0, 6.0, 8.0)), 9)
+    first = first_distinct_rows(v)
+    np.testing.assert_array_equal(first, np.sort(np.unique(v, axis=0, return_index=True)[1]))
+    assert 100 < first.size < v.shape[0]  # the family does repeat profiles
+    assert first_distinct_rows(np.zeros((0, 3))).size == 0 and first_distinct_rows(np.ones((1, 3))).tolist() == [0]
 
 
 def test_risk_aware_profiles_stop_behind_a_standing_car_and_reach_a_goal_in_time():

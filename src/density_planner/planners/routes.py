@@ -404,6 +404,28 @@ def _ramp_hold(v0: float, v_c: np.ndarray, tau: np.ndarray, acc: Rate) -> np.nda
     return v0 + _ramp(v_c[:, None] - v0, tau[None, :], acc)
 
 
+def first_distinct_rows(a: np.ndarray) -> np.ndarray:
+    """Indices, ascending, of the first occurrence of each distinct row of ``a (N, T)`` (rows compared as floats):
+    ``np.sort(np.unique(a, axis=0, return_index=True)[1])`` without its lexicographic sort of whole rows (0.11 s for
+    the ~12 500 x 101 speed profiles of a scene; this: ~5 ms). Rows are grouped by an exact integer hash of their
+    bits (a wrapping sum: equal rows, equal keys, whatever the order of summation) and each group is checked to hold
+    equal rows (where one does not, ``np.unique`` decides)."""
+    a = np.ascontiguousarray(a, dtype=np.float64) + 0.0  # -0.0 + 0.0 = 0.0: equal rows have equal bits
+    n, t = a.shape
+    if n < 2:
+        return np.arange(n)
+    mult = (np.arange(1, t + 1, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)) | np.uint64(1)
+    key = (a.view(np.uint64) * mult).sum(axis=1, dtype=np.uint64)  # modulo 2**64: exact
+    order = np.argsort(key, kind="stable")  # equal keys keep their order: a group's first is its first row
+    starts = np.r_[True, key[order[1:]] != key[order[:-1]]]
+    first = order[starts]
+    later = ~starts
+    owner = first[np.cumsum(starts) - 1]  # each row's group's first row
+    if not np.array_equal(a[order[later]], a[owner[later]]):  # distinct rows that share a key (not met in practice)
+        return np.sort(np.unique(a, axis=0, return_index=True)[1])
+    return np.sort(first)
+
+
 def _integrate(v: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Arc length ``(C, T)`` from speeds on the grid ``tau`` (trapezoid rule, starting at 0)."""
     dt = np.diff(tau)
@@ -649,8 +671,7 @@ def risk_aware_profiles(
     v = profile_family(v0, tau, v_limits=v_limits, rates=rates, n_speeds=n_speeds, switch_times=switch_times)
     # the family repeats profiles (a switch to the speed already held, ramps that end alike): each is scored once,
     # in the family's order (the first of equal profiles is the one the stable ranking below would keep)
-    _, first = np.unique(np.round(v, 9), axis=0, return_index=True)
-    v = v[np.sort(first)]
+    v = v[first_distinct_rows(np.round(v, 9))]
     s = _integrate(v, tau)
     if speed_limit is not None:  # the road's curves and end (path_speed_limit)
         pairs = [_rate_pair(r) for r in rates]

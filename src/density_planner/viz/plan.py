@@ -297,7 +297,7 @@ def _save_laid_out(fig, path: str | Path) -> Path:
     if engine is not None:  # lay out once and freeze: savefig would otherwise draw the whole figure twice
         fig.canvas.get_renderer()
         engine.execute(fig)
-        fig.set_layout_engine("none")
+        fig.set_layout_engine(None)
     _atomic(path, lambda fh: fig.savefig(fh, format=fmt))
     plt.close(fig)
     return path
@@ -411,7 +411,7 @@ def animate_plan(
         a.set_animated(True)
     canvas = agg_canvas(fig)
     canvas.draw()
-    fig.set_layout_engine("none")
+    fig.set_layout_engine(None)
     background = canvas.copy_from_bbox(fig.bbox)
     palette = _gif_palette_image()
     frames = []
