@@ -7,32 +7,11 @@ The pipeline, in the order data flows through it::
 The names below are the stable public API; everything else is importable from its subpackage.
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
 
-from .control import (
-    CarTrackingController,
-    PiecewiseConstantInputs,
-    Reference,
-    TrackingController,
-    make_reference,
-)
-from .density import (
-    DensityPredictor,
-    DensityTrajectory,
-    ExactLiouville,
-    Gaussian,
-    GaussianMixture,
-    LearnedDensity,
-    LiouvilleConfig,
-    UniformBox,
-    WeightedSamples,
-    load_predictor,
-    paper_gaussian_mixture,
-    propagate_density,
-    simulate_closed_loop,
-)
 from .memory import tune_allocator
-from .systems import CarConfig, KinematicCar, LinearSystem, System
 
 tune_allocator()  # glibc's malloc thresholds for a planner's alloc/free pattern (DENSITY_PLANNER_TUNE_MALLOC=0: off)
 
@@ -40,6 +19,63 @@ try:
     __version__ = version("density-planner")
 except PackageNotFoundError:  # pragma: no cover - running from a source tree without installation
     __version__ = "0.0.0+unknown"
+
+#: public name -> the subpackage that defines it, imported on first use (PEP 562): importing the package (and its
+#: command line, before it parses its arguments) does not import torch (~1 s), so the ``plan`` command can start
+#: reading its scene file in a second process meanwhile (:mod:`density_planner.prefetch`)
+_EXPORTS = {
+    **dict.fromkeys(("CarTrackingController", "PiecewiseConstantInputs", "Reference", "TrackingController",
+                     "make_reference"), ".control"),
+    **dict.fromkeys(("DensityPredictor", "DensityTrajectory", "ExactLiouville", "Gaussian", "GaussianMixture",
+                     "LearnedDensity", "LiouvilleConfig", "UniformBox", "WeightedSamples", "load_predictor",
+                     "paper_gaussian_mixture", "propagate_density", "simulate_closed_loop"), ".density"),
+    **dict.fromkeys(("CarConfig", "KinematicCar", "LinearSystem", "System"), ".systems"),
+}
+
+if TYPE_CHECKING:  # what the names are, for type checkers and editors
+    from .control import (
+        CarTrackingController,
+        PiecewiseConstantInputs,
+        Reference,
+        TrackingController,
+        make_reference,
+    )
+    from .density import (
+        DensityPredictor,
+        DensityTrajectory,
+        ExactLiouville,
+        Gaussian,
+        GaussianMixture,
+        LearnedDensity,
+        LiouvilleConfig,
+        UniformBox,
+        WeightedSamples,
+        load_predictor,
+        paper_gaussian_mixture,
+        propagate_density,
+        simulate_closed_loop,
+    )
+    from .systems import CarConfig, KinematicCar, LinearSystem, System
+
+
+def __getattr__(name: str) -> Any:
+    """A public name (``_EXPORTS``) or a subpackage, imported on first access."""
+    where = _EXPORTS.get(name)
+    if where is not None:
+        value = getattr(import_module(where, __name__), name)
+        globals()[name] = value
+        return value
+    try:
+        return import_module(f".{name}", __name__)
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__name__}.{name}":
+            raise
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
+
 
 __all__ = [
     "__version__",

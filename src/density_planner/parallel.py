@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TaskOutcome", "run_tasks", "default_workers"]
+__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall"]
 
 
 @dataclass
@@ -40,6 +40,81 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+class ForkedCall:
+    """``fn(*args)`` computed in a process forked now, while this one goes on: :meth:`result` waits for its value
+    (sent back pickled through a pipe). For work that needs no gradient and no GPU and that this process will need
+    later, e.g. a scene's road distance field while the planner builds its route seeds. :meth:`start` returns
+    ``None`` where ``fork`` does not exist (the caller then computes ``fn`` itself). The child ignores Ctrl-C (the
+    parent ends it: :meth:`cancel`, or :meth:`result`) and runs with ``threads`` torch threads if torch is loaded."""
+
+    def __init__(self, proc, conn) -> None:
+        self._proc, self._conn = proc, conn
+
+    @classmethod
+    def start(cls, fn: Callable[..., Any], *args: Any, threads: int = 1) -> ForkedCall | None:
+        import multiprocessing as mp
+        import sys
+
+        if "fork" not in mp.get_all_start_methods():
+            return None
+        ctx = mp.get_context("fork")
+        here, there = ctx.Pipe(duplex=False)
+        for stream in (sys.stdout, sys.stderr):  # the child would print what is still buffered here once more
+            stream.flush()
+        proc = ctx.Process(target=_forked_call, args=(there, fn, args, threads), daemon=True)
+        proc.start()
+        there.close()
+        return cls(proc, here)
+
+    def result(self) -> Any:
+        """The value of ``fn(*args)`` (waits for it); raises ``RuntimeError`` naming the child's error or exit code.
+        Once only."""
+        import pickle
+
+        if self._conn.closed:
+            raise RuntimeError("ForkedCall.result() was already taken or the call cancelled")
+        try:
+            status, value = pickle.loads(self._conn.recv_bytes())
+        except EOFError:
+            status, value = "error", None
+        finally:
+            self._conn.close()
+        self._proc.join()
+        if status != "ok":
+            raise RuntimeError(f"the forked call failed ({value or f'exit code {self._proc.exitcode}'})")
+        return value
+
+    def cancel(self) -> None:
+        """End the child now (nothing happens once :meth:`result` was taken)."""
+        if self._conn.closed:
+            return
+        self._conn.close()
+        if self._proc.is_alive():
+            self._proc.terminate()
+        self._proc.join()
+
+
+def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int) -> None:
+    """Target of :class:`ForkedCall`: compute, answer ``("ok", value)`` or ``("error", text)``."""
+    import pickle
+    import signal
+    import sys
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(threads)
+    try:  # plain pickling (torch's multiprocessing reductions would share memory that dies with this process)
+        payload = pickle.dumps(("ok", fn(*args)), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:  # noqa: BLE001 - the parent raises it as one line
+        payload = pickle.dumps(("error", f"{type(exc).__name__}: {exc}"))
+    try:
+        conn.send_bytes(payload)
+    except (BrokenPipeError, OSError):  # the parent cancelled or ended
+        pass
+    finally:
+        conn.close()
 
 
 class _Call:

@@ -112,8 +112,28 @@ def console() -> None:
     ``os._exit`` once the output streams and logs are flushed: the interpreter's teardown (freeing the scene's
     grids, finalising torch and matplotlib) took 0.5-1 s of a ``plan`` command's wall time
     (``benchmarks/bench_plan_command.py``). Other commands exit normally (their worker pools shut down at exit)."""
+    _prefetch_scene(sys.argv[1:])
     code = main(fast_exit=True)
     sys.exit(code)
+
+
+#: commands whose ``--env commonroad --file F`` scene is read by a second process while this one imports torch
+_PREFETCH_COMMANDS = ("plan", "drive")
+
+
+def _prefetch_scene(argv: Sequence[str]) -> None:
+    """Start reading the CommonRoad file of a ``plan`` / ``drive`` command line in a second process
+    (:mod:`density_planner.prefetch`; ~0.2-1 s of the command's start-up). A light look at the raw arguments only:
+    the parser (built later) decides what they mean, and an unused read is ended at exit."""
+    if len(argv) < 3 or argv[0] not in _PREFETCH_COMMANDS or "commonroad" not in argv or "-h" in argv \
+            or "--help" in argv:
+        return
+    files = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--file"]
+    files += [a.split("=", 1)[1] for a in argv if a.startswith("--file=")]
+    if len(files) == 1 and files[0].lower().endswith(".xml"):
+        from ..prefetch import start_commonroad_read
+
+        start_commonroad_read(files[0])
 
 
 def _exit_now(code: int) -> None:

@@ -85,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
     clock = _Clock()
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
+    from ..parallel import default_workers
+
+    if default_workers() > 1 and args.device == "cpu":  # the road's distance field, meanwhile
+        from ..cost.road import start_road_terms
+
+        start_road_terms(scene, run_config.density_planner.cost)
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
@@ -98,7 +104,6 @@ def run(args: argparse.Namespace) -> int:
                                    solution=args.kind == "commonroad")
     clock.lap("setup")
     from ..density.split import prediction_processes, set_prediction_processes
-    from ..parallel import default_workers
 
     before = prediction_processes()
     if ctx.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
@@ -251,16 +256,24 @@ class _OutputProcess:
 def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
     """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (the pipe's end: nothing to
     write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
+    import os
     import signal
 
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
+    try:  # its warm-up yields the second core to the planner's helpers (road distance field, split prediction)
+        os.nice(5)
+    except OSError:
+        pass
     parent_end.close()  # the parent's end, inherited: else the pipe never reports the parent's end
     torch.set_num_threads(1)
     from ..viz.plan import warm_up
 
-    warm_up()
+    try:
+        warm_up(scene)
+    except Exception:  # noqa: BLE001 - only a warm-up: drawing the plan's figure reports what is wrong
+        pass
     if solution:
         from ..io.commonroad_solution import preload
 

@@ -63,11 +63,11 @@ import torch
 from torch import Tensor
 
 from ..checks import check_positive
-from ..environment.road_sdf import RoadSDF, road_sdf_for_scene
+from ..environment.road_sdf import RoadSDF, road_sdf_for_scene, start_road_sdf
 from .goal_region import GoalRegionCost
 from .terms import CostInputs, CostTerm
 
-__all__ = ["RoadCostConfig", "RoadBarrierCost", "vehicle_outline", "with_road_terms"]
+__all__ = ["RoadCostConfig", "RoadBarrierCost", "vehicle_outline", "with_road_terms", "start_road_terms"]
 
 
 @dataclass(frozen=True)
@@ -304,3 +304,14 @@ def with_road_terms(
                                          **({} if layout is None else {"layout": layout[:3]})))
             weights["road"] = rc.weight
     return terms, weights
+
+
+def start_road_terms(scene: Any, config: Any) -> bool:
+    """Start computing, in a forked process, the road's distance field that :func:`with_road_terms` will read for
+    ``scene`` and ``config`` (a :class:`~density_planner.cost.composite.CostConfig`):
+    :func:`~density_planner.environment.road_sdf.start_road_sdf`. For a caller with an idle core (the ``plan``
+    command); returns whether a process was started."""
+    rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
+    if getattr(scene, "road", None) is None or not (rc.barrier and rc.weight > 0):
+        return False
+    return start_road_sdf(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)

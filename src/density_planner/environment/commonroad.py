@@ -46,6 +46,7 @@ and recorded in ``scene.meta`` (``scene.json``).
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
 import warnings
@@ -233,21 +234,30 @@ class CommonRoadSceneConfig:
 
 
 # ------------------------------------------------------------------------------------------------- reading
-def _require() -> tuple[Any, Any]:
+def _require(reader: bool = False) -> tuple[Any, Any]:
+    """``(commonroad-io's CommonRoadFileReader or None, shapely)``; the reader's import (~0.2 s) only with ``reader``
+    (a file read by :mod:`density_planner.prefetch` needs none). :class:`OptionalDependencyError` without
+    commonroad-io."""
     try:
         import shapely
         import shapely.affinity  # noqa: F401  (submodules the importers use)
         import shapely.ops  # noqa: F401
-        from commonroad.common.file_reader import CommonRoadFileReader
+
+        if reader:
+            from commonroad.common.file_reader import CommonRoadFileReader
+
+            return CommonRoadFileReader, shapely
+        if importlib.util.find_spec("commonroad") is None:
+            raise ImportError("No module named 'commonroad'")
     except ImportError as exc:
         raise OptionalDependencyError("commonroad-io", "commonroad", "reading CommonRoad scenarios") from exc
-    return CommonRoadFileReader, shapely
+    return None, shapely
 
 
 def read_commonroad(path: str | Path) -> tuple[Any, Any]:
     """``(scenario, planning_problem_set)`` of a CommonRoad XML file; :class:`DataError` when it is not
     one."""
-    reader_cls, _ = _require()
+    _require()
     path = Path(path)
     if not path.is_file():
         raise DataError(f"CommonRoad file not found: {path}")
@@ -260,6 +270,12 @@ def read_commonroad(path: str | Path) -> tuple[Any, Any]:
         raise DataError(
             f"{path} is not a CommonRoad scenario (root element <{root.tag}>, expected <commonRoad>)"
         )
+    from ..prefetch import take_commonroad_read
+
+    prefetched = take_commonroad_read(path)  # read by the command line's second process meanwhile, if it was
+    if prefetched is not None:
+        return prefetched
+    reader_cls, _ = _require(reader=True)
     try:
         with warnings.catch_warnings():  # NaN coordinates: shapely warns inside commonroad-io; checked below
             warnings.simplefilter("ignore", RuntimeWarning)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["RoadSDF", "road_sdf_for_scene"]
+__all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf"]
 
 log = logging.getLogger(__name__)
 
@@ -129,37 +129,8 @@ class RoadSDF:
 
         ``cell_size`` [m] grows automatically (logged) when the lattice would exceed ``max_cells`` points.
         """
-        import shapely
-        from scipy import ndimage
-
-        xmin, xmax, ymin, ymax = (float(b) for b in bounds)
-        if not (xmax > xmin and ymax > ymin) or not all(math.isfinite(b) for b in bounds):
-            raise ValueError(f"RoadSDF bounds must be finite (xmin < xmax, ymin < ymax), got {bounds}")
-        if drivable is None or drivable.is_empty:
-            raise ValueError("RoadSDF needs a non-empty drivable area")
-        h = float(cell_size)
-        cells = (math.floor((xmax - xmin) / h) + 2) * (math.floor((ymax - ymin) / h) + 2)
-        if cells > max_cells:
-            h = h * math.sqrt(cells / max_cells) * 1.01
-            log.info("road SDF: cell size %.3g m -> %.3g m to stay within %d lattice points", cell_size, h, max_cells)
-        nx = math.floor((xmax - xmin) / h) + 2
-        ny = math.floor((ymax - ymin) / h) + 2
-        xs = xmin + h * np.arange(nx)
-        ys = ymin + h * np.arange(ny)
-        gx, gy = np.meshgrid(xs, ys, indexing="ij")
-        shapely.prepare(drivable)
-        inside = np.asarray(shapely.contains_xy(drivable, gx, gy), dtype=bool)
-        if inside.all() or not inside.any():
-            # the edge lies outside the lattice: exact distances everywhere
-            sdf = cls._exact(drivable, gx.ravel(), gy.ravel(), inside.ravel()).reshape(nx, ny)
-        else:
-            d_out = ndimage.distance_transform_edt(~inside) * h  # off-road cells: distance to the road
-            d_in = ndimage.distance_transform_edt(inside) * h
-            sdf = np.where(inside, -(d_in - 0.5 * h), d_out - 0.5 * h)
-            if exact_band > 0:
-                band = np.abs(sdf) <= exact_band * h
-                sdf[band] = cls._exact(drivable, gx[band], gy[band], inside[band])
-        return cls(torch.as_tensor(sdf, dtype=dtype), (xmin, ymin), h)
+        sdf, origin, h = _lattice_values(drivable, bounds, cell_size, max_cells, exact_band)
+        return cls(torch.as_tensor(sdf, dtype=dtype), origin, h)
 
     @staticmethod
     def _exact(drivable: Any, x: np.ndarray, y: np.ndarray, inside: np.ndarray) -> np.ndarray:
@@ -169,24 +140,107 @@ class RoadSDF:
         return np.where(inside, -d, d)
 
 
+def _lattice_values(drivable: Any, bounds: tuple[float, float, float, float], cell_size: float, max_cells: int,
+                    exact_band: int) -> tuple[np.ndarray, tuple[float, float], float]:
+    """``(values (NX, NY), (xmin, ymin), cell size)`` of :meth:`RoadSDF.from_geometry` (numpy: no torch)."""
+    import shapely
+    from scipy import ndimage
+
+    xmin, xmax, ymin, ymax = (float(b) for b in bounds)
+    if not (xmax > xmin and ymax > ymin) or not all(math.isfinite(b) for b in bounds):
+        raise ValueError(f"RoadSDF bounds must be finite (xmin < xmax, ymin < ymax), got {bounds}")
+    if drivable is None or drivable.is_empty:
+        raise ValueError("RoadSDF needs a non-empty drivable area")
+    h = float(cell_size)
+    cells = (math.floor((xmax - xmin) / h) + 2) * (math.floor((ymax - ymin) / h) + 2)
+    if cells > max_cells:
+        h = h * math.sqrt(cells / max_cells) * 1.01
+        log.info("road SDF: cell size %.3g m -> %.3g m to stay within %d lattice points", cell_size, h, max_cells)
+    nx = math.floor((xmax - xmin) / h) + 2
+    ny = math.floor((ymax - ymin) / h) + 2
+    xs = xmin + h * np.arange(nx)
+    ys = ymin + h * np.arange(ny)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    shapely.prepare(drivable)
+    inside = np.asarray(shapely.contains_xy(drivable, gx, gy), dtype=bool)
+    if inside.all() or not inside.any():
+        # the edge lies outside the lattice: exact distances everywhere
+        sdf = RoadSDF._exact(drivable, gx.ravel(), gy.ravel(), inside.ravel()).reshape(nx, ny)
+    else:
+        d_out = ndimage.distance_transform_edt(~inside) * h  # off-road cells: distance to the road
+        d_in = ndimage.distance_transform_edt(inside) * h
+        sdf = np.where(inside, -(d_in - 0.5 * h), d_out - 0.5 * h)
+        if exact_band > 0:
+            band = np.abs(sdf) <= exact_band * h
+            sdf[band] = RoadSDF._exact(drivable, gx[band], gy[band], inside[band])
+    return sdf, (xmin, ymin), h
+
+
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_PENDING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # road -> {key: ForkedCall}
+
+
+def _scene_key_bounds(scene: Any, cell_size: float, max_cells: int, margin: float
+                      ) -> tuple[Any, tuple, tuple[float, float, float, float]] | None:
+    """``(drivable, cache key, bounds)`` of :func:`road_sdf_for_scene`'s field; ``None`` without a road."""
+    drivable = getattr(getattr(scene, "road", None), "drivable", None)
+    if drivable is None:
+        return None
+    grid = scene.grid
+    _, nx, ny = grid.shape
+    x0, y0 = grid.origin
+    h = grid.cell_size
+    bounds = (x0 - margin, x0 + (nx - 1) * h + margin, y0 - margin, y0 + (ny - 1) * h + margin)
+    return drivable, (float(cell_size), int(max_cells), float(margin)), bounds
 
 
 def road_sdf_for_scene(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0
                        ) -> RoadSDF | None:
     """The :class:`RoadSDF` of ``scene.road.drivable`` over the occupancy grid's extent grown by ``margin`` [m],
-    computed once per road scene (cached); ``None`` for scenes without a road (random, inD)."""
-    road = getattr(scene, "road", None)
-    drivable = getattr(road, "drivable", None)
-    if drivable is None:
+    computed once per road scene (cached; taken from :func:`start_road_sdf`'s process where one computes it);
+    ``None`` for scenes without a road (random, inD)."""
+    found = _scene_key_bounds(scene, cell_size, max_cells, margin)
+    if found is None:
         return None
-    key = (float(cell_size), int(max_cells), float(margin))
-    per_road = _CACHE.setdefault(road, {})
+    drivable, key, bounds = found
+    per_road = _CACHE.setdefault(scene.road, {})
     if key not in per_road:
-        grid = scene.grid
-        _, nx, ny = grid.shape
-        x0, y0 = grid.origin
-        h = grid.cell_size
-        bounds = (x0 - margin, x0 + (nx - 1) * h + margin, y0 - margin, y0 + (ny - 1) * h + margin)
-        per_road[key] = RoadSDF.from_geometry(drivable, bounds, cell_size=cell_size, max_cells=max_cells)
+        pending = _PENDING.get(scene.road, {}).pop(key, None)
+        sdf = None
+        if pending is not None:
+            try:
+                values, origin, h = pending.result()
+                sdf = RoadSDF(torch.as_tensor(values), origin, h)
+            except RuntimeError as exc:  # computed here instead (the same field)
+                log.debug("road SDF: %s; computing it here", exc)
+        per_road[key] = sdf or RoadSDF.from_geometry(drivable, bounds, cell_size=cell_size, max_cells=max_cells)
     return per_road[key]
+
+
+def start_road_sdf(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0) -> bool:
+    """Start computing :func:`road_sdf_for_scene`'s field (same arguments) in a forked process
+    (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the first
+    :func:`road_sdf_for_scene` then takes it from there (the ``plan`` command: while the planner finds its route
+    seeds; 0.3-0.6 s of its wall time otherwise, scipy's import included). Returns whether a process was started
+    (not without a road, without ``fork``, or when the field is cached or already being computed)."""
+    from ..parallel import ForkedCall
+
+    found = _scene_key_bounds(scene, cell_size, max_cells, margin)
+    if found is None:
+        return False
+    drivable, key, bounds = found
+    if key in _CACHE.get(scene.road, {}) or key in _PENDING.get(scene.road, {}):
+        return False
+    call = ForkedCall.start(_float32_lattice, drivable, bounds, cell_size, max_cells)
+    if call is None:
+        return False
+    _PENDING.setdefault(scene.road, {})[key] = call
+    return True
+
+
+def _float32_lattice(drivable: Any, bounds: tuple[float, float, float, float], cell_size: float, max_cells: int
+                     ) -> tuple[np.ndarray, tuple[float, float], float]:
+    """:func:`_lattice_values` with the values as float32 (:meth:`RoadSDF.from_geometry`'s default dtype; half the
+    bytes through the pipe)."""
+    sdf, origin, h = _lattice_values(drivable, bounds, cell_size, max_cells, exact_band=3)
+    return sdf.astype(np.float32), origin, h

@@ -154,9 +154,12 @@ def _mark_failures(ax, states: np.ndarray, verdict, plan_dt: float) -> None:
                 label=f"{label} (t = {t:.1f} s)")
 
 
-def warm_up() -> None:
+def warm_up(scene: Scene | None = None) -> None:
     """Load what the first figure of a process would (fonts, layout and text machinery: ~0.2-0.3 s) by laying out
-    and rendering a small figure, e.g. in a process that waits for a plan to draw."""
+    and rendering a small figure, e.g. in a process that waits for a plan to draw. With ``scene``, also draw and
+    save (to a temporary file, deleted) :func:`plot_plan`'s figure of a vehicle standing at the scene's start with
+    a small sample cloud: what the first plan figure of a scene pays once more (its occupancy crops, the road users'
+    paths, the colour bar, the PNG writer; ~0.1-0.2 s) is then paid before the plan arrives."""
     fig, ax = plt.subplots(figsize=(2.0, 1.5), dpi=30, layout="constrained")
     ax.plot([0.0, 1.0], [0.0, 1.0], "o-")
     ax.set_title("t = 0.0 s", fontsize=8)
@@ -164,6 +167,15 @@ def warm_up() -> None:
     fig.suptitle("warm-up", fontsize=10)
     agg_canvas(fig).draw()
     plt.close(fig)
+    if scene is None:
+        return
+    import tempfile
+
+    states = np.repeat(np.asarray(scene.start, dtype=np.float64)[None], 2, axis=0)
+    cloud = np.repeat(states[None], 4, axis=0) + np.linspace(-1.0, 1.0, 4)[:, None, None]
+    with tempfile.TemporaryDirectory(prefix="density-planner-warm-up-") as tmp:
+        plot_plan(scene, states, Path(tmp) / "plan.png", samples_x=cloud, samples_log_rho=np.zeros(cloud.shape[:2]),
+                  title="warm-up", body=None)
 
 
 def plot_plan(

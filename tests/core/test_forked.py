@@ -1,0 +1,140 @@
+"""Work done in forked processes while this one goes on: ForkedCall, the road distance field computed beside the
+planner, and the CommonRoad file read while the command line starts (density_planner.prefetch)."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from density_planner.parallel import ForkedCall
+
+needs_fork = pytest.mark.skipif("fork" not in mp.get_all_start_methods(), reason="needs fork")
+
+
+def _fail(text: str) -> None:
+    raise ValueError(text)
+
+
+def _children() -> set[int]:
+    return {p.pid for p in mp.active_children()}
+
+
+@needs_fork
+def test_forked_call_value_error_and_cancel():
+    import numpy as np
+
+    call = ForkedCall.start(np.arange, 5)
+    assert call is not None
+    assert call.result().tolist() == [0, 1, 2, 3, 4]
+    with pytest.raises(RuntimeError, match="already taken"):
+        call.result()
+    failing = ForkedCall.start(_fail, "no road here")
+    with pytest.raises(RuntimeError, match="ValueError: no road here"):
+        failing.result()
+    slow = ForkedCall.start(__import__("time").sleep, 30)
+    pid = slow._proc.pid
+    slow.cancel()
+    slow.cancel()  # twice: nothing more
+    assert pid not in _children() and not slow._proc.is_alive()
+
+
+def test_forked_call_without_fork(monkeypatch):
+    monkeypatch.setattr(mp, "get_all_start_methods", lambda: ["spawn"])
+    assert ForkedCall.start(len, "abc") is None
+
+
+@needs_fork
+def test_road_sdf_from_the_forked_process_equals_the_one_computed_here():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "planning"))
+    import shapely
+    from road_helpers import road_scene
+
+    from density_planner.environment.road import GoalRegion
+    from density_planner.environment.road_sdf import road_sdf_for_scene, start_road_sdf
+
+    goal = GoalRegion(shapely.box(100.0, -1.0, 110.0, 4.0), (5.0, 6.0))
+    here = road_sdf_for_scene(road_scene(goal), cell_size=0.3)
+    scene = road_scene(goal)
+    assert start_road_sdf(scene, cell_size=0.3)
+    assert not start_road_sdf(scene, cell_size=0.3)  # already being computed
+    there = road_sdf_for_scene(scene, cell_size=0.3)
+    assert there.values.dtype == here.values.dtype and bool((there.values == here.values).all())
+    assert there.origin == here.origin and there.cell_size == here.cell_size
+    assert not start_road_sdf(scene, cell_size=0.3)  # cached
+
+
+# ------------------------------------------------------------------------------------------------ prefetch
+@pytest.fixture
+def scenario_file(tmp_path: Path) -> Path:
+    from density_planner.evaluation.environments import shipped_commonroad_dir
+
+    src = sorted(shipped_commonroad_dir().glob("*.xml"))[0]
+    dst = tmp_path / src.name
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
+@needs_fork
+def test_prefetched_read_equals_a_direct_read_and_is_taken_once(scenario_file):
+    from density_planner import prefetch
+    from density_planner.environment.commonroad import read_commonroad
+
+    direct_scenario, direct_problems = read_commonroad(scenario_file)
+    assert prefetch.start_commonroad_read(scenario_file)
+    assert not prefetch.start_commonroad_read(scenario_file)  # one at a time
+    assert prefetch.take_commonroad_read(scenario_file.parent / "other.xml") is None  # another file: not this read
+    scenario, problems = read_commonroad(scenario_file)  # takes it
+    assert prefetch._PENDING is None
+    assert str(scenario.scenario_id) == str(direct_scenario.scenario_id)
+    assert sorted(o.obstacle_id for o in scenario.obstacles) == sorted(o.obstacle_id for o in direct_scenario.obstacles)
+    assert sorted(la.lanelet_id for la in scenario.lanelet_network.lanelets) == sorted(
+        la.lanelet_id for la in direct_scenario.lanelet_network.lanelets)
+    assert list(problems.planning_problem_dict) == list(direct_problems.planning_problem_dict)
+
+
+@needs_fork
+def test_prefetch_of_a_changed_or_broken_file_is_not_used(scenario_file):
+    from density_planner import prefetch
+    from density_planner.environment.commonroad import read_commonroad
+    from density_planner.errors import DataError
+
+    assert prefetch.start_commonroad_read(scenario_file)
+    st = scenario_file.stat()
+    os.utime(scenario_file, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # changed since the read started
+    assert prefetch.take_commonroad_read(scenario_file) is None
+    prefetch.cancel_prefetch()
+    assert prefetch._PENDING is None
+    text = scenario_file.read_text()
+    scenario_file.write_text(text[: len(text) // 2])  # truncated: the child fails, the caller reports it
+    assert prefetch.start_commonroad_read(scenario_file)
+    assert prefetch.take_commonroad_read(scenario_file) is None
+    assert prefetch.start_commonroad_read(scenario_file)
+    with pytest.raises(DataError, match="not a CommonRoad scenario|cannot read"):
+        read_commonroad(scenario_file)
+    prefetch.cancel_prefetch()
+
+
+def test_command_line_prefetches_only_a_plan_or_drive_commonroad_file(monkeypatch):
+    from density_planner import cli, prefetch
+
+    started: list[str] = []
+    monkeypatch.setattr(prefetch, "start_commonroad_read", lambda path: started.append(path) or True)
+    cli._prefetch_scene(["plan", "--env", "commonroad", "--file", "a.xml", "--out", "o"])
+    cli._prefetch_scene(["drive", "--env", "commonroad", "--file=b.XML"])
+    cli._prefetch_scene(["plan", "--env", "random", "--out", "o"])
+    cli._prefetch_scene(["plan", "--env", "commonroad", "--file", "a.xml", "--help"])
+    cli._prefetch_scene(["bench", "commonroad", "--file", "a.xml"])
+    cli._prefetch_scene(["plan", "--env", "commonroad", "--file", "a.json"])
+    assert started == ["a.xml", "b.XML"]
+
+
+def test_importing_the_package_and_its_command_line_does_not_import_torch():
+    import subprocess
+
+    code = "import sys, density_planner, density_planner.cli, density_planner.prefetch; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
