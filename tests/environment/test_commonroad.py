@@ -107,6 +107,21 @@ def test_lanelets_are_free_and_far_off_cells_occupied(commonroad_dir, name):
     assert far.any() and static[far].min() == 1.0
 
 
+def test_the_scenes_offroad_mask_is_the_one_its_static_map_used(commonroad_dir):
+    """The import computes the off-road cells once: offroad_mask (what collision reads) is that array, equal to a
+    fresh offroad_cells of the same geometry, and the grid holds 1 there."""
+    from density_planner.environment.commonroad import offroad_cells, offroad_mask
+
+    scene = load_commonroad_scene(commonroad_dir / NGSIM[0], _cfg())
+    g = scene.grid
+    _, nx, ny = g.shape
+    mask = offroad_mask(scene)
+    fresh = offroad_cells(scene.road.drivable, g.origin, g.cell_size, (nx, ny), scene.meta["config"]["offroad_margin"])
+    assert mask.dtype == torch.bool and torch.equal(mask, torch.from_numpy(fresh)) and bool(mask.any())
+    assert offroad_mask(scene) is mask
+    assert bool((g.probs[:, mask] == 1.0).all())
+
+
 def test_dynamic_obstacles_are_drawn_and_kept_as_true_shapes(commonroad_dir):
     scene = load_commonroad_scene(commonroad_dir / NGSIM[0], _cfg())
     scenario, _ = read_commonroad(commonroad_dir / NGSIM[0])

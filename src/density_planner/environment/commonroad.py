@@ -541,6 +541,11 @@ def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, 
 _OFFROAD_MASKS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+def _offroad_key(grid: OccupancyGrid, margin: float | None) -> tuple:
+    _, nx, ny = grid.shape
+    return (grid.origin, grid.cell_size, nx, ny, None if margin is None else float(margin))
+
+
 def offroad_mask(scene: Scene) -> torch.Tensor | None:
     """``(NX, NY)`` bool tensor of the scene grid's cells that its static map marks off the road (as imported:
     :func:`offroad_cells` with the scene's ``offroad_margin``); ``None`` for a scene without a road or one imported
@@ -553,7 +558,7 @@ def offroad_mask(scene: Scene) -> torch.Tensor | None:
     if not bool(cfg.get("offroad_occupied", True)):
         return None
     _, nx, ny = scene.grid.shape
-    key = (scene.grid.origin, scene.grid.cell_size, nx, ny, cfg.get("offroad_margin"))
+    key = _offroad_key(scene.grid, cfg.get("offroad_margin"))
     per_road = _OFFROAD_MASKS.setdefault(road, {})
     if key not in per_road:
         per_road[key] = torch.from_numpy(offroad_cells(road.drivable, scene.grid.origin, scene.grid.cell_size,
@@ -570,10 +575,11 @@ def static_map(
     *,
     drivable: Any = None,
     static_polygons: list[Any] | None = None,
+    offroad: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """``((NX, NY) float32 static occupancy, number of static obstacles drawn)``: 1 outside the drivable area
     (unless ``config.offroad_occupied`` is false) and inside static obstacles, 0 elsewhere, evaluated at the cell
-    centres."""
+    centres. ``offroad``: :func:`offroad_cells` of this geometry where the caller has it already."""
     cfg = config or CommonRoadSceneConfig()
     _, shapely = _require()
     if drivable is None:
@@ -583,7 +589,9 @@ def static_map(
     ys = origin[1] + cell_size * np.arange(ny)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     if cfg.offroad_occupied:
-        static = offroad_cells(drivable, origin, cell_size, size, cfg.offroad_margin).astype(np.float32)
+        if offroad is None:
+            offroad = offroad_cells(drivable, origin, cell_size, size, cfg.offroad_margin)
+        static = offroad.astype(np.float32)
     else:
         static = np.zeros((nx, ny), dtype=np.float32)
     if static_polygons is None:
@@ -1024,8 +1032,10 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                 polys_per_slice[k].append(poly)
 
     # -- rasterise
+    offroad = offroad_cells(drivable, origin, cell, (nx, ny), cfg.offroad_margin) if cfg.offroad_occupied else None
     static, n_static = static_map(scenario, origin, cell, (nx, ny), cfg, drivable=drivable,
-                                  static_polygons=[t.polygons_at(np.array([t_start]))[0] for t in statics])
+                                  static_polygons=[t.polygons_at(np.array([t_start]))[0] for t in statics],
+                                  offroad=offroad)
     probs = rasterise_road_users(users, origin=origin, cell_size=cell, shape=(n_slices, nx, ny),
                                  config=cfg.footprint, static=torch.from_numpy(static))
     if any(polys_per_slice):
@@ -1056,6 +1066,8 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         goal_xy = (min(max(goal_xy[0], xmin), xmax), min(max(goal_xy[1], ymin), ymax))
     road = RoadScene(drivable, tuple(tracks_true), goal, dt_src, t_start, where, cfg.vehicle_length,
                      cfg.vehicle_width, meta={"notes": notes, "frame_offset": list(frame_offset)})
+    if offroad is not None:  # offroad_mask's value for this scene (collision reads it): computed once
+        _OFFROAD_MASKS.setdefault(road, {})[_offroad_key(grid, cfg.offroad_margin)] = torch.from_numpy(offroad)
     memory = n_slices * nx * ny * 4
     meta = {
         "source": "commonroad",
