@@ -207,6 +207,7 @@ def test_footprint_model_is_checked():
 
 def test_upsampling_in_chunks_equals_one_interpolation():
     """_upsample_into (a few slices at a time, cut to the grid) gives exactly F.interpolate's values cut to size."""
+    import torch
     import torch.nn.functional as F
 
     from density_planner.environment.footprints import _upsample_into
