@@ -206,7 +206,8 @@ def test_footprint_model_is_checked():
 
 
 def test_upsampling_in_chunks_equals_one_interpolation():
-    """_upsample_into (a few slices at a time, cut to the grid) gives exactly F.interpolate's values cut to size."""
+    """_upsample_into (a few slices at a time, cut to the grid) gives F.interpolate's values cut to size, to float32
+    rounding (the kernel's vectorisation depends on the number of slices per call: 1 ulp)."""
     import torch
     import torch.nn.functional as F
 
@@ -218,4 +219,5 @@ def test_upsampling_in_chunks_equals_one_interpolation():
         fine = ((ncx - 1) * factor + 1, (ncy - 1) * factor + 1)
         ref = F.interpolate(low[None], size=fine, mode="bilinear", align_corners=True)[0][:, : size[0], : size[1]]
         out = _upsample_into(low, factor, size, chunk_bytes=fine[0] * fine[1] * 4 * 2)  # two slices per chunk
-        assert out.shape == (t, *size) and out.is_contiguous() and torch.equal(out, ref)
+        assert out.shape == (t, *size) and out.is_contiguous()
+        torch.testing.assert_close(out, ref, rtol=0.0, atol=2e-7)

@@ -396,7 +396,8 @@ def _upsample_into(low: Tensor, factor: int, size: tuple[int, int], chunk_bytes:
     bilinearly onto the fine lattice and cut to ``size``. A few slices at a time (``chunk_bytes`` of interpolated
     lattice each, reused by the allocator) into the one full-size result: the full interpolated lattice, larger than
     ``size`` by up to ``factor - 1`` cells each way, is never formed (it and its cut-out copy cost two grids' worth of
-    page faults: ~0.5 s per GB here). The values are those of one ``F.interpolate`` call (slices are independent)."""
+    page faults: ~0.5 s per GB here). The values are those of one ``F.interpolate`` call to float32 rounding (1 ulp:
+    the kernel vectorises differently for different numbers of slices per call)."""
     t, ncx, ncy = low.shape
     fine = ((ncx - 1) * factor + 1, (ncy - 1) * factor + 1)
     nx, ny = size
