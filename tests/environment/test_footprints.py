@@ -204,20 +204,3 @@ def test_footprint_model_is_checked():
     with pytest.raises(ValueError, match="shape_std"):
         FootprintConfig(shape_std=0.0)
 
-
-def test_upsampling_in_chunks_equals_one_interpolation():
-    """_upsample_into (a few slices at a time, cut to the grid) gives F.interpolate's values cut to size, to float32
-    rounding (the kernel's vectorisation depends on the number of slices per call: 1 ulp)."""
-    import torch
-    import torch.nn.functional as F
-
-    from density_planner.environment.footprints import _upsample_into
-
-    gen = torch.Generator().manual_seed(0)
-    for t, ncx, ncy, factor, size in [(9, 11, 13, 4, (41, 45)), (5, 6, 6, 5, (26, 26)), (1, 3, 4, 2, (4, 6))]:
-        low = torch.rand(t, ncx, ncy, generator=gen)
-        fine = ((ncx - 1) * factor + 1, (ncy - 1) * factor + 1)
-        ref = F.interpolate(low[None], size=fine, mode="bilinear", align_corners=True)[0][:, : size[0], : size[1]]
-        out = _upsample_into(low, factor, size, chunk_bytes=fine[0] * fine[1] * 4 * 2)  # two slices per chunk
-        assert out.shape == (t, *size) and out.is_contiguous()
-        torch.testing.assert_close(out, ref, rtol=0.0, atol=2e-7)

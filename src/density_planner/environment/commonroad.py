@@ -530,7 +530,8 @@ def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, 
     map."""
     _, shapely = _require()
     nx, ny = size
-    gx, gy = np.meshgrid(origin[0] + cell_size * np.arange(nx), origin[1] + cell_size * np.arange(ny), indexing="ij")
+    gx, gy = np.meshgrid(origin[0] + cell_size * np.arange(nx), origin[1] + cell_size * np.arange(ny), indexing="ij",
+                         sparse=True)  # (NX, 1) and (1, NY): shapely broadcasts them (no two full copies)
     margin = cell_size * math.sqrt(0.5) if margin is None else float(margin)
     road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
     shapely.prepare(road)
@@ -587,7 +588,7 @@ def static_map(
     nx, ny = size
     xs = origin[0] + cell_size * np.arange(nx)
     ys = origin[1] + cell_size * np.arange(ny)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    gx, gy = np.meshgrid(xs, ys, indexing="ij", sparse=True)  # broadcast by shapely
     if cfg.offroad_occupied:
         if offroad is None:
             offroad = offroad_cells(drivable, origin, cell_size, size, cfg.offroad_margin)

@@ -379,8 +379,14 @@ def rasterise_road_users(
             ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
             low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
             _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
-            out = _upsample_into(low, factor, (NX, NY))
+            up = F.interpolate(
+                low[None],
+                size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
+                mode="bilinear",
+                align_corners=True,
+            )[0]
             del low
+            out = up if up.shape[1:] == (NX, NY) else up[:, :NX, :NY].contiguous()
         if out is None:
             out = torch.zeros((T, NX, NY), dtype=torch.float32)
         _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
@@ -389,24 +395,6 @@ def rasterise_road_users(
     if static is not None:
         out += static.to(torch.float32)
     return out.clamp_(0.0, 1.0)
-
-
-def _upsample_into(low: Tensor, factor: int, size: tuple[int, int], chunk_bytes: int = 16 * 2**20) -> Tensor:
-    """``(T, NX, NY)``: the coarse lattice ``low (T, ncx, ncy)`` (spacing ``factor`` cells, same origin) interpolated
-    bilinearly onto the fine lattice and cut to ``size``. A few slices at a time (``chunk_bytes`` of interpolated
-    lattice each, reused by the allocator) into the one full-size result: the full interpolated lattice, larger than
-    ``size`` by up to ``factor - 1`` cells each way, is never formed (it and its cut-out copy cost two grids' worth of
-    page faults: ~0.5 s per GB here). The values are those of one ``F.interpolate`` call to float32 rounding (1 ulp:
-    the kernel vectorises differently for different numbers of slices per call)."""
-    t, ncx, ncy = low.shape
-    fine = ((ncx - 1) * factor + 1, (ncy - 1) * factor + 1)
-    nx, ny = size
-    out = torch.empty((t, nx, ny), dtype=low.dtype, device=low.device)
-    step = max(1, chunk_bytes // max(1, fine[0] * fine[1] * low.element_size()))
-    for a in range(0, t, step):
-        up = F.interpolate(low[None, a:a + step], size=fine, mode="bilinear", align_corners=True)[0]
-        out[a:a + step] = up[:, :nx, :ny]
-    return out
 
 
 def _splat(
