@@ -203,4 +203,3 @@ def test_footprint_model_is_checked():
         FootprintConfig(model="box")
     with pytest.raises(ValueError, match="shape_std"):
         FootprintConfig(shape_std=0.0)
-
