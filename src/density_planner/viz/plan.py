@@ -3,6 +3,7 @@ over time, and the cost curves of the optimisation."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Literal
@@ -368,28 +369,36 @@ def animate_plan(
     *,
     samples_x: np.ndarray | None = None,
     samples_log_rho: np.ndarray | None = None,
-    every: int = 2,
+    every: int | None = None,
     plan_dt: float = 0.1,
-    fps: int = 10,
+    speed: float = 2.0,
+    max_frames: int = 50,
     max_cells: int = 320,
 ) -> Path:
     """GIF of the occupancy slices with the density cloud and the reference so far (one frame per ``every``
-    planning steps), over the region that matters (trajectory, cloud, start, goal region; as in :func:`plot_plan`).
+    planning steps; default: 2, more on long horizons so that there are at most ``max_frames + 1`` frames), over the
+    region that matters (trajectory, cloud, start, goal region; as in :func:`plot_plan`), played at ``speed`` times
+    real time (2: a 10-s plan in 5 s).
 
-    Fast: the figure is drawn once and only its data change per frame, the occupancy is cropped to the region and
-    strided to at most ``max_cells`` cells per side for display, and every frame is quantised to one fixed
-    palette.
+    Fast: the figure is drawn once and only its data change per frame (the scene's name is drawn once, the clock
+    per frame), the occupancy is cropped to the region and strided to at most ``max_cells`` cells per side for
+    display, and every frame is quantised to one fixed palette.
     """
     from PIL import Image
 
     grid = scene.grid
     T = states.shape[0]
+    if every is None:
+        every = max(2, math.ceil((T - 1) / max(int(max_frames), 1)))
+    if not (isinstance(every, int) and every >= 1 and speed > 0):
+        raise ValueError(f"animate_plan: every must be an integer >= 1 and speed > 0, got {every!r}, {speed!r}")
     has_cloud = samples_x is not None and samples_log_rho is not None
     window = _region_of_interest(scene, states, samples_x if has_cloud else None)
     (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
     ks = list(range(0, T, every))
     t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
-    slices = sorted({int(grid.slice_index(t0 + k * plan_dt, clamp=True)) for k in ks})
+    frame_slice = grid.slice_index(t0 + plan_dt * np.asarray(ks, dtype=np.float64), clamp=True).tolist()
+    slices = sorted(set(frame_slice))
     sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
     where = {s: n for n, s in enumerate(slices)}
     w, h = window[1] - window[0], window[3] - window[2]
@@ -398,8 +407,12 @@ def animate_plan(
         float(np.clip(5.6 * aspect, 2.6, 5.6)) + 1.2, 5.6)
     fig, ax = plt.subplots(figsize=size, dpi=90, layout="constrained")
     ax.set_facecolor(_OUTSIDE_MAP)
-    img = ax.imshow(sub[0].T, origin="lower", extent=extent, cmap="Greys", vmin=0.0, vmax=1.0,
-                    interpolation="nearest")
+    # colour-mapped once for all frames (what imshow's Greys on [0, 1] would give: with nearest-cell display the
+    # map commutes with the resampling): a frame then only resamples its RGBA bytes (2x faster per frame)
+    from matplotlib import colormaps
+
+    sub = colormaps["Greys"](np.clip(sub, 0.0, 1.0), bytes=True).transpose(0, 2, 1, 3)  # (S, h, w, 4)
+    img = ax.imshow(sub[0], origin="lower", extent=extent, interpolation="nearest")
     before = set(ax.get_children())
     _draw_goal(ax, scene, label=False)
     ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.9)
@@ -409,14 +422,16 @@ def animate_plan(
     if samples_x is not None and samples_log_rho is not None:
         cloud = ax.scatter(samples_x[:, 0, 0], samples_x[:, 0, 1], c=np.zeros(samples_x.shape[0]), s=4.0,
                            cmap=DENSITY_CMAP, vmin=0, vmax=1, linewidths=0, zorder=4)
-    overlays = sorted(set(ax.get_children()) - before, key=lambda a: a.get_zorder())
+    # in the order they were added within one zorder (as a full draw would stack them): deterministic frames
+    overlays = sorted((a for a in ax.get_children() if a not in before), key=lambda a: a.get_zorder())
     ax.set_xlim(window[0], window[1])
     ax.set_ylim(window[2], window[3])
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.tick_params(labelsize=7)
-    title = ax.set_title(f"{scene.name}  t = 00.0 s", fontsize=9)
+    ax.set_title(scene.name, fontsize=9, loc="left")
+    title = ax.set_title("t = 00.0 s", fontsize=9, loc="right")  # the clock: the only text drawn per frame
     # blitting: axes, ticks and labels are drawn (and laid out) once; each frame redraws only what changes
     moving = [img, *overlays, title]
     for a in moving:
@@ -427,8 +442,8 @@ def animate_plan(
     background = canvas.copy_from_bbox(fig.bbox)
     palette = _gif_palette_image()
     frames = []
-    for k in ks:
-        img.set_data(sub[where[int(grid.slice_index(t0 + k * plan_dt, clamp=True))]].T)
+    for k, k_slice in zip(ks, frame_slice):
+        img.set_data(sub[where[k_slice]])
         done.set_data(states[: k + 1, 0], states[: k + 1, 1])
         now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
         if cloud is not None and samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
@@ -436,7 +451,7 @@ def animate_plan(
             order = np.argsort(rel)
             cloud.set_offsets(samples_x[order, k, :2])
             cloud.set_array(rel[order])
-        title.set_text(f"{scene.name}  t = {k * plan_dt:4.1f} s")
+        title.set_text(f"t = {k * plan_dt:4.1f} s")
         canvas.restore_region(background)
         for a in moving:
             (ax if a is not title else fig).draw_artist(a)
@@ -445,7 +460,8 @@ def animate_plan(
     plt.close(fig)
 
     def write(fh):
-        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
+                       duration=int(round(1000 * every * plan_dt / speed)), loop=0)
 
     path = Path(path)
     _atomic(path, write)
