@@ -54,9 +54,10 @@ def test_road_sdf_from_the_forked_process_equals_the_one_computed_here():
     from road_helpers import road_scene
 
     from density_planner.environment.road import GoalRegion
-    from density_planner.environment.road_sdf import road_sdf_for_scene, start_road_sdf
+    from density_planner.environment.road_sdf import cancel_road_sdf, road_sdf_for_scene, start_road_sdf
 
     goal = GoalRegion(shapely.box(100.0, -1.0, 110.0, 4.0), (5.0, 6.0))
+    before = _children()
     here = road_sdf_for_scene(road_scene(goal), cell_size=0.3)
     scene = road_scene(goal)
     assert start_road_sdf(scene, cell_size=0.3)
@@ -65,6 +66,12 @@ def test_road_sdf_from_the_forked_process_equals_the_one_computed_here():
     assert there.values.dtype == here.values.dtype and bool((there.values == here.values).all())
     assert there.origin == here.origin and there.cell_size == here.cell_size
     assert not start_road_sdf(scene, cell_size=0.3)  # cached
+    # a field nobody reads: cancel_road_sdf ends its process; a later read computes it here, the same
+    other = road_scene(goal)
+    assert start_road_sdf(other, cell_size=0.3)
+    cancel_road_sdf(other)
+    assert not [p for p in mp.active_children() if p.is_alive() and p.pid not in before]
+    assert bool((road_sdf_for_scene(other, cell_size=0.3).values == here.values).all())
 
 
 # ------------------------------------------------------------------------------------------------ prefetch

@@ -73,9 +73,6 @@ def versions() -> dict[str, str]:
 def run(args: argparse.Namespace) -> int:
     from ..checks import check_seed
     from ..config import load_config
-    from ..planners.context import run_system
-    from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
     from ..settings import RunConfig
 
     check_out(args.out)
@@ -85,12 +82,28 @@ def run(args: argparse.Namespace) -> int:
     clock = _Clock()
     scene = scene_from_args(args, run_config)
     t_scene = clock.lap("scene")
+    from ..environment.road_sdf import cancel_road_sdf
     from ..parallel import default_workers
 
     if default_workers() > 1 and args.device == "cpu":  # the road's distance field, meanwhile
         from ..cost.road import start_road_terms
 
         start_road_terms(scene, run_config.density_planner.cost)
+    try:
+        return _set_up_and_plan(args, run_config, scene, clock, t_scene)
+    finally:
+        cancel_road_sdf(scene)  # a distance field the planner did not read (another planner, an error)
+
+
+def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
+    """The rest of :func:`run` once the scene is built: problem, planner, output process, then
+    :func:`_plan_and_write`."""
+    from ..density.split import prediction_processes, set_prediction_processes
+    from ..parallel import default_workers
+    from ..planners.context import run_system
+    from ..planners.problem import PlanningProblem
+    from ..planners.registry import make_planner
+
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
     system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
@@ -103,8 +116,6 @@ def run(args: argparse.Namespace) -> int:
     outputs = _OutputProcess.start(out, scene, problem, run_config, gif=not args.no_gif,
                                    solution=args.kind == "commonroad")
     clock.lap("setup")
-    from ..density.split import prediction_processes, set_prediction_processes
-
     before = prediction_processes()
     if ctx.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
         set_prediction_processes(min(2, default_workers()))

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf"]
+__all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf", "cancel_road_sdf"]
 
 log = logging.getLogger(__name__)
 
@@ -236,6 +236,16 @@ def start_road_sdf(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000
         return False
     _PENDING.setdefault(scene.road, {})[key] = call
     return True
+
+
+def cancel_road_sdf(scene: Any) -> None:
+    """End the processes :func:`start_road_sdf` started for ``scene`` whose fields were not taken (a planner that
+    did not read them, an error): nothing is left running."""
+    road = getattr(scene, "road", None)
+    if road is None:
+        return
+    for call in _PENDING.pop(road, {}).values():
+        call.cancel()
 
 
 def _float32_lattice(drivable: Any, bounds: tuple[float, float, float, float], cell_size: float, max_cells: int
