@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall"]
+__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "end_child"]
 
 
 @dataclass
@@ -88,12 +88,19 @@ class ForkedCall:
 
     def cancel(self) -> None:
         """End the child now (nothing happens once :meth:`result` was taken)."""
-        if self._conn.closed:
-            return
-        self._conn.close()
-        if self._proc.is_alive():
-            self._proc.terminate()
-        self._proc.join()
+        end_child(self._proc, self._conn)
+
+
+def end_child(proc, conn) -> None:
+    """End a forked child ``proc`` that talks through ``conn`` (this process's end of their pipe): close ``conn``,
+    terminate the child if it still runs, reap it. Nothing happens when ``conn`` is already closed (the child
+    answered and was joined)."""
+    if conn.closed:
+        return
+    conn.close()
+    if proc.is_alive():
+        proc.terminate()
+    proc.join()
 
 
 def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int) -> None:

@@ -256,12 +256,9 @@ class _OutputProcess:
     def cancel(self) -> None:
         """No plan to write (or an error or Ctrl-C here): end the process now (its files are written atomically, so
         none is left half-written). Nothing happens after :meth:`finish`."""
-        if self.conn.closed:
-            return
-        self.conn.close()
-        if self.proc.is_alive():
-            self.proc.terminate()
-        self.proc.join()
+        from ..parallel import end_child
+
+        end_child(self.proc, self.conn)
 
 
 def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
