@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import torch
 from matplotlib.ticker import NullLocator
 
 from ..environment.scene import Scene
@@ -397,7 +398,8 @@ def animate_plan(
     (i0, i1, j0, j1), extent, stride = _crop(grid, window, max_cells)
     ks = list(range(0, T, every))
     t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
-    frame_slice = grid.slice_index(t0 + plan_dt * np.asarray(ks, dtype=np.float64), clamp=True).tolist()
+    frame_times = torch.as_tensor(t0 + plan_dt * np.asarray(ks, dtype=np.float64))
+    frame_slice = grid.slice_index(frame_times, clamp=True).tolist()
     slices = sorted(set(frame_slice))
     sub = grid.probs[slices, i0:i1:stride, j0:j1:stride].detach().cpu().float().numpy()
     where = {s: n for n, s in enumerate(slices)}
