@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "end_child"]
+__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "ForkedCallError", "end_child"]
 
 
 @dataclass
@@ -40,6 +40,15 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+class ForkedCallError(RuntimeError):
+    """:meth:`ForkedCall.result` of a call that failed; ``cause``: the child's error as one line, or its exit
+    code."""
+
+    def __init__(self, cause: str):
+        super().__init__(f"the forked call failed ({cause})")
+        self.cause = cause
 
 
 class ForkedCall:
@@ -69,8 +78,8 @@ class ForkedCall:
         return cls(proc, here)
 
     def result(self) -> Any:
-        """The value of ``fn(*args)`` (waits for it); raises ``RuntimeError`` naming the child's error or exit code.
-        Once only."""
+        """The value of ``fn(*args)`` (waits for it); raises :class:`ForkedCallError` naming the child's error or
+        exit code. Once only."""
         import pickle
 
         if self._conn.closed:
@@ -83,7 +92,7 @@ class ForkedCall:
             self._conn.close()
         self._proc.join()
         if status != "ok":
-            raise RuntimeError(f"the forked call failed ({value or f'exit code {self._proc.exitcode}'})")
+            raise ForkedCallError(value or f"exit code {self._proc.exitcode}")
         return value
 
     def cancel(self) -> None:

@@ -17,13 +17,12 @@ another batch size).
 from __future__ import annotations
 
 import multiprocessing as mp
-import pickle
-import sys
 
 import torch
 from torch import Tensor
 
 from ..control.reference import Reference
+from ..parallel import ForkedCall, ForkedCallError
 from .base import DensityPredictor, DensityTrajectory
 
 __all__ = ["predict_split", "split_possible", "prediction_processes", "set_prediction_processes"]
@@ -68,56 +67,32 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
         return predictor.predict(x0, log_rho0, reference)
     log_rho0 = log_rho0.expand(x0.shape[:-1])
     cuts = [round(i * n / processes) for i in range(processes + 1)]
-    ctx = mp.get_context("fork")
-    for stream in (sys.stdout, sys.stderr):  # a child would print what is still buffered here once more
-        stream.flush()
-    helpers = []
+    helpers: list[ForkedCall] = []
     try:
         for a, b in zip(cuts[1:-1], cuts[2:]):
-            here, there = ctx.Pipe(duplex=False)
-            proc = ctx.Process(target=_predict_part, daemon=True,
-                               args=(there, predictor, x0[..., a:b, :], log_rho0[..., a:b], reference))
-            proc.start()
-            there.close()
-            helpers.append((proc, here))
+            call = ForkedCall.start(_predict_part, predictor, x0[..., a:b, :], log_rho0[..., a:b], reference)
+            assert call is not None  # split_possible: fork exists
+            helpers.append(call)
         parts = [predictor.predict(x0[..., : cuts[1], :], log_rho0[..., : cuts[1]], reference)]
-        for proc, conn in helpers:
+        for call in helpers:
             try:
-                status, value = pickle.loads(conn.recv_bytes())
-            except EOFError:
-                status, value = "error", None
-            proc.join()
-            if status != "ok":
-                cause = value or f"exit code {proc.exitcode}"
-                raise RuntimeError(f"a process predicting part of the samples failed ({cause}); set the number of "
-                                   "processes to 1")
-            parts.append(value)
+                parts.append(call.result())
+            except ForkedCallError as exc:
+                raise RuntimeError(f"a process predicting part of the samples failed ({exc.cause}); set the number "
+                                   "of processes to 1") from None
     finally:
-        for proc, conn in helpers:
-            conn.close()
-            if proc.is_alive():
-                proc.terminate()
-                proc.join()
+        for call in helpers:
+            call.cancel()
     return DensityTrajectory(t=parts[0].t, x=torch.cat([p.x for p in parts], dim=-3),
                              log_rho=torch.cat([p.log_rho for p in parts], dim=-2),
                              log_rho0=torch.cat([p.log_rho0 for p in parts], dim=-1))
 
 
-def _predict_part(conn, predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference) -> None:
-    """Target of a helper of :func:`predict_split`: predict, answer ``("ok", trajectory)`` or ``("error", text)``."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it terminates this process
-    torch.set_num_threads(1)
-    answer: tuple[str, DensityTrajectory | str]
-    try:
-        with torch.no_grad():
-            traj = predictor.predict(x0, log_rho0, reference)
-        answer = ("ok", DensityTrajectory(t=traj.t, x=traj.x.contiguous(), log_rho=traj.log_rho.contiguous(),
-                                          log_rho0=traj.log_rho0.contiguous()))
-    except Exception as exc:  # noqa: BLE001 - the parent raises it as one line
-        answer = ("error", f"{type(exc).__name__}: {exc}")
-    try:  # plain pickling: torch's multiprocessing reductions would share memory that dies with this process
-        conn.send_bytes(pickle.dumps(answer, protocol=pickle.HIGHEST_PROTOCOL))
-    finally:
-        conn.close()
+def _predict_part(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference
+                  ) -> DensityTrajectory:
+    """What a helper of :func:`predict_split` computes (in a :class:`~density_planner.parallel.ForkedCall`): its
+    part of the samples, with contiguous tensors."""
+    with torch.no_grad():
+        traj = predictor.predict(x0, log_rho0, reference)
+    return DensityTrajectory(t=traj.t, x=traj.x.contiguous(), log_rho=traj.log_rho.contiguous(),
+                             log_rho0=traj.log_rho0.contiguous())
