@@ -8,11 +8,15 @@
 #
 # Environment: PY (python, default python3), RES (work directory, default results/road), OUT (where copies of the
 # weights and logs go, default $RES/out), DEVICE (cuda or cpu, default: cuda if torch sees one), C3M_EPOCHS,
-# C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network), THREADS / DENSITY_THREADS. The defaults suit a
-# GPU machine. The shipped road weights were made on a 2-core CPU machine (no GPU was available) with
+# C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network), TRAJ_EPOCHS (epochs of the trajectory head; default
+# the configuration's 60), THREADS / DENSITY_THREADS. The defaults suit a GPU machine. The shipped road weights were
+# made on a 2-core CPU machine (no GPU was available): the controller with
 #   RES=results/road DEVICE=cpu THREADS=1 C3M_EPOCHS=20 C3M_BATCH=2048 bash scripts/train_road_models.sh controller
-#   (then the data with --references 4096 --workers 2, and) DENSITY_TIME=480 bash scripts/train_road_models.sh density
-# (docs/controller.md and docs/density.md record the exact commands and times).
+# and the density data and networks (stop 36) with the commands recorded in their JSON files and docs/density.md,
+# which are what this script's data phase (32768 references; 8.8 min with 2 workers) and
+#   RES=results/road DEVICE=cpu DENSITY_TIME=3600 TRAJ_EPOCHS=120 bash scripts/train_road_models.sh density
+# run (trajectory head 20.1 min, pointwise 17.3 min, side by side, one thread each); docs/controller.md and
+# docs/density.md record the exact commands and times.
 set -eo pipefail
 PHASE=${1:-all}
 PY=${PY:-python3}
@@ -67,7 +71,7 @@ if [ "$PHASE" = density ] || [ "$PHASE" = all ]; then
   DENSITY_TIME=${DENSITY_TIME:-170}
   log "density networks: both in parallel, at most $DENSITY_TIME s of training each"
   $DP train density --arch trajectory --data "$RES/density_data" --out "$RES/train_trajectory" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
-    --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
+    ${TRAJ_EPOCHS:+--epochs "$TRAJ_EPOCHS"} --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
   p1=$!
   $DP train density --arch pointwise --data "$RES/density_data" --out "$RES/train_pointwise" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
     --epochs 20 --set batch_size=1024 --time-limit "$DENSITY_TIME" --export $W/density_pointwise_road.pt --quiet \
