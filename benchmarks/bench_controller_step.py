@@ -1,12 +1,13 @@
 """Wall time of the controller's online step for one state: the torch C3M controller vs the torch-free
-:class:`~density_planner.control.fast.NumpyC3M` (issue 17 target: <= 0.1 ms).
+:class:`~density_planner.control.fast.NumpyC3M`, numpy and compiled (numba) (issue 17 target: <= 0.1 ms).
 
 Usage::
 
     PYTHONPATH=src python benchmarks/bench_controller_step.py [--models road] [--n 2000]
 
-Prints the median time of one controller evaluation and of one 0.1-s step (10 evaluations at the 0.01-s Euler
-step of the closed loop) on one thread.
+Prints the median time of one controller evaluation and of one 0.1-s step of the online loop: 10 evaluations at
+the 0.01-s Euler step of the closed loop, timed as ``NumpyC3M.track`` runs it in ``drive`` (the torch controller:
+10 evaluations), on one thread.
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ def main(argv: list[str] | None = None) -> int:
 
     models = model_set(args.models)
     ctrl = load_controller("c3m", models=models)
-    fast = NumpyC3M(ctrl)
     x_ref = torch.tensor([[1.0, 2.0, 0.3, 8.0, 0.0]])
     x_hat = x_ref + torch.tensor([[0.3, -0.2, 0.05, 0.4, 0.0]])
     u_ref = torch.tensor([[0.1, 0.5]])
     xr, xh, ur = x_ref[0].double().numpy(), x_hat[0].double().numpy(), u_ref[0].double().numpy()
+    x_refs, u_refs = np.tile(xr, (10, 1)), np.tile(ur, (10, 1))
 
     def timeit(fn) -> float:
         for _ in range(50):
@@ -48,9 +49,17 @@ def main(argv: list[str] | None = None) -> int:
 
     with torch.no_grad():
         t_torch = timeit(lambda: ctrl(x_hat, x_ref, u_ref))
-    t_np = timeit(lambda: fast(xh, xr, ur))
-    for name, t in (("torch C3MController", t_torch), ("NumpyC3M", t_np)):
-        print(f"{name:20s}: {1e6 * t:7.1f} us per evaluation, {1e3 * 10 * t:6.3f} ms per 0.1-s step (10 evaluations)")
+    rows = [("torch C3MController", t_torch, 10 * t_torch)]
+    paths = [("NumpyC3M (numpy)", NumpyC3M(ctrl, compiled=False))]
+    fast = NumpyC3M(ctrl)
+    if fast.compiled:
+        paths.append(("NumpyC3M (numba)", fast))
+    else:
+        print("numba is not installed: the compiled path is not timed (pip install 'density-planner[fast]')")
+    for name, f in paths:
+        rows.append((name, timeit(lambda f=f: f(xh, xr, ur)), timeit(lambda f=f: f.track(xh, x_refs, u_refs, 0.01))))
+    for name, t_eval, t_step in rows:
+        print(f"{name:20s}: {1e6 * t_eval:7.1f} us per evaluation, {1e3 * t_step:6.3f} ms per 0.1-s step")
     print("target: <= 0.1 ms per online step (one state)")
     return 0
 

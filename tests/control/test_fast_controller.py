@@ -1,4 +1,5 @@
-"""The torch-free one-state C3M evaluation equals the torch controller (both shipped model sets)."""
+"""The torch-free one-state C3M evaluation (numpy, and compiled with numba where installed) equals the torch
+controller (both shipped model sets), and the compiled closed loop equals the numpy one."""
 
 from __future__ import annotations
 
@@ -10,11 +11,19 @@ from density_planner.control.fast import NumpyC3M
 from density_planner.control.registry import load_controller, model_set_for_scene
 
 
+def _needs(compiled: bool) -> None:
+    if compiled:
+        pytest.importorskip("numba")
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "numba"])
 @pytest.mark.parametrize("kind", ["random", "commonroad"])
-def test_numpy_controller_matches_torch(kind):
+def test_numpy_controller_matches_torch(kind, compiled):
+    _needs(compiled)
     models = model_set_for_scene(kind, None)
     ctrl = load_controller("c3m", models=models).double()
-    fast = NumpyC3M(ctrl)
+    fast = NumpyC3M(ctrl, compiled=compiled)
+    assert fast.compiled == compiled
     g = torch.Generator().manual_seed(0)
     n = 200
     vmax = 10.0 if kind == "random" else 30.0
@@ -40,3 +49,38 @@ def test_numpy_controller_matches_torch(kind):
 def test_rejects_other_controllers():
     with pytest.raises(ValueError, match="C3MController"):
         NumpyC3M(object())
+
+
+@pytest.mark.parametrize("kind", ["random", "commonroad"])
+def test_compiled_closed_loop_matches_numpy(kind):
+    """50 Euler steps of the heading-biased closed loop from states that saturate an input and from ones that do
+    not, with and without the standstill clamp: the compiled loop's final state and first input equal numpy's."""
+    _needs(True)
+    ctrl = load_controller("c3m", models=model_set_for_scene(kind, None))
+    jit, ref = NumpyC3M(ctrl, compiled=True), NumpyC3M(ctrl, compiled=False)
+    rng = np.random.default_rng(1)
+    k = 50
+    t = np.arange(k) * 0.01
+    v_ref = 6.0 if kind == "random" else 20.0
+    x_refs = np.stack([v_ref * t, 0.2 * t, np.full(k, 0.01), np.full(k, v_ref), np.zeros(k)], axis=-1)
+    u_refs = np.tile([0.0, 0.0], (k, 1))
+    saturated = 0
+    for scale in (0.05, 0.3, 3.0):
+        for standstill in (False, True):
+            x0 = x_refs[0] + rng.normal(size=5) * np.array([scale, scale, scale / 4, scale, 0.0])
+            x0[4] = rng.uniform(-0.2, 0.2)  # heading bias
+            xa, ua = jit.track(x0, x_refs, u_refs, 0.01, standstill=standstill)
+            xb, ub = ref.track(x0, x_refs, u_refs, 0.01, standstill=standstill)
+            np.testing.assert_allclose(xa, xb, atol=1e-9, rtol=0)
+            np.testing.assert_allclose(ua, ub, atol=1e-9, rtol=0)
+            assert np.abs(xa - x0).max() > 1e-3  # the loop moved the state
+            raw = ref.raw(np.array([x0[0], x0[1], x0[2] + x0[4], x0[3], 0.0]), x_refs[0], u_refs[0])
+            saturated += int(np.abs(raw - ua).max() > 1e-6)
+    assert 0 < saturated < 6  # both branches of the saturation were driven
+
+
+def test_compiled_track_refuses_an_empty_reference():
+    _needs(True)
+    fast = NumpyC3M(load_controller("c3m", models=model_set_for_scene("random", None)), compiled=True)
+    with pytest.raises(ValueError, match="at least one step"):
+        fast.track(np.zeros(5), np.zeros((0, 5)), np.zeros((0, 2)), 0.01)

@@ -6,7 +6,12 @@ smooth saturation (:class:`~density_planner.control.base.SmoothSaturation`, incl
 turn-rate box), on 1-D arrays: no autograd, no tensor dispatch. The two MLPs share their input, so their first
 layers are stacked into one matrix. Its outputs equal the torch controller's to float32 round-off
 (``tests/control/test_fast_controller.py``: 1e-6 against the controller evaluated in float64).
-``benchmarks/bench_controller_step.py`` times both.
+
+Where numba is installed (the ``fast`` extra, part of ``make install``), the same law runs compiled
+(:mod:`density_planner.control._jit`): one call per evaluation, or per stretch of closed loop in :meth:`track`
+(~4-7 us per evaluation on this project's 2-core machine instead of ~18 us with numpy). ``compiled=False``
+keeps the numpy path; :attr:`NumpyC3M.compiled` says which one runs. ``benchmarks/bench_controller_step.py``
+times all three (torch, numpy, compiled).
 """
 
 from __future__ import annotations
@@ -23,7 +28,9 @@ __all__ = ["NumpyC3M"]
 class NumpyC3M:
     """``controller(x_hat (nx,), x_ref (nx,), u_ref (2,)) -> u (2,)`` in plain numpy (module docstring)."""
 
-    def __init__(self, controller: C3MController):
+    def __init__(self, controller: C3MController, *, compiled: bool | None = None):
+        """``compiled``: ``None`` uses the numba kernels where numba is installed, ``True`` requires them,
+        ``False`` uses numpy."""
         if not isinstance(controller, C3MController):
             raise ValueError(f"NumpyC3M needs a C3MController, got {type(controller).__name__}")
         arch = controller.architecture
@@ -69,6 +76,47 @@ class NumpyC3M:
             # the same bounds as Python floats: two channels are saturated faster one by one than as arrays
             self._bounds = [tuple(float(v) for v in vals) for vals in zip(self.k_lo, self.k_hi, self.c_lo,
                                                                             self.c_hi)]
+        self._kernel = None  # (module, packed arguments) of the compiled path
+        if compiled is not False:
+            self._kernel = self._pack(l1, l2, compiled is True)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the numba kernels evaluate the law (module docstring)."""
+        return self._kernel is not None
+
+    def _pack(self, l1, l2, required: bool):
+        """The compiled path's arguments (weights as float64 arrays, features, saturation, work buffers), or
+        ``None`` (numba missing, or layer shapes the kernel does not handle: both networks must have the same
+        hidden widths)."""
+        try:
+            from . import _jit
+        except ImportError as exc:
+            if required:
+                raise ValueError("NumpyC3M(compiled=True) needs numba: pip install 'density-planner[fast]'") from exc
+            return None
+        h = self.h1
+        same_widths = (len(l1) == len(l2) >= 2 and l2[0][0].shape[0] == h
+                       and all(w.shape == (h, h) for w, _ in l1[1:-1] + l2[1:-1])
+                       and l1[-1][0].shape[1] == h and l2[-1][0].shape[1] == h)
+        if not same_widths:
+            if required:
+                raise ValueError("NumpyC3M(compiled=True): the two networks need the same hidden widths")
+            return None
+
+        feat = np.array([1.0 if self.sincos else 0.0, self.t0, self.ts, self.v0, self.vs, self.vf, self.rank])
+        if self.sat is None:
+            sat = np.concatenate([[0.0, 0, 0, 1, 1], self.lo, self.hi, self.lo, self.hi])
+        else:
+            mode = 2.0 if self.sat.speed_dependent else 1.0
+            sat = np.concatenate([[mode, self.sat.turn_index, self.sat.speed_index,
+                                   self.sat.lateral_accel_max if self.sat.speed_dependent else 1.0,
+                                   self.sat.actuator_lateral_accel_max if self.sat.speed_dependent else 1.0],
+                                  self.k_lo, self.k_hi, self.c_lo, self.c_hi])
+        width = max(h, l1[-1][0].shape[0], l2[-1][0].shape[0], self.first_w.shape[1], self.rank)
+        flat, layout = _jit.pack(self.first_w, self.first_b, l1[1:-1], l2[1:-1], l1[-1], l2[-1], feat, sat)
+        args = (flat, layout, np.zeros((8, width)))
+        return _jit, args
 
     def _features(self, theta: float, v: float) -> list[float]:
         vn = (v - self.v0) / self.vs
@@ -122,6 +170,17 @@ class NumpyC3M:
         ``standstill``: hold the speed at 0 after every step (the plant of ``System.standstill``)."""
         import time
 
+        if self._kernel is not None:
+            jit, args = self._kernel
+            if x_refs.shape[0] < 1:
+                raise ValueError("x_refs must hold at least one step")
+            x_out, u0 = np.empty(5), np.empty(self.lo.shape[0])
+            tc = time.perf_counter()
+            jit.track(np.asarray(x, dtype=np.float64), np.ascontiguousarray(x_refs, dtype=np.float64),
+                      np.ascontiguousarray(u_refs, dtype=np.float64), float(dt), bool(standstill), *args, x_out, u0)
+            if times is not None:  # one call for the whole stretch: its mean per evaluation
+                times.extend([(time.perf_counter() - tc) / x_refs.shape[0]] * x_refs.shape[0])
+            return x_out, u0
         xn = np.array(x, dtype=np.float64)
         u_first = None
         for j in range(x_refs.shape[0]):
@@ -140,6 +199,12 @@ class NumpyC3M:
         return xn, u_first
 
     def __call__(self, x_hat: np.ndarray, x_ref: np.ndarray, u_ref: np.ndarray) -> np.ndarray:
+        if self._kernel is not None:
+            jit, args = self._kernel
+            out = np.empty(self.lo.shape[0])
+            jit.control(np.asarray(x_hat, dtype=np.float64), np.asarray(x_ref, dtype=np.float64),
+                        np.asarray(u_ref, dtype=np.float64), *args, out)
+            return out
         u = self.raw(x_hat, x_ref, u_ref)
         sat = self.sat
         if sat is None:

@@ -16,7 +16,9 @@ the planner's registration), as in the paper's comparison (§V):
   one.
 
 Online time per 0.1-s step: ``TRACK`` = the wall time of the controller evaluations that the executed loop needs
-in that step (10 at the default 0.01-s integration step), measured one state at a time as on a car; ``RECEDING``
+in that step (10 at the default 0.01-s integration step), measured one state at a time as on a car, each a call of
+the one-state evaluator a car would run (:class:`~density_planner.control.fast.NumpyC3M` for C3M on the car,
+compiled where numba is installed; the controller itself otherwise); ``RECEDING``
 = the whole MPC step (occupancy windows, parameters, IPOPT, warm start), as recorded by the planner; ``OPEN_LOOP``
 = 0 (nothing is computed online).
 """
@@ -129,17 +131,33 @@ def controller_step_times(
 
     ``fine_states (K + 1, nx)`` are the executed states at every integration step of ``config.dt``; each is
     measured and fed to the controller with the reference at that time (``stages`` evaluations per integration
-    step: 1 for Euler, 4 for RK4). Returns ``(n_plan - 1,)`` sums over the integration steps of every planning step.
+    step: 1 for Euler, 4 for RK4), one call per evaluation. A C3M controller on the car is evaluated by its
+    torch-free one-state form (:class:`~density_planner.control.fast.NumpyC3M`, equal to it to 1e-6), as the online
+    loop (``drive``) runs it. Returns ``(n_plan - 1,)`` sums over the integration steps of every planning step.
     """
+    from ..control.c3m import C3MController
+    from ..control.fast import NumpyC3M
+
     n_steps = fine_states.shape[0] - 1
     x_ref, u_ref = reference.stage_values(config.dt, n_steps, (0.0,))
     x_hat = system.measure(fine_states)
     times = np.empty(n_steps)
-    for k in range(n_steps):
-        t0 = time.perf_counter()
-        for _ in range(stages):
-            controller(x_hat[k : k + 1], x_ref[k, 0].unsqueeze(0), u_ref[k, 0].unsqueeze(0))
-        times[k] = time.perf_counter() - t0
+    if isinstance(controller, C3MController) and NumpyC3M.supports(system):
+        fast = NumpyC3M(controller)
+        xh = x_hat.detach().cpu().double().numpy()
+        xr, ur = x_ref[:, 0].detach().cpu().double().numpy(), u_ref[:, 0].detach().cpu().double().numpy()
+        fast(xh[0], xr[0], ur[0])  # the first call of a process loads the compiled code
+        for k in range(n_steps):
+            t0 = time.perf_counter()
+            for _ in range(stages):
+                fast(xh[k], xr[k], ur[k])
+            times[k] = time.perf_counter() - t0
+    else:
+        for k in range(n_steps):
+            t0 = time.perf_counter()
+            for _ in range(stages):
+                controller(x_hat[k : k + 1], x_ref[k, 0].unsqueeze(0), u_ref[k, 0].unsqueeze(0))
+            times[k] = time.perf_counter() - t0
     every = config.save_every
     return times[: (n_steps // every) * every].reshape(-1, every).sum(-1)
 
