@@ -4,13 +4,13 @@ The same law as the numpy path of ``NumpyC3M`` (``u = sat(u_ref + W2(z) tanh(W1(
 layer by layer in float64 from the float32 weights, exact), compiled: one call evaluates the controller
 (:func:`control`) or drives the car's explicit-Euler closed loop over a stretch of reference
 (:func:`track`), so the Python and numpy per-call overheads that bound the numpy path (~18 us per evaluation)
-are paid once per call. ``tanh`` is written as ``1 - 2 / (exp(2 s) + 1)`` (exact to ~1e-16 absolute; libm's
-``tanh`` is 2.5x slower here) and the dot products may be reassociated (``fastmath``): the outputs equal the
-numpy path's to ~1e-14 (``tests/control/test_fast_controller.py`` checks 1e-6 against torch in float64).
+are paid once per call. ``tanh`` is a polynomial form (:func:`_tanh_inplace`, within 1e-14 of libm's) so that
+its loops vectorise, and the dot products may be reassociated (``fastmath``): the outputs equal the numpy path's to
+~1e-12 (``tests/control/test_fast_controller.py``; 1e-6 against torch in float64).
 
-Importing this module imports numba (~0.4 s) and compiles nothing; the first call of each kernel in a fresh
-environment compiles it (~2-4 s) and caches the machine code beside this file (``cache=True``), so later
-processes load it in milliseconds.
+Importing this module imports numba (~0.3 s) and compiles nothing; the first call in a fresh environment compiles
+the kernels (~6 s on this project's machine) and caches the machine code beside this file (``cache=True``), so
+later processes load it (~0.5 s on their first call).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ import numpy as np
 __all__ = ["control", "pack", "track"]
 
 # error_model="numpy": a division does not check for zero (Python's ZeroDivisionError would keep the loops scalar)
+# (forcing the helpers inline compiles 3x longer, ~16 s, for the same speed)
 _kernel = numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-_inline = numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy", inline="always")
 
 
-@_inline
+@_kernel
 def _tanh_inplace(x, n):
     """``x[:n] = tanh(x[:n])`` without a libm call, so that the loop vectorises: ``1 - 2 / (e^(2|s|) + 1)`` with
     the sign of ``s``, ``e^(2|s|) = (e^(2|s| / 64))^64`` and ``e^u`` on ``u`` in [0, 0.625] by its Taylor polynomial
@@ -59,7 +59,7 @@ def _tanh_inplace(x, n):
         x[i] = t if s >= 0.0 else -t
 
 
-@_inline
+@_kernel
 def _dense(w, b, x, out, act):
     """``out[:n] = w x + b`` for ``w (n, m)`` (``tanh`` of it with ``act``)."""
     n, m = w.shape
@@ -72,7 +72,7 @@ def _dense(w, b, x, out, act):
         _tanh_inplace(out, n)
 
 
-@_inline
+@_kernel
 def _features(theta, v, flat, f, z, at):
     """Write the features of one ``(theta, v)`` into ``z[at:]``; returns the next free index. ``flat[f:]``:
     ``(sincos, t0, ts, v0, vs, vf, rank)``."""
@@ -106,7 +106,7 @@ def pack(first_w, first_b, mids1, mids2, last1, last2, feat, sat):
     return flat, layout
 
 
-@_inline
+@_kernel
 def _views(flat, layout):
     """The blocks of :func:`pack`'s vector as views: first layer ``(2h, nz)``, its bias, the hidden layers of the
     two networks ``(n_mid h, h)`` and biases ``(n_mid, h)``, the last layers and biases, and the offset of the
@@ -135,7 +135,7 @@ def _views(flat, layout):
     return first_w, first_b, mid1_w, mid1_b, mid2_w, mid2_b, last1_w, last1_b, last2_w, last2_b, at
 
 
-@_inline
+@_kernel
 def _control(x_hat, x_ref, u_ref, first_w, first_b, mid1_w, mid1_b, mid2_w, mid2_b, last1_w, last1_b, last2_w,
              last2_b, flat, f, buf, out):
     """The law on the views of :func:`_views` (``flat[f:]``: features, then saturation)."""
@@ -180,7 +180,7 @@ def control(x_hat, x_ref, u_ref, flat, layout, buf, out):
     _control(x_hat, x_ref, u_ref, fw, fb, m1w, m1b, m2w, m2b, l1w, l1b, l2w, l2b, flat, f, buf, out)
 
 
-@_inline
+@_kernel
 def _saturate(u, x_hat, flat, f):
     """Bound ``u`` in place with the saturation block of :func:`pack` at ``flat[f:]``."""
     nu = u.shape[0]
