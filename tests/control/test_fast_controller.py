@@ -84,3 +84,19 @@ def test_compiled_track_refuses_an_empty_reference():
     fast = NumpyC3M(load_controller("c3m", models=model_set_for_scene("random", None)), compiled=True)
     with pytest.raises(ValueError, match="at least one step"):
         fast.track(np.zeros(5), np.zeros((0, 5)), np.zeros((0, 2)), 0.01)
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "numba"])
+def test_evaluate_each_equals_one_call_per_state(compiled):
+    _needs(compiled)
+    fast = NumpyC3M(load_controller("c3m", models=model_set_for_scene("commonroad", None)), compiled=compiled)
+    rng = np.random.default_rng(2)
+    x_refs = np.column_stack([rng.uniform(-5, 5, (7, 2)), rng.uniform(-3, 3, 7), rng.uniform(0, 30, 7), np.zeros(7)])
+    x_hats = x_refs + rng.normal(size=(7, 5)) * np.array([1.0, 1.0, 0.3, 1.0, 0.0])
+    u_refs = rng.normal(size=(7, 2))
+    each = fast.evaluate_each(x_hats, x_refs, u_refs)
+    one = np.stack([fast(a, b, c) for a, b, c in zip(x_hats, x_refs, u_refs)])
+    np.testing.assert_allclose(each, one, atol=1e-12, rtol=0)
+    assert fast.evaluate_each(x_hats[:0], x_refs[:0], u_refs[:0]).shape == (0, 2)
+    with pytest.raises(ValueError, match="same number of rows"):
+        fast.evaluate_each(x_hats, x_refs[:3], u_refs)

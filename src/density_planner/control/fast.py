@@ -199,6 +199,21 @@ class NumpyC3M:
             raise ValueError("x_refs must hold at least one step")
         return xn, u_first
 
+    def evaluate_each(self, x_hats: np.ndarray, x_refs: np.ndarray, u_refs: np.ndarray) -> np.ndarray:
+        """``(K, nu)`` inputs for the rows of ``x_hats (K, nx)``, ``x_refs (K, nx)``, ``u_refs (K, nu)``, each
+        evaluated as one state (a stretch of measurements: compiled, one call; numpy, one call per row)."""
+        if x_hats.shape[0] != x_refs.shape[0] or x_hats.shape[0] != u_refs.shape[0]:
+            raise ValueError(f"x_hats, x_refs and u_refs need the same number of rows, got {x_hats.shape[0]}, "
+                             f"{x_refs.shape[0]} and {u_refs.shape[0]}")
+        if self._kernel is None:
+            return np.stack([self(a, b, c) for a, b, c in zip(x_hats, x_refs, u_refs)]) if x_hats.shape[0] else \
+                np.empty((0, self.lo.shape[0]))
+        jit, args = self._kernel
+        out = np.empty((x_hats.shape[0], self.lo.shape[0]))
+        jit.control_many(np.ascontiguousarray(x_hats, dtype=np.float64), np.ascontiguousarray(x_refs, dtype=np.float64),
+                         np.ascontiguousarray(u_refs, dtype=np.float64), *args, out)
+        return out
+
     def __call__(self, x_hat: np.ndarray, x_ref: np.ndarray, u_ref: np.ndarray) -> np.ndarray:
         if self._kernel is not None:
             jit, args = self._kernel

@@ -131,35 +131,40 @@ def controller_step_times(
 
     ``fine_states (K + 1, nx)`` are the executed states at every integration step of ``config.dt``; each is
     measured and fed to the controller with the reference at that time (``stages`` evaluations per integration
-    step: 1 for Euler, 4 for RK4), one call per evaluation. A C3M controller on the car is evaluated by its
-    torch-free one-state form (:class:`~density_planner.control.fast.NumpyC3M`, equal to it to 1e-6), as the online
-    loop (``drive``) runs it. Returns ``(n_plan - 1,)`` sums over the integration steps of every planning step.
+    step: 1 for Euler, 4 for RK4). A C3M controller on the car is evaluated by its torch-free one-state form
+    (:class:`~density_planner.control.fast.NumpyC3M`, equal to it to 1e-6), a planning step's evaluations in one
+    call (:meth:`~density_planner.control.fast.NumpyC3M.evaluate_each`, each one state), as the online loop
+    (``drive``) runs it; any other controller one call per evaluation. Returns ``(n_plan - 1,)`` sums over the
+    integration steps of every planning step.
     """
     from ..control.c3m import C3MController
     from ..control.fast import NumpyC3M
 
     n_steps = fine_states.shape[0] - 1
+    every = config.save_every
+    n_plan = n_steps // every
     x_ref, u_ref = reference.stage_values(config.dt, n_steps, (0.0,))
     x_hat = system.measure(fine_states)
-    times = np.empty(n_steps)
     if isinstance(controller, C3MController) and NumpyC3M.supports(system):
         fast = NumpyC3M(controller)
-        xh = x_hat.detach().cpu().double().numpy()
-        xr, ur = x_ref[:, 0].detach().cpu().double().numpy(), u_ref[:, 0].detach().cpu().double().numpy()
-        fast(xh[0], xr[0], ur[0])  # the first call of a process loads the compiled code
-        for k in range(n_steps):
+        # the state, reference and input of every evaluation, grouped by planning step
+        rep = np.repeat(np.arange(n_plan * every), stages)
+        xh, xr, ur = (a.detach().cpu().double().numpy()[rep].reshape(n_plan, every * stages, -1)
+                      for a in (x_hat[:n_steps], x_ref[:, 0], u_ref[:, 0]))
+        fast.evaluate_each(xh[0, :1], xr[0, :1], ur[0, :1])  # the first call of a process loads the compiled code
+        out = np.empty(n_plan)
+        for p in range(n_plan):
             t0 = time.perf_counter()
-            for _ in range(stages):
-                fast(xh[k], xr[k], ur[k])
-            times[k] = time.perf_counter() - t0
-    else:
-        for k in range(n_steps):
-            t0 = time.perf_counter()
-            for _ in range(stages):
-                controller(x_hat[k : k + 1], x_ref[k, 0].unsqueeze(0), u_ref[k, 0].unsqueeze(0))
-            times[k] = time.perf_counter() - t0
-    every = config.save_every
-    return times[: (n_steps // every) * every].reshape(-1, every).sum(-1)
+            fast.evaluate_each(xh[p], xr[p], ur[p])
+            out[p] = time.perf_counter() - t0
+        return out
+    times = np.empty(n_steps)
+    for k in range(n_steps):
+        t0 = time.perf_counter()
+        for _ in range(stages):
+            controller(x_hat[k : k + 1], x_ref[k, 0].unsqueeze(0), u_ref[k, 0].unsqueeze(0))
+        times[k] = time.perf_counter() - t0
+    return times[: n_plan * every].reshape(-1, every).sum(-1)
 
 
 def _applied_inputs(system: System, controller: TrackingController, reference: Reference, states: Tensor) -> Tensor:
