@@ -1,6 +1,6 @@
 """New planning problems posed on recorded traffic: a recorded road user's own drive as the problem.
 
-For every k-th CommonRoad file of a folder, one recorded car (chosen with a seed from the file's name, among the cars
+For every k-th CommonRoad file of a folder, one recorded car (drawn with ``--seed`` and the file's name, among the cars
 that move at >= 1 m/s and <= 38 m/s at their first state and stay recorded for at least 4 s) becomes the planning
 problem: its first state is the initial state, and the goal is a rectangle (``--goal-length`` or the distance it
 covers in one second, whichever is longer, x ``--goal-width``, along its heading) around where it was ``H`` seconds
@@ -43,7 +43,7 @@ def _exact(tag: str, value: float) -> str:
 
 
 def make_problem(path: Path, out: Path, *, horizon: float, goal_length: float, goal_width: float,
-                 goal_slack: float) -> str:
+                 goal_slack: float, seed: int = 0) -> str:
     """Write the derived scenario of ``path`` into ``out``; returns a one-line description (or why none)."""
     import xml.etree.ElementTree as ET
 
@@ -51,7 +51,7 @@ def make_problem(path: Path, out: Path, *, horizon: float, goal_length: float, g
 
     scenario, _ = CommonRoadFileReader(str(path)).open()
     dt = float(scenario.dt)
-    rng = np.random.default_rng(zlib.crc32(path.name.encode()))
+    rng = np.random.default_rng([zlib.crc32(path.name.encode()), seed])
     candidates = []
     for obs in scenario.dynamic_obstacles:
         if str(getattr(obs.obstacle_type, "value", obs.obstacle_type)).lower() != "car":
@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--goal-length", type=float, default=8.0)
     p.add_argument("--goal-width", type=float, default=3.5)
     p.add_argument("--goal-slack", type=float, default=0.5, help="half-width of the goal's time interval [s]")
+    p.add_argument("--seed", type=int, default=0, help="which recorded car of each file (a different draw per seed)")
     args = p.parse_args(argv)
     files = sorted(args.scenarios.glob("*.xml"))[:: max(1, args.every)]
     if not files:
@@ -114,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     for f in files:
         try:
             print(make_problem(f, args.out, horizon=args.horizon, goal_length=args.goal_length,
-                               goal_width=args.goal_width, goal_slack=args.goal_slack), flush=True)
+                               goal_width=args.goal_width, goal_slack=args.goal_slack, seed=args.seed), flush=True)
         except Exception as exc:  # noqa: BLE001 - a benchmark helper: report and go on
             print(f"{f.name}: skipped ({type(exc).__name__}: {exc})", flush=True)
     return 0
