@@ -202,8 +202,8 @@ def test_biased_measurement_changes_the_run():
     problem = _problem(scene)
     true_state = problem.reference_start(torch.float64).clone()
     true_state[4] = math.pi / 16  # heading bias of the measurement
-    plain = MPCPlanner(_cfg(n_steps=20)).plan_from(problem, true_state)
-    biased = MPCPlanner(_cfg(n_steps=20, biased_measurement=True)).plan_from(problem, true_state)
+    plain = MPCPlanner(_cfg(n_steps=6)).plan_from(problem, true_state)
+    biased = MPCPlanner(_cfg(n_steps=6, biased_measurement=True)).plan_from(problem, true_state)
     assert plain.status == biased.status == PlanStatus.SUCCESS
     assert not torch.allclose(plain.states, biased.states)
     # the true state keeps its bias; the MPC only sees it in the heading
