@@ -114,6 +114,29 @@ def test_coarse_lattice_matches_exact_evaluation():
     assert np.abs(exact - fast).max() < 0.025
 
 
+def test_raster_threads_give_the_same_grid_to_the_bit():
+    """Two threads for the coarse lattice's upsampling (the ``plan`` command's setting) give the same grid to the bit
+    and leave torch's thread count as it was; the setting refuses non-integers and negatives."""
+    import torch
+
+    from density_planner.environment.footprints import raster_threads, set_raster_threads
+
+    tr = users([1.23, -7.0, 12.0], [0.37, 5.0, -9.0], [0.3, 2.0, -1.0], [6.0, 0.0, 12.0])
+    threads = torch.get_num_threads()
+    one = raster(tr, FootprintConfig())
+    try:
+        set_raster_threads(2)
+        assert raster_threads() == 2
+        two = raster(tr, FootprintConfig())
+        assert torch.get_num_threads() == threads
+    finally:
+        set_raster_threads(0)
+    assert np.array_equal(one, two) and one.max() > 0.5
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="raster threads"):
+            set_raster_threads(bad)
+
+
 def test_static_map_is_added_before_clamping():
     import torch
 

@@ -40,15 +40,25 @@ def scene_request(args: argparse.Namespace):
                         recording=args.recording, start_time=args.start_time)
 
 
-def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env"):
+def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env", both_cores: bool = False):
     """Build the scene selected by the scene arguments with the matching section of ``run_config`` (its
-    ``[system]`` section already holds ``--system`` / ``--models``)."""
+    ``[system]`` section already holds ``--system`` / ``--models``). ``both_cores`` (commands that build one scene
+    and nothing else meanwhile: ``plan``, ``drive``): the grid's upsampling uses two threads on a CPU with two or
+    more cores (:func:`~density_planner.environment.footprints.set_raster_threads`; the same grid to the bit)."""
+    from ..environment.footprints import raster_threads, set_raster_threads
     from ..environment.sources import build_scene
+    from ..parallel import default_workers
     from ..planners.context import run_system
 
     request = scene_request(args)
     # the domain checks of recorded scenes (start speed, reachable region) use the run's system in the domain of
     # the scene's model set (the car on recorded traffic: road, 0-40 m/s)
     system = run_system(run_config, args.kind)
-    return build_scene(request, run_config, system=system, where=f"{kind_flag} {args.kind}",
-                       quiet=not getattr(args, "verbose", 0))
+    before = raster_threads()
+    if both_cores and getattr(args, "device", "cpu") == "cpu":
+        set_raster_threads(min(2, default_workers()))
+    try:
+        return build_scene(request, run_config, system=system, where=f"{kind_flag} {args.kind}",
+                           quiet=not getattr(args, "verbose", 0))
+    finally:
+        set_raster_threads(before)

@@ -76,7 +76,7 @@ def _scene_for_drive(args, run_config):
             # online.shrink_horizon they end with the goal, which the scene's grid covers: no longer, coarser grid)
             cfg["min_duration"] = max(cr.min_duration, online.max_duration + horizon)
         run_config = update(run_config, {"commonroad": cfg})
-    return scene_from_args(args, run_config), run_config
+    return scene_from_args(args, run_config, both_cores=True), run_config
 
 
 def run(args: argparse.Namespace) -> int:

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         check_seed("--distribution-seed", args.distribution_seed)
     run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     clock = _Clock()
-    scene = scene_from_args(args, run_config)
+    scene = scene_from_args(args, run_config, both_cores=True)
     t_scene = clock.lap("scene")
     from ..environment.road_sdf import cancel_road_sdf
     from ..parallel import default_workers

@@ -69,6 +69,8 @@ __all__ = [
     "ROAD_USER_CLASSES",
     "footprint_stds",
     "rasterise_road_users",
+    "raster_threads",
+    "set_raster_threads",
     "resample_tracks",
     "extrapolate_tracks",
 ]
@@ -331,6 +333,26 @@ def _prediction_peak_factor(tracks: RoadUserTracks, config: FootprintConfig) -> 
     return s_u / np.hypot(s_u, e_u) * s_w / np.hypot(s_w, e_w)
 
 
+_RASTER_THREADS = 0
+
+
+def set_raster_threads(threads: int) -> None:
+    """Threads for the bilinear upsampling of the road users' coarse lattice (:func:`rasterise_road_users`), an
+    execution setting like :func:`~density_planner.density.split.set_prediction_processes`: 0 (default) keeps
+    torch's current number. The ``plan`` and ``drive`` commands set 2 on a machine with two or more cores while
+    they build their one scene (its result is the same to the bit: every output cell is computed alone), so the
+    ~0.3-0.9 s of writing a 1-GiB grid is shared by both cores; benchmark workers keep one thread each."""
+    global _RASTER_THREADS
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
+        raise ValueError(f"raster threads must be an integer >= 0, got {threads!r}")
+    _RASTER_THREADS = threads
+
+
+def raster_threads() -> int:
+    """The number set by :func:`set_raster_threads` (0: torch's current number)."""
+    return _RASTER_THREADS
+
+
 def rasterise_road_users(
     tracks: RoadUserTracks,
     *,
@@ -379,12 +401,19 @@ def rasterise_road_users(
             ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
             low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
             _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
-            up = F.interpolate(
-                low[None],
-                size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
-                mode="bilinear",
-                align_corners=True,
-            )[0]
+            before = torch.get_num_threads()
+            if _RASTER_THREADS:
+                torch.set_num_threads(_RASTER_THREADS)
+            try:
+                up = F.interpolate(
+                    low[None],
+                    size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
+                    mode="bilinear",
+                    align_corners=True,
+                )[0]
+            finally:
+                if _RASTER_THREADS:
+                    torch.set_num_threads(before)
             del low
             out = up if up.shape[1:] == (NX, NY) else up[:, :NX, :NY].contiguous()
         if out is None:
