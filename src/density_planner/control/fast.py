@@ -10,7 +10,7 @@ layers are stacked into one matrix. Its outputs equal the torch controller's to 
 Where numba is installed (the ``fast`` extra, part of ``make install``), the same law runs compiled
 (:mod:`density_planner.control._jit`): one call per evaluation, or per stretch of closed loop in :meth:`track`
 (this project's 2-core machine: a 0.1-s step of the online loop, 10 evaluations in one :meth:`track` call,
-0.06-0.08 ms instead of 0.2-0.4 ms; one evaluation per call ~8-10 us instead of ~19-30 us). ``compiled=False``
+0.06-0.09 ms instead of 0.2-0.4 ms; one evaluation per call 7.5-11.5 us instead of 19-36 us). ``compiled=False``
 keeps the numpy path; :attr:`NumpyC3M.compiled` says which one runs. ``benchmarks/bench_controller_step.py``
 times all three (torch, numpy, compiled).
 """

@@ -16,9 +16,9 @@ the planner's registration), as in the paper's comparison (§V):
   one.
 
 Online time per 0.1-s step: ``TRACK`` = the wall time of the controller evaluations that the executed loop needs
-in that step (10 at the default 0.01-s integration step), measured one state at a time as on a car, each a call of
-the one-state evaluator a car would run (:class:`~density_planner.control.fast.NumpyC3M` for C3M on the car,
-compiled where numba is installed; the controller itself otherwise); ``RECEDING``
+in that step (10 at the default 0.01-s integration step), each evaluation one state as on a car, by the one-state
+evaluator a car would run (:class:`~density_planner.control.fast.NumpyC3M` for C3M on the car, compiled where numba
+is installed, a planning step's evaluations in one call; the controller itself otherwise); ``RECEDING``
 = the whole MPC step (occupancy windows, parameters, IPOPT, warm start), as recorded by the planner; ``OPEN_LOOP``
 = 0 (nothing is computed online).
 """
@@ -145,6 +145,8 @@ def controller_step_times(
     n_plan = n_steps // every
     x_ref, u_ref = reference.stage_values(config.dt, n_steps, (0.0,))
     x_hat = system.measure(fine_states)
+    if n_plan == 0:
+        return np.empty(0)
     if isinstance(controller, C3MController) and NumpyC3M.supports(system):
         fast = NumpyC3M(controller)
         # the state, reference and input of every evaluation, grouped by planning step
