@@ -17,6 +17,9 @@ $(STAMP): pyproject.toml constraints.txt
 	# byte-compile the package (an editable install does not; pip does for a regular one): where the environment
 	# sets PYTHONDONTWRITEBYTECODE, every command would otherwise compile ~28 000 lines at start-up (~0.2 s)
 	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q src
+	# compile the online controller's numba kernels once (~10 s; nothing without the `fast` extra), so that the first
+	# `drive` does not pause for it
+	$(PY) -m density_planner.control.fast
 	touch $(STAMP)
 
 install: $(STAMP)

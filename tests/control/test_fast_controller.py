@@ -100,3 +100,20 @@ def test_evaluate_each_equals_one_call_per_state(compiled):
     assert fast.evaluate_each(x_hats[:0], x_refs[:0], u_refs[:0]).shape == (0, 2)
     with pytest.raises(ValueError, match="same number of rows"):
         fast.evaluate_each(x_hats, x_refs[:3], u_refs)
+
+
+def test_warm_up_compiles_every_kernel_for_the_types_used():
+    """``make install``'s warm-up leaves each kernel with the signature the controller then calls it with (no
+    compilation at the first ``drive``)."""
+    _needs(True)
+    from density_planner.control import _jit
+    from density_planner.control.fast import warm_up
+
+    assert warm_up()
+    fast = NumpyC3M(load_controller("c3m", models=model_set_for_scene("commonroad", None)), compiled=True)
+    before = {k: len(getattr(_jit, k).signatures) for k in ("control", "control_many", "track")}
+    fast(np.zeros(5), np.zeros(5), np.zeros(2))
+    fast.evaluate_each(np.zeros((2, 5)), np.zeros((2, 5)), np.zeros((2, 2)))
+    fast.track(np.zeros(5), np.zeros((3, 5)), np.zeros((3, 2)), 0.01, standstill=True)
+    after = {k: len(getattr(_jit, k).signatures) for k in ("control", "control_many", "track")}
+    assert after == before and min(before.values()) >= 1

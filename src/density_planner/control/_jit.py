@@ -10,7 +10,8 @@ its loops vectorise, and the dot products may be reassociated (``fastmath``): th
 
 Importing this module imports numba (~0.3 s) and compiles nothing; the first call in a fresh environment compiles
 the kernels (~6 s on this project's machine) and caches the machine code beside this file (``cache=True``), so
-later processes load it (~0.5 s on their first call).
+later processes load it (~0.5 s on their first call). ``make install`` compiles them once
+(``python -m density_planner.control.fast``, :func:`warm_up`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["control", "control_many", "pack", "track"]
+__all__ = ["control", "control_many", "pack", "track", "warm_up"]
 
 # error_model="numpy": a division does not check for zero (Python's ZeroDivisionError would keep the loops scalar)
 # (forcing the helpers inline compiles 3x longer, ~16 s, for the same speed)
@@ -241,3 +242,19 @@ def track(x, x_refs, u_refs, dt, standstill, flat, layout, buf, x_out, u_first):
         x_out[3] += dt * u[1]
         if standstill and x_out[3] < 0.0:
             x_out[3] = 0.0
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the argument types :class:`NumpyC3M` passes, on a tiny
+    network: ``make install`` runs it so that the first ``drive`` does not pause ~6 s to compile."""
+    h, nz, n1, n2, nu = 2, 6, 4, 2, 2
+    feat = np.array([1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0])
+    sat = np.concatenate([[2.0, 0.0, 3.0, 4.0, 8.0], -np.ones(nu), np.ones(nu), -2 * np.ones(nu), 2 * np.ones(nu)])
+    mid = [(np.eye(h), np.zeros(h))]
+    flat, layout = pack(np.zeros((2 * h, nz)), np.zeros(2 * h), mid, mid, (np.zeros((n1, h)), np.zeros(n1)),
+                        (np.zeros((n2, h)), np.zeros(n2)), feat, sat)
+    buf = np.zeros((8, nz))
+    x, refs, inputs = np.zeros(5), np.zeros((3, 5)), np.zeros((3, nu))
+    control(x, refs[0], inputs[0], flat, layout, buf, np.empty(nu))
+    control_many(refs, refs, inputs, flat, layout, buf, np.empty((3, nu)))
+    track(x, refs, inputs, 0.01, False, flat, layout, buf, np.empty(5), np.empty(nu))

@@ -23,7 +23,7 @@ import numpy as np
 
 from .c3m import N_ERR, C3MController
 
-__all__ = ["NumpyC3M"]
+__all__ = ["NumpyC3M", "warm_up"]
 
 
 class NumpyC3M:
@@ -239,3 +239,19 @@ class NumpyC3M:
             elif uj < k_lo:
                 out[j] = k_lo - (k_lo - c_lo) * math.tanh((k_lo - uj) / (k_lo - c_lo))
         return np.array(out)
+
+
+def warm_up() -> bool:
+    """Compile the numba kernels of the compiled path now (or load them from their cache); ``False`` without numba.
+    ``make install`` runs it (``python -m density_planner.control.fast``), so that the first ``drive`` does not
+    pause ~6-10 s to compile."""
+    try:
+        from . import _jit
+    except ImportError:
+        return False
+    _jit.warm_up()
+    return True
+
+
+if __name__ == "__main__":
+    warm_up()
