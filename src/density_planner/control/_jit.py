@@ -94,7 +94,7 @@ def _features(theta, v, flat, f, z, at):
 
 
 def pack(first_w, first_b, mids1, mids2, last1, last2, feat, sat):
-    """The flat parameter vector and its layout ``(h, nz, n_mid, n1, n2, n_sat)`` of :func:`control` (one array
+    """The flat parameter vector and its layout ``(h, nz, n_mid, n1, n2)`` of :func:`control` (one array
     argument instead of thirteen: numba unboxes every array argument of every call). ``mids*``: lists of ``(w (h, h),
     b (h,))``; ``last*``: ``(w (n, h), b (n,))``; ``feat``: ``(sincos, t0, ts, v0, vs, vf, rank)``; ``sat``:
     ``(mode, turn_index, speed_index, a_lat, a_lat_act, k_lo..., k_hi..., c_lo..., c_hi...)``, mode 0 the hard clip
@@ -103,7 +103,7 @@ def pack(first_w, first_b, mids1, mids2, last1, last2, feat, sat):
     parts = [first_w, first_b] + [a for w, b in mids1 for a in (w, b)] + [a for w, b in mids2 for a in (w, b)]
     parts += [last1[0], last1[1], last2[0], last2[1], feat, sat]
     flat = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in parts])
-    layout = np.array([h, nz, len(mids1), last1[0].shape[0], last2[0].shape[0], len(sat)], dtype=np.int64)
+    layout = np.array([h, nz, len(mids1), last1[0].shape[0], last2[0].shape[0]], dtype=np.int64)
     return flat, layout
 
 

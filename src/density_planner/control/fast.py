@@ -97,9 +97,9 @@ class NumpyC3M:
                 raise ValueError("NumpyC3M(compiled=True) needs numba: pip install 'density-planner[fast]'") from exc
             return None
         h = self.h1
-        same_widths = (len(l1) == len(l2) >= 2 and l2[0][0].shape[0] == h
-                       and all(w.shape == (h, h) for w, _ in l1[1:-1] + l2[1:-1])
-                       and l1[-1][0].shape[1] == h and l2[-1][0].shape[1] == h)
+        # the numpy path's stacking already needs both networks' layers to have the same shapes; the kernel also
+        # needs the hidden layers square
+        same_widths = self._stacked is not None and all(w.shape == (h, h) for w, _ in l1[1:-1])
         if not same_widths:
             if required:
                 raise ValueError("NumpyC3M(compiled=True): the two networks need the same hidden widths")
