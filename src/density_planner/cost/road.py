@@ -78,15 +78,15 @@ class RoadCostConfig:
     goal_region: bool = True
     #: alpha_G of the goal-region cost [1/m^2] (replaces cost.weights.goal on road scenes: the region cost is
     #: zero inside, so a weight that dominates near the goal only decides *whether* the plan ends inside). Measured
-    #: on the suite (docs/planner.md, stop 27): 1 -> 4 gave 54 -> 55 successes (goal reached 57 -> 59, no scenario
+    #: on the suite (docs/history.md, stop 27): 1 -> 4 gave 54 -> 55 successes (goal reached 57 -> 59, no scenario
     #: lost): at 1 a reference 0.7 m outside the shrunk region at the goal's instant cost 0.5, less than the
     #: collision and barrier terms it traded against
     goal_weight: float = 4.0
     #: alpha_C of the collision term on road scenes [1/m^2] (replaces cost.weights.collision there, None: keep it).
     #: A collision fails a plan as surely as a missed goal: with the paper's 0.1, two seconds inside a car (J_C ~
     #: 100 m^2) weighed as much as a 3-m goal miss (10 m^2 times the goal-far factor), and the plans the suite's
-    #: verdict found colliding had P_coll max ~1 (32 of 34). Measured on the suite (docs/planner.md): 0.1 / 1 / 10
-    #: gave 25 / 26 / 26 successes, 35 / 37 / 46 collision-free runs, mean P_coll max 0.51 / 0.48 / 0.36
+    #: verdict found colliding had P_coll max ~1 (32 of 34). Measured on the suite (docs/history.md, stop 22):
+    #: 0.1 / 1 / 10 gave 25 / 26 / 26 successes, 35 / 37 / 46 collision-free runs, mean P_coll max 0.51 / 0.48 / 0.36
     collision_weight: float | None = 10.0
     #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
     #: most), so that plans end inside with room for tracking errors
@@ -110,7 +110,7 @@ class RoadCostConfig:
     #: stage 2 still moved references off the kerb into road users (DEU_Muc-7_1: from a route seed whose reference
     #: had a collision cost of 1.8 and whose cloud had J_R = 168, stage 2 returned the iterate with J_R = 11 and a
     #: reference collision cost of 62; the plan collided).
-    #: Measured on the whole suite (docs/planner.md, stop 29): 300 / 30 / 10 gave 55 / 57 / 57 successes, none lost,
+    #: Measured on the whole suite (docs/history.md, stop 29): 300 / 30 / 10 gave 55 / 57 / 57 successes, none lost,
     #: and the same 8 of 8 on the 10 shipped scenarios (2 refused)
     sample_weight: float | None = 30.0
     #: the barrier starts this far inside the road's edge [m]

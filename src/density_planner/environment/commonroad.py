@@ -133,7 +133,7 @@ class CommonRoadSceneConfig:
     #: the road users' grid, their disc-dilated grids; 4.0 GB on CHN_Sha-15_1, 5.4 GB on USA_Lanker-1_1; 0.25 for
     #: machines with less memory: about 1.3 GB), and scene building time grows with it. 1 GiB gives the suite's
     #: long-horizon urban scenes 0.4-m cells instead of 0.8 m (at 0.8 m the body's dilation closes the gaps of a
-    #: queue): 25 -> 29 of 67 suite successes (docs/planner.md)
+    #: queue): 25 -> 29 of 67 suite successes (docs/history.md, stop 23)
     memory_budget_gib: float = 1.0
     #: map area (xmin, xmax, ymin, ymax) [m]; empty = reachable region + goal + margin (module docstring)
     area: tuple[float, ...] = ()

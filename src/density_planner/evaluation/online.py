@@ -78,7 +78,7 @@ class OnlineConfig:
     #: time between replans [s] (a multiple of the planning grid step); 0 (default): one input segment
     #: (``planning.segment_duration``, 1 s), so that every warm start is an exact shift of the previous plan. With
     #: 0.5 s (half a segment) the shifted inputs can only approximate the old path (:func:`refit_shift`): on 14
-    #: suite scenarios (docs/planner.md, stop 33; the replan step of then, 5x today's) 0.5 s passed 10 (observed
+    #: suite scenarios (docs/history.md, stop 33; the replan step of then, 5x today's) 0.5 s passed 10 (observed
     #: prediction) / 11 (oracle) verdicts and 1 s 13 / 14, the offline plan 14; the half-segment replans left the
     #: road in three turns
     period: float = 0.0
@@ -90,7 +90,7 @@ class OnlineConfig:
     #: with a clip of 0.1), so that 10 steps could move a parameter further; but a warm start is nearly converged,
     #: and from it the larger first steps raised the objective (the path moves metres 10 s ahead) in ~55 % of the
     #: replans, which then returned their warm start unchanged. With the planner's step on 14 + 6 suite scenarios
-    #: (docs/planner.md, stop 33): 67 % of the replans improved on their warm start (45 %), and 14 / 14 and 2 / 6
+    #: (docs/history.md, stop 33): 67 % of the replans improved on their warm start (45 %), and 14 / 14 and 2 / 6
     #: online runs passed with the observed-only prediction (13 / 14 and 1 / 6)
     replan_lr: float = 0.0
     #: largest change of a parameter per replan step (0, default: density_planner.update_clip, 0.02)

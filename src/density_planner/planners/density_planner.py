@@ -66,11 +66,11 @@ class DensityPlannerConfig:
     #: cost evaluations in stage 1 (one fewer Adam updates)
     epochs_init: int = 100
     #: cost evaluations in stage 2 (the paper's 100, kept by ``--config paper``; 60 by default: measured on the
-    #: CommonRoad suite, the same plans pass and stage 2 takes 40 % less time, docs/planner.md, stop 30)
+    #: CommonRoad suite, the same plans pass and stage 2 takes 40 % less time, docs/history.md, stop 30)
     epochs_density: int = 60
     #: S, initial samples of stage 2's iterations (the paper's 500, kept by ``--config paper``; 200 by default:
-    #: measured on the CommonRoad suite, the same plans pass and stage 2 takes 45 % less time, docs/planner.md). The
-    #: plan is reported on its own draw of ``evaluation_samples``
+    #: measured on the CommonRoad suite, the same plans pass and stage 2 takes 45 % less time, docs/history.md,
+    #: stop 30). The plan is reported on its own draw of ``evaluation_samples``
     n_samples: int = 200
     #: initial samples of the fresh draw the plan's cost and collision probability are reported on
     #: (``fresh_evaluation_samples``); their standard error shrinks with it (one prediction, no gradient)

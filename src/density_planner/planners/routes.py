@@ -85,7 +85,7 @@ class RouteSeedConfig:
     #: random stage-1 candidates beside the route seeds (``density_planner.n_candidates`` where a scene has none):
     #: the seeds start on the road towards the goal, the random ones are the fallback. Measured on the CommonRoad
     #: suite with ``epochs_init``: the same plans pass as with 100 random candidates and 100 epochs, stage 1 in 30 %
-    #: less time (docs/planner.md, stop 30)
+    #: less time (docs/history.md, stop 30)
     random_candidates: int = 25
     #: stage-1 epochs where route seeds exist (``density_planner.epochs_init`` where a scene has none)
     epochs_init: int = 50
@@ -104,7 +104,7 @@ class RouteSeedConfig:
     #: weight of the squared acceleration [m^2 / (m/s^2)^2 / s] in that choice
     effort_weight: float = 0.05
     #: speed levels of the two-phase family (evenly spaced over the system's speed range). Measured on the suite
-    #: (docs/planner.md, stop 30): 13 levels (3.3 m/s apart for the road car) / 25 (1.7 m/s) gave 60 / 61 successes,
+    #: (docs/history.md, stop 30): 13 levels (3.3 m/s apart for the road car) / 25 (1.7 m/s) gave 60 / 61 successes,
     #: none lost (USA_US101-22_1, whose goal speed lay between two levels, gained)
     profile_speeds: int = 25
     #: times [s] at which the two-phase profiles may switch to their second target speed
