@@ -114,14 +114,12 @@ def add_system(p: argparse.ArgumentParser, *, density: bool = True) -> None:
 
 
 def apply_system_args(args: argparse.Namespace, run_config):
-    """``run_config`` with the ``[system]`` keys given on the command line (``--system`` etc.) replaced."""
-    from ..config import update
+    """``run_config`` with the ``[system]`` keys given on the command line (``--system`` etc.) replaced
+    (:func:`density_planner.api.with_system`)."""
+    from ..api import with_system
 
-    changes = {key: value for key, value in (("name", getattr(args, "system", None)),
-                                             ("models", getattr(args, "models", None)),
-                                             ("controller", getattr(args, "controller", None)),
-                                             ("density", getattr(args, "density", None))) if value is not None}
-    return update(run_config, {"system": changes}) if changes else run_config
+    return with_system(run_config, system=getattr(args, "system", None), models=getattr(args, "models", None),
+                       controller=getattr(args, "controller", None), density=getattr(args, "density", None))
 
 
 def add_config(p: argparse.ArgumentParser, example: str = "density_planner.n_candidates=50") -> None:

@@ -42,23 +42,15 @@ def scene_request(args: argparse.Namespace):
 
 def scene_from_args(args: argparse.Namespace, run_config, *, kind_flag: str = "--env", both_cores: bool = False):
     """Build the scene selected by the scene arguments with the matching section of ``run_config`` (its
-    ``[system]`` section already holds ``--system`` / ``--models``). ``both_cores`` (commands that build one scene
-    and nothing else meanwhile: ``plan``, ``drive``): the grid's upsampling uses two threads on a CPU with two or
-    more cores (:func:`~density_planner.environment.footprints.set_raster_threads`; the same grid to the bit)."""
-    from ..environment.footprints import raster_threads, set_raster_threads
-    from ..environment.sources import build_scene
+    ``[system]`` section already holds ``--system`` / ``--models``; :func:`density_planner.api.build_scene`).
+    ``both_cores`` (commands that build one scene and nothing else meanwhile: ``plan``, ``drive``): the grid's
+    upsampling uses two threads on a CPU with two or more cores
+    (:func:`~density_planner.environment.footprints.set_raster_threads`; the same grid to the bit)."""
+    from ..api import build_scene
     from ..parallel import default_workers
-    from ..planners.context import run_system
 
-    request = scene_request(args)
-    # the domain checks of recorded scenes (start speed, reachable region) use the run's system in the domain of
-    # the scene's model set (the car on recorded traffic: road, 0-40 m/s)
-    system = run_system(run_config, args.kind)
-    before = raster_threads()
-    if both_cores and getattr(args, "device", "cpu") == "cpu":
-        set_raster_threads(min(2, default_workers()))
-    try:
-        return build_scene(request, run_config, system=system, where=f"{kind_flag} {args.kind}",
-                           quiet=not getattr(args, "verbose", 0))
-    finally:
-        set_raster_threads(before)
+    request = scene_request(args)  # checks --seed
+    threads = min(2, default_workers()) if both_cores and getattr(args, "device", "cpu") == "cpu" else None
+    return build_scene(request.kind, run_config, seed=request.seed, file=request.file, data_dir=request.data_dir,
+                       recording=request.recording, start_time=request.start_time, raster_threads=threads,
+                       where=f"{kind_flag} {args.kind}", quiet=not getattr(args, "verbose", 0))

@@ -13,8 +13,9 @@ from ._common import (
     add_system,
     apply_system_args,
     check_out,
-    context_from_args,
     out_dir,
+    resolve_device,
+    resolve_dtype,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -96,71 +97,56 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
-    """The rest of :func:`run` once the scene is built: problem, planner, output process, then
-    :func:`_plan_and_write`."""
+    """The rest of :func:`run` once the scene is built: problem, planner (:func:`density_planner.api.set_up`),
+    output process, then :func:`_plan_and_write`."""
+    from ..api import set_up
     from ..density.split import prediction_processes, set_prediction_processes
     from ..parallel import default_workers
-    from ..planners.context import run_system
-    from ..planners.problem import PlanningProblem
-    from ..planners.registry import make_planner
 
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    system = run_system(run_config, args.kind)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning,
-                                         risk=run_config.risk, system=system)
-    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
-                            system=system)
-    planner = make_planner(args.planner, ctx)
+    setup = set_up(scene, run_config, kind=args.kind, planner=args.planner, distribution_seed=dist_seed,
+                   device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
+                   progress=show_progress(args))
     out = out_dir(args.out)  # inputs are valid: only now create the output directory
     # the process that will draw the figures (and write solution.xml) loads its libraries while this one plans
-    outputs = _OutputProcess.start(out, scene, problem, run_config, gif=not args.no_gif,
+    outputs = _OutputProcess.start(out, scene, setup.problem, run_config, gif=not args.no_gif,
                                    solution=args.kind == "commonroad")
     clock.lap("setup")
     before = prediction_processes()
-    if ctx.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
+    if setup.context.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
         set_prediction_processes(min(2, default_workers()))
     try:
-        return _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
-                               dist_seed)
+        return _plan_and_write(args, setup, out, outputs, clock, t_scene)
     finally:  # an error, Ctrl-C or no plan: the output process ends here (after its files: nothing to do)
         if outputs is not None:
             outputs.cancel()
         set_prediction_processes(before)
 
 
-def _plan_and_write(args, scene, problem, planner, ctx, run_config, out, outputs, clock, t_scene,
-                    dist_seed) -> int:
-    """The rest of :func:`run`: plan, judge, write (through ``outputs``, an :class:`_OutputProcess`, if given)."""
-    from ..config import dumps_toml, to_dict
-    from ..evaluation.verdict import judge_plan
+def _plan_and_write(args, setup, out, outputs, clock, t_scene) -> int:
+    """The rest of :func:`run`: plan, judge (:func:`density_planner.api.judge`), write (through ``outputs``, an
+    :class:`_OutputProcess`, if given)."""
+    from ..api import PlanOutcome, judge, write_plan_figures, write_plan_solution
+    from ..config import dumps_toml
     from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import run_model_set
 
-    result = planner.plan(problem)
+    scene, problem, run_config = setup.scene, setup.problem, setup.run_config
+    result = setup.planner.plan(problem)
     clock.lap("plan")
 
     atomic_write_text(out / "config.toml", dumps_toml(run_config))
-    verdict = judge_plan(scene, result, system=problem.system, dt=problem.parameterization.plan_dt,
-                         config=run_config.verdict, evaluation=run_config.evaluation)
+    verdict = judge(setup, result)
     clock.lap("verdict")
-    summary = result.summary()
+    outcome = PlanOutcome(setup, result, verdict)
+    summary = outcome.summary()
     summary.update({
-        "status": "failed" if verdict is None else verdict.status,
-        "planner_status": result.status.value,
-        "verdict": None if verdict is None else verdict.to_dict(),
-        "scene": scene.to_json_dict(),
         "scene_build_time_s": t_scene,
-        "distribution_seed": dist_seed,
-        "controller": type(ctx.controller).__name__,
-        "models": run_model_set(run_config, args.kind).name,
-        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
-        "config": to_dict(run_config),
         "versions": versions(),
         "command": "density-planner " + " ".join(getattr(args, "argv", []) or []),
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
-    body = None if result.states is None else problem.collision().outline(result.states.detach().cpu()).numpy()
+    body = outcome.body()
     if body is not None and outputs is not None:
         written += outputs.finish(result, verdict, body)
         clock.lap("outputs")
@@ -207,7 +193,8 @@ class _Clock:
 
 
 class _OutputProcess:
-    """solution.xml and the figures of a plan (:func:`write_plan_solution`, :func:`write_plan_figures`), written by a
+    """solution.xml and the figures of a plan (:func:`density_planner.api.write_plan_solution`,
+    :func:`density_planner.api.write_plan_figures`), written by a
     process forked before planning: it imports and warms the plotting and CommonRoad writing libraries on the
     second core while this process plans (~0.5-0.8 s of the command's wall time otherwise), then waits for the plan
     (:meth:`finish`: the result, verdict and footprint are sent through a pipe, ~1 MB). ``None`` from
@@ -292,6 +279,8 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
         result, verdict, body = pickle.loads(conn.recv_bytes())
     except EOFError:  # the parent ended or cancelled
         return
+    from ..api import write_plan_figures, write_plan_solution
+
     clock = _Clock()
     try:
         written = []
@@ -303,83 +292,3 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
         conn.send(("ok", written, clock.laps))
     except Exception as exc:  # noqa: BLE001 - reported by the parent as one line
         conn.send(("error", f"{type(exc).__name__}: {exc}", clock.laps))
-
-
-def write_plan_solution(path, scene, result, problem, run_config) -> None:
-    """``solution.xml`` of a plan on a CommonRoad scene (vehicle model and cost function of ``[solution]``)."""
-    from ..evaluation.verdict import plan_inputs
-    from ..io.commonroad_solution import write_solution
-
-    meta = scene.meta
-    scenario_dt = float(meta.get("scenario_dt") or problem.parameterization.plan_dt)
-    road = getattr(scene, "road", None)
-    t_start = float(road.t_start) if road is not None else float(scene.grid.t0)
-    pp = meta.get("planning_problem")
-    write_solution(path, result.states, plan_inputs(result), problem.parameterization.plan_dt,
-                   scenario_id=str(meta.get("scenario_id") or scene.name),
-                   planning_problem_id=int(pp) if pp is not None and int(pp) >= 0 else 0,
-                   scenario_dt=scenario_dt, initial_time_step=int(round(t_start / scenario_dt)),
-                   config=run_config.solution, state_names=problem.system.state_names, system=problem.system,
-                   computation_time=result.timings.get("total"),
-                   frame_offset=tuple(meta.get("frame_offset") or (0.0, 0.0)))
-
-
-def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: _Clock | None = None,
-                       body=None) -> list[str]:
-    """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written.
-
-    The GIF and costs.png are drawn in a forked child process while this one draws plan.png (where ``fork``
-    exists; else in turn): the command's wall time then holds only the slower of the two."""
-    import multiprocessing as mp
-
-    from ..viz.plan import animate_plan, plot_costs, plot_plan
-
-    clock = clock or _Clock()
-    states = result.states.detach().cpu().numpy()
-    sx = slx = None
-    if result.samples is not None:
-        sx = result.samples.x.detach().cpu().numpy()
-        slx = result.samples.log_rho.detach().cpu().numpy()
-    p_max = float(result.collision.max) if result.collision is not None else float("nan")
-    title = (f"{scene.name}: {result.planner}, P_coll max {p_max:.3f}, "
-             f"{result.timings.get('total', float('nan')):.1f} s")
-    label = "reference" if result.reference is not None else "executed (nominal model)"
-    written = []
-    later = []  # figures drawn beside plan.png: (file name, lap name, draw)
-    if gif:
-        later.append(("plan.gif", "gif", lambda: animate_plan(scene, states, out / "plan.gif", samples_x=sx,
-                                                               samples_log_rho=slx)))
-    if result.cost_history:
-        later.append(("costs.png", "costs_png", lambda: plot_costs(result.cost_history, out / "costs.png",
-                                                                    title=f"{result.planner}: cost per iteration")))
-    child = None
-    if later and "fork" in mp.get_all_start_methods():
-        child = mp.get_context("fork").Process(target=_run_quietly, args=([draw for _, _, draw in later],),
-                                               daemon=True)
-        child.start()
-    plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
-              verdict=verdict, body=body)
-    written.append("plan.png")
-    clock.lap("plan_png")
-    if child is None:
-        for _, lap, draw in later:
-            draw()
-            clock.lap(lap)
-    else:
-        child.join()
-        clock.lap("child_wait")
-        if child.exitcode != 0:
-            names = " and ".join(str(out / name) for name, _, _ in later)
-            raise RuntimeError(f"drawing {names} failed (exit code {child.exitcode})"
-                               + ("; rerun with --no-gif" if gif else ""))
-    written += [name for name, _, _ in later]
-    return written
-
-
-def _run_quietly(draws) -> None:
-    """Target of the figure process: one torch thread, then each of ``draws`` in turn."""
-    import torch
-
-    torch.set_num_threads(1)
-    for draw in draws:
-        draw()
