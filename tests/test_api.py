@@ -6,10 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
-from density_planner.api import PlanOutcome, load_run_config, plan_scene
+from density_planner.api import PlanOutcome, drive_scene, load_run_config, plan_scene
 from density_planner.cli import main
 
 SHIPPED = Path(__file__).resolve().parents[1] / "src" / "density_planner" / "data" / "commonroad"
@@ -85,3 +86,30 @@ def test_load_run_config_layers_file_overrides_and_system():
 def test_plan_scene_rejects_bad_arguments(kwargs, error, match):
     with pytest.raises(error, match=match):
         plan_scene(**kwargs)
+
+
+TINY_DRIVE = ["density_planner.n_candidates=5", "density_planner.epochs_init=3", "density_planner.epochs_density=3",
+              "density_planner.n_samples=20", "density_planner.evaluation_samples=20", "online.replan_epochs=1",
+              "online.replan_samples=20", "online.overrun=use", "online.duration=2.0"]
+
+
+def test_drive_scene_equals_the_drive_command(tmp_path):
+    """``drive_scene`` and ``density-planner drive``, same scene and settings: the same executed states, replans
+    and verdict (``overrun = "use"``: the run does not depend on the machine's speed); the files it writes."""
+    outcome = drive_scene("random", seed=3, overrides=TINY_DRIVE)
+    out = tmp_path / "cli"
+    rc = main(["drive", "--env", "random", "--seed", "3", *_cli_args(TINY_DRIVE), "-q", "--no-gif",
+               "--out", str(out)])
+    cli = json.loads((out / "run.json").read_text())
+    assert rc == (0 if outcome.ok else 3) and cli["status"] == outcome.status
+    assert [r["t"] for r in cli["replans"]] == [0.0, 1.0] == [r.t for r in outcome.result.replans]
+    assert np.allclose(np.asarray(cli["states"]), np.asarray(outcome.result.states), atol=1e-6)
+    written = outcome.write(tmp_path / "api")
+    assert {p.name for p in written} == {"run.json", "config.toml", "run.png"}
+    api = json.loads((tmp_path / "api" / "run.json").read_text())
+    assert api["verdict"] == cli["verdict"] and api["config"] == cli["config"] and api["planner"] == "density"
+
+
+def test_drive_scene_refuses_a_step_by_step_planner():
+    with pytest.raises(ValueError, match="step by step"):
+        drive_scene("random", planner="mpc")

@@ -8,6 +8,9 @@
     print(outcome.status, outcome.verdict.reasons, float(outcome.result.collision.max))
     outcome.write("results/mine")        # plan.json, config.toml, solution.xml (CommonRoad), plan.png, costs.png
 
+    run = drive_scene("commonroad", file="my_scenario.xml")         # online: replans from what was observed
+    print(run.status, run.summary()["n_replans"]); run.write("results/mine-online")   # run.json, run.png, ...
+
 The steps are also public, for users who change one of them: :func:`load_run_config` (defaults, a TOML file or a
 shipped preset, ``KEY=VALUE`` overrides, the ``[system]`` choices), :func:`build_scene` (a scene source with the
 run's system for its domain checks), :func:`set_up` (planning problem, models, planner), :func:`judge` (the
@@ -26,6 +29,7 @@ if TYPE_CHECKING:  # torch and the models load on first use: importing this modu
     import torch
 
     from .environment.scene import Scene
+    from .evaluation.online import DriveResult
     from .evaluation.verdict import Verdict
     from .planners.base import PlanResult
     from .planners.context import PlannerContext
@@ -33,7 +37,8 @@ if TYPE_CHECKING:  # torch and the models load on first use: importing this modu
     from .settings import RunConfig
 
 __all__ = ["load_run_config", "with_system", "build_scene", "PlanSetup", "set_up", "judge", "PlanOutcome",
-           "plan_scene", "write_plan_solution", "write_plan_figures"]
+           "plan_scene", "write_plan_solution", "write_plan_figures", "drive_config", "check_drivable",
+           "DriveOutcome", "drive_scene", "write_run_figures"]
 
 
 # ------------------------------------------------------------------------------------------------ configuration
@@ -109,6 +114,8 @@ class PlanSetup:
     kind: str
     #: seed of the initial distribution's draw (the paper's random Gaussian mixture)
     distribution_seed: int
+    #: the planner's registered name
+    planner_name: str = "density"
 
 
 def set_up(scene: Scene, run_config: RunConfig, *, kind: str, planner: str = "density",
@@ -130,7 +137,8 @@ def set_up(scene: Scene, run_config: RunConfig, *, kind: str, planner: str = "de
                                          risk=run_config.risk, system=system)
     context = build_context(run_config, kind=kind, parameterization=problem.parameterization, system=system,
                             device=device, dtype=dtype or torch.float32, progress=progress)
-    return PlanSetup(scene, problem, context, make_planner(planner, context), run_config, kind, distribution_seed)
+    return PlanSetup(scene, problem, context, make_planner(planner, context), run_config, kind, distribution_seed,
+                     planner)
 
 
 def judge(setup: PlanSetup, result: PlanResult) -> Verdict | None:
@@ -269,6 +277,148 @@ def plan_scene(env: str = "random", *, seed: int | None = None, file: str | Path
     finally:
         set_prediction_processes(before)
     return PlanOutcome(setup, result, judge(setup, result))
+
+
+# ------------------------------------------------------------------------------------------------ online
+def drive_config(run_config: RunConfig, kind: str, *, prediction: str | None = None,
+                 period: float | None = None) -> RunConfig:
+    """``run_config`` for driving a scene of source ``kind`` online: ``prediction`` (``"observed"`` or
+    ``"oracle"``) and ``period`` [s] set in ``[online]`` where given, and a scene long enough for the run plus one
+    planning horizon (random scenes: more slices; CommonRoad: the grid covers ``online.max_duration``, and the whole
+    run plus a horizon for an oracle read over full horizons)."""
+    import math
+
+    from .config import update
+    from .planners.problem import DEFAULT_HORIZON
+
+    changes: dict[str, Any] = {}
+    if prediction is not None:
+        changes["prediction"] = {"kind": prediction}
+    if period is not None:
+        changes["period"] = period
+    if changes:
+        run_config = update(run_config, {"online": changes})
+    online = run_config.online
+    horizon = run_config.planning.horizon or min(run_config.planning.max_horizon, DEFAULT_HORIZON)
+    if kind == "random":
+        dt = getattr(run_config.random_scene, "dt", 0.1)
+        length = min(online.duration or horizon, online.max_duration)
+        need = int(math.ceil((length + horizon) / dt - 1e-9)) + 1
+        if run_config.random_scene.n_slices < need:
+            run_config = update(run_config, {"random_scene": {"n_slices": need}})
+    if kind == "commonroad":
+        cr = run_config.commonroad
+        cfg: dict[str, Any] = {"max_horizon": max(cr.max_horizon, online.max_duration)}
+        if online.prediction.kind == "oracle" and not online.shrink_horizon:
+            # replans over a full horizon from every time read the oracle up to the run's end plus one horizon (with
+            # online.shrink_horizon they end with the goal, which the scene's grid covers: no longer, coarser grid)
+            cfg["min_duration"] = max(cr.min_duration, online.max_duration + horizon)
+        run_config = update(run_config, {"commonroad": cfg})
+    return run_config
+
+
+def check_drivable(planner: str, where: str = "planner") -> None:
+    """Refuse a planner that already runs step by step from the true state (MPC): it has no plan to replan."""
+    from .planners.registry import ExecutionMode, planner_info
+
+    if planner_info(planner).execution == ExecutionMode.RECEDING:
+        raise ValueError(f"{where} {planner}: this planner already runs step by step (receding horizon) from the "
+                         "true state; compare it with `density-planner bench commonroad`")
+
+
+@dataclass
+class DriveOutcome:
+    """An online run (:func:`drive_scene`): the set-up and the :class:`~density_planner.evaluation.online.
+    DriveResult` (executed states, every replan, the verdict of the executed trajectory)."""
+
+    setup: PlanSetup
+    result: DriveResult
+
+    @property
+    def verdict(self) -> Verdict:
+        assert self.result.verdict is not None  # drive() judges every run
+        return self.result.verdict
+
+    @property
+    def status(self) -> str:
+        return self.verdict.status
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "success"
+
+    def summary(self) -> dict[str, Any]:
+        """The content of ``run.json`` (without the command line's own keys)."""
+        from .config import to_dict
+
+        setup, initial = self.setup, self.result.initial_plan
+        summary = self.result.summary()
+        summary.update({
+            "scene": setup.scene.to_json_dict(),
+            "planner": setup.planner_name,
+            "distribution_seed": setup.distribution_seed,
+            "density_predictor": getattr(setup.context.predictor(), "name", setup.run_config.system.density),
+            "initial_plan": None if initial is None else {
+                "status": initial.status.value, "timings": initial.timings,
+                "collision_probability_max": None if initial.collision is None else float(initial.collision.max)},
+            "config": to_dict(setup.run_config),
+        })
+        return summary
+
+    def write(self, out: str | Path, *, figures: bool = True, gif: bool = False) -> list[Path]:
+        """``run.json``, ``config.toml`` and with ``figures`` run.png (and run.gif with ``gif``) into ``out``."""
+        from .config import dumps_toml
+        from .io.atomic import atomic_write_json, atomic_write_text
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(out / "run.json", self.summary())
+        atomic_write_text(out / "config.toml", dumps_toml(self.setup.run_config))
+        return [out / "run.json", out / "config.toml"] + (
+            [out / n for n in write_run_figures(out, self.setup.scene, self.result, gif=gif)] if figures else [])
+
+
+def drive_scene(env: str = "random", *, seed: int | None = None, file: str | Path | None = None,
+                planner: str = "density", prediction: str | None = None, period: float | None = None,
+                config: str | Path | None = None, overrides: Sequence[str] = (), run_config: RunConfig | None = None,
+                system: str | None = None, models: str | None = None, controller: str | None = None,
+                density: str | None = None, distribution_seed: int | None = None, device: str | torch.device = "cpu",
+                dtype: torch.dtype | None = None, progress: Any = None) -> DriveOutcome:
+    """Drive a scene online, as ``density-planner drive`` does without its files: the true vehicle drawn from the
+    initial law, a replan every ``period`` from the measurement with the ``prediction`` (``"observed"``: built
+    only from what was seen so far, the default on recorded traffic; ``"oracle"``: the recorded future), the
+    executed trajectory judged against the ground truth. ``progress(t, replan_record)`` is called after each
+    replan. The other arguments are :func:`plan_scene`'s."""
+    from .evaluation.online import drive
+
+    check_drivable(planner)
+    if run_config is not None and (config is not None or overrides):
+        raise ValueError("give either run_config or config / overrides, not both")
+    cfg = with_system(run_config, system=system, models=models, controller=controller, density=density) \
+        if run_config is not None else load_run_config(config, overrides, system=system, models=models,
+                                                        controller=controller, density=density)
+    cfg = drive_config(cfg, env, prediction=prediction, period=period)
+    scene = build_scene(env, cfg, seed=seed, file=file)
+    setup = set_up(scene, cfg, kind=env, planner=planner,
+                   distribution_seed=distribution_seed if distribution_seed is not None else (seed or 0),
+                   device=device, dtype=dtype)
+    result = drive(scene, setup.planner, setup.context.controller, system=setup.problem.system, config=cfg.online,
+                   planning=cfg.planning, risk=cfg.risk, evaluation=cfg.evaluation, verdict_config=cfg.verdict,
+                   distribution_seed=setup.distribution_seed, progress=progress)
+    return DriveOutcome(setup, result)
+
+
+def write_run_figures(out: str | Path, scene: Scene, result: DriveResult, *, gif: bool = True) -> list[str]:
+    """run.png (and run.gif) of an online run; returns the names written."""
+    from .viz.online import animate_run, plot_run
+
+    out = Path(out)
+    plot_run(scene, result, out / "run.png")
+    written = ["run.png"]
+    if gif:
+        animate_run(scene, result, out / "run.gif")
+        written.append("run.gif")
+    return written
 
 
 # ------------------------------------------------------------------------------------------------ files

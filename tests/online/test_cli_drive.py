@@ -90,18 +90,16 @@ def test_oracle_scene_covers_the_goal_or_the_run_plus_a_horizon(shrink):
     """Replans that end with the goal (``online.shrink_horizon``) read the scene's own grid, which covers the goal's
     time interval; full-horizon replans need the grid to cover the run plus one horizon (longer, so coarser)."""
     pytest.importorskip("commonroad")
-    import argparse
     import math
 
-    from density_planner.cli.drive import _scene_for_drive
+    from density_planner.api import build_scene, drive_config
     from density_planner.config import apply_overrides
     from density_planner.settings import RunConfig
 
     cfg = apply_overrides(RunConfig(), ["online.prediction.kind=oracle", "online.max_duration=5",
                                         f"online.shrink_horizon={'true' if shrink else 'false'}"])
-    ns = argparse.Namespace(kind="commonroad", file=str(DATA / "USA_Lanker-1_1_T-1.xml"), seed=None, data_dir=None,
-                            recording=None, start_time=None, quiet=True)
-    scene, _ = _scene_for_drive(ns, cfg)
+    cfg = drive_config(cfg, "commonroad")
+    scene = build_scene("commonroad", cfg, file=DATA / "USA_Lanker-1_1_T-1.xml")
     goal_end = scene.road.goal.time_interval[1] - scene.t_start  # 4.0 s
     span = scene.grid.t_end - scene.t_start
     if shrink:

@@ -15,6 +15,8 @@ from ._common import (
     apply_system_args,
     check_out,
     out_dir,
+    resolve_device,
+    resolve_dtype,
     show_progress,
 )
 from ._scenes import add_scene_args, scene_from_args
@@ -54,69 +56,33 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run, fast_exit=True)
 
 
-def _scene_for_drive(args, run_config):
-    """The scene, long enough for the run plus one planning horizon (random scenes: more slices; CommonRoad: the
-    grid covers the goal's time interval, and the oracle's windows past it, when asked for)."""
-    from ..config import update
-    from ..planners.problem import DEFAULT_HORIZON
-
-    online = run_config.online
-    horizon = run_config.planning.horizon or min(run_config.planning.max_horizon, DEFAULT_HORIZON)
-    if args.kind == "random":
-        dt = run_config.random_scene.dt if hasattr(run_config.random_scene, "dt") else 0.1
-        length = min(online.duration or horizon, online.max_duration)
-        need = int(math.ceil((length + horizon) / dt - 1e-9)) + 1
-        if run_config.random_scene.n_slices < need:
-            run_config = update(run_config, {"random_scene": {"n_slices": need}})
-    if args.kind == "commonroad":
-        cr = run_config.commonroad
-        cfg = {"max_horizon": max(cr.max_horizon, online.max_duration)}
-        if online.prediction.kind == "oracle" and not online.shrink_horizon:
-            # replans over a full horizon from every time read the oracle up to the run's end plus one horizon (with
-            # online.shrink_horizon they end with the goal, which the scene's grid covers: no longer, coarser grid)
-            cfg["min_duration"] = max(cr.min_duration, online.max_duration + horizon)
-        run_config = update(run_config, {"commonroad": cfg})
-    return scene_from_args(args, run_config, both_cores=True), run_config
-
-
 def run(args: argparse.Namespace) -> int:
+    """``density-planner drive``: :func:`density_planner.api.drive_config`, the scene, :func:`~density_planner.api.
+    set_up` and :func:`~density_planner.evaluation.online.drive`, as :func:`density_planner.api.drive_scene`, then
+    the files."""
     import time
 
+    from ..api import DriveOutcome, check_drivable, drive_config, set_up, write_run_figures
     from ..checks import check_seed
-    from ..config import dumps_toml, load_config, to_dict, update
+    from ..config import dumps_toml, load_config
     from ..evaluation.online import drive
     from ..io.atomic import atomic_write_json, atomic_write_text
-    from ..planners.context import run_system
-    from ..planners.problem import PlanningProblem
-    from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
-    from ._common import context_from_args
     from .plan import versions
 
     check_out(args.out)
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
     run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
-    changes = {}
-    if args.prediction is not None:
-        changes["prediction"] = {"kind": args.prediction}
-    if args.period is not None:
-        changes["period"] = args.period
-    if changes:
-        run_config = update(run_config, {"online": changes})
-    if planner_info(args.planner).execution == ExecutionMode.RECEDING:
-        raise ValueError(f"--planner {args.planner}: this planner already runs step by step (receding horizon) from "
-                         "the true state; compare it with `density-planner bench commonroad`")
+    run_config = drive_config(run_config, args.kind, prediction=args.prediction, period=args.period)
+    check_drivable(args.planner, "--planner")
     t0 = time.perf_counter()
-    scene, run_config = _scene_for_drive(args, run_config)
+    scene = scene_from_args(args, run_config, both_cores=True)
     t_scene = time.perf_counter() - t0
     dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
-    system = run_system(run_config, args.kind)
-    problem = PlanningProblem.from_scene(scene, seed=dist_seed, planning=run_config.planning, risk=run_config.risk,
-                                         system=system)
-    ctx = context_from_args(args, run_config, progress=show_progress(args), parameterization=problem.parameterization,
-                            system=system)
-    planner = make_planner(args.planner, ctx)
+    setup = set_up(scene, run_config, kind=args.kind, planner=args.planner, distribution_seed=dist_seed,
+                   device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
+                   progress=show_progress(args))
     out = out_dir(args.out)
     atomic_write_text(out / "config.toml", dumps_toml(run_config))
     verbose = show_progress(args)
@@ -126,35 +92,20 @@ def run(args: argparse.Namespace) -> int:
             fb = f", fallback {rec.fallback}" if rec.fallback else ""
             print(f"  t = {t:5.1f} s: {rec.status} in {rec.wall_time:.2f} s, P_coll {rec.p_coll:.3f}{fb}", flush=True)
 
-    result = drive(scene, planner, ctx.controller, system=system, config=run_config.online,
-                   planning=run_config.planning, risk=run_config.risk, evaluation=run_config.evaluation,
-                   verdict_config=run_config.verdict, distribution_seed=dist_seed, progress=progress)
-    summary = result.summary()
-    initial = result.initial_plan
+    result = drive(scene, setup.planner, setup.context.controller, system=setup.problem.system,
+                   config=run_config.online, planning=run_config.planning, risk=run_config.risk,
+                   evaluation=run_config.evaluation, verdict_config=run_config.verdict, distribution_seed=dist_seed,
+                   progress=progress)
+    outcome = DriveOutcome(setup, result)
+    summary = outcome.summary()
     summary.update({
-        "scene": scene.to_json_dict(),
         "scene_build_time_s": t_scene,
-        "planner": args.planner,
-        "distribution_seed": dist_seed,
-        "density_predictor": getattr(ctx.predictor(), "name", run_config.system.density),
-        "initial_plan": None if initial is None else {
-            "status": initial.status.value, "timings": initial.timings,
-            "collision_probability_max": None if initial.collision is None else float(initial.collision.max)},
-        "config": to_dict(run_config),
         "versions": versions(),
         "command": "density-planner " + " ".join(getattr(args, "argv", []) or []),
     })
     atomic_write_json(out / "run.json", summary)
-    from ..viz.online import animate_run, plot_run
-
-    written = ["run.json", "config.toml"]
-    plot_run(scene, result, out / "run.png")
-    written.append("run.png")
-    if not args.no_gif:
-        animate_run(scene, result, out / "run.gif")
-        written.append("run.gif")
-    v = result.verdict
-    assert v is not None  # drive() judges every run
+    written = ["run.json", "config.toml"] + write_run_figures(out, scene, result, gif=not args.no_gif)
+    v = outcome.verdict
     n_fb = summary["n_fallbacks"]
     med = summary["replan_wall_time_median"]
     late = summary["n_tracked_late"]
@@ -165,4 +116,3 @@ def run(args: argparse.Namespace) -> int:
     from . import plan_exit_code
 
     return plan_exit_code(v)
-
