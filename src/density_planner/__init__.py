@@ -30,9 +30,11 @@ _EXPORTS = {
                      "LearnedDensity", "LiouvilleConfig", "UniformBox", "WeightedSamples", "load_predictor",
                      "paper_gaussian_mixture", "propagate_density", "simulate_closed_loop"), ".density"),
     **dict.fromkeys(("CarConfig", "KinematicCar", "LinearSystem", "System"), ".systems"),
+    **dict.fromkeys(("plan_scene", "drive_scene", "load_run_config"), ".api"),
 }
 
 if TYPE_CHECKING:  # what the names are, for type checkers and editors
+    from .api import drive_scene, load_run_config, plan_scene
     from .control import (
         CarTrackingController,
         PiecewiseConstantInputs,
@@ -101,4 +103,7 @@ __all__ = [
     "UniformBox",
     "WeightedSamples",
     "paper_gaussian_mixture",
+    "plan_scene",
+    "drive_scene",
+    "load_run_config",
 ]
