@@ -115,7 +115,7 @@ class PlanSetup:
     #: seed of the initial distribution's draw (the paper's random Gaussian mixture)
     distribution_seed: int
     #: the planner's registered name
-    planner_name: str = "density"
+    planner_name: str
 
 
 def set_up(scene: Scene, run_config: RunConfig, *, kind: str, planner: str = "density",
