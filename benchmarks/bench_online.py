@@ -6,7 +6,8 @@ For every chosen scenario, one true initial state (drawn from the initial distri
 * ``offline``: the density planner's full plan from the initial distribution (horizon: the goal's end, as
   ``plan``), tracked by the controller from the true state;
 * ``online-observed`` / ``online-oracle``: ``drive`` (receding horizon, replans every ``online.period``) with the
-  observed-only prediction / the oracle (recorded future), both starting from that same offline plan;
+  observed-only prediction / the oracle (recorded future); the oracle run starts from that same offline plan, the
+  observed run from its own first plan on what was observed by the start (``evaluation.online.initial_problem``);
 * ``mpc`` (``--mpc``): MPC M0 step by step from the true state (reads the scene's grid: the oracle occupancy).
 
 Usage::
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     logging.getLogger("commonroad").setLevel(logging.ERROR)
 
-    from density_planner.cli.drive import _scene_for_drive
+    from density_planner.api import build_scene, drive_config
     from density_planner.config import load_config, update
     from density_planner.environment.prediction import make_prediction
     from density_planner.evaluation.online import drive
@@ -80,14 +81,12 @@ def main(argv: list[str] | None = None) -> int:
         methods = ["offline", "online-observed", "online-oracle"] + (["mpc"] if args.mpc else [])
         if all((f.name, m) in done for m in methods):
             continue
-        ns = argparse.Namespace(kind="commonroad", file=f, seed=None, data_dir=None, recording=None, start_time=None,
-                                models=None, controller=None, density=None, device="cpu", dtype="float32",
-                                verbose=0)
         # the oracle run needs the grid to cover its windows: build the scene for it (also used by the others)
         cfg = update(run_config, {"online": {"prediction": {"kind": "oracle"}}})
         t0 = time.perf_counter()
         try:
-            scene, cfg = _scene_for_drive(ns, cfg)
+            cfg = drive_config(cfg, "commonroad")
+            scene = build_scene("commonroad", cfg, file=f)
         except Exception as exc:  # noqa: BLE001 - a refused scenario is a record
             for m in methods:
                 write({"scenario": f.name, "method": m, "status": "refused", "message": str(exc).splitlines()[0]})
@@ -125,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 res = drive(scene, planner, ctx.controller, system=system, config=ocfg, planning=cfg.planning,
                             risk=cfg.risk, evaluation=cfg.evaluation, verdict_config=cfg.verdict,
-                            prediction=make_prediction(scene, ocfg.prediction), true_state=x0, initial_plan=plan,
+                            prediction=make_prediction(scene, ocfg.prediction), true_state=x0,
+                            initial_plan=plan if kind == "oracle" else None,  # observed: its own first plan
                             keep_snapshots=False)
             except Exception as exc:  # noqa: BLE001 - recorded
                 write({**base, "method": m, "status": "error", "message": f"{type(exc).__name__}: {exc}"})

@@ -144,3 +144,26 @@ def test_config_rejects_bad_values():
         PredictionConfig(kind="magic")
     with pytest.raises(ValueError, match="std_rate_along"):
         PredictionConfig(std_rate_along=-1.0)
+
+
+def test_a_drive_first_plan_reads_only_what_was_observed_at_the_start():
+    """With the observed-only prediction the drive's first plan reads the prediction's window at the start (no
+    observation after it: rewriting the recording later leaves its grid unchanged), not the scene's recorded
+    future; with the oracle it is the offline problem itself."""
+    from density_planner.evaluation.online import initial_problem
+    from density_planner.planners.problem import PlanningConfig, PlanningProblem
+
+    observed, recorded = [], []
+    for drift in (0.0, 3.0):  # after the start the road user drifts sideways at `drift` m/s
+        user = _user(v=10.0)
+        scene = _synthetic([dataclasses.replace(user, poses=user.poses + np.outer(user.times, [0.0, drift, 0.0]))])
+        problem = PlanningProblem.from_scene(scene, planning=PlanningConfig(horizon=5.0))
+        first = initial_problem(problem, ObservedPrediction(scene))
+        assert first.scene.grid is not scene.grid and first.t_start == problem.t_start
+        assert first.initial_distribution is problem.initial_distribution
+        assert first.parameterization == problem.parameterization and first.scene.start == problem.scene.start
+        assert initial_problem(problem, OraclePrediction(scene)) is problem
+        observed.append(first.scene.grid.probs.clone())
+        recorded.append(ObservedPrediction(scene).window(2.0, 3.0).probs.clone())  # seen 2 s later
+    assert not torch.equal(recorded[0], recorded[1])  # the recordings differ after the start ...
+    assert torch.equal(observed[0], observed[1])  # ... what was observed at the start does not

@@ -3,7 +3,9 @@
 :func:`drive` runs the true vehicle in closed loop over a scene (``density-planner drive``):
 
 1. The true initial state is drawn from the scene's initial distribution (seeded). The first plan is the full
-   two-stage plan from that distribution at the scene start (the offline plan: not timed against the budget).
+   two-stage plan from that distribution at the scene start (not timed against the budget), on the occupancy the
+   prediction shows at the start (:func:`initial_problem`: with the oracle, the offline plan; with the
+   observed-only prediction, what was observed by the start).
 2. Every ``period`` seconds (default: one input segment, 1 s) at time ``t``: the vehicle's measurement ``x_hat`` (the
    car's biased heading) becomes the centre of the scene's initial law (the same Gaussian mixture, re-centred: the
    measurement error law of the scene); the prediction layer (:mod:`~density_planner.environment.prediction`) renders
@@ -62,8 +64,8 @@ from .verdict import Verdict, VerdictConfig, judge
 if TYPE_CHECKING:
     from ..planners.density_planner import DensityPlanner
 
-__all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "shift_parameters", "refit_shift", "braking_parameters",
-           "warm_replan", "recentred"]
+__all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "initial_problem", "shift_parameters", "refit_shift",
+           "braking_parameters", "warm_replan", "recentred"]
 
 log = logging.getLogger(__name__)
 
@@ -474,6 +476,17 @@ def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_
     return float(rep.max)
 
 
+def initial_problem(problem: PlanningProblem, prediction: Prediction) -> PlanningProblem:
+    """The problem of a drive's first plan: ``problem`` (the scene start, its initial law and horizon) on the
+    occupancy ``prediction`` shows at the start, ``[t_start, t_start + H]``. For the oracle that is the scene's own
+    grid (``problem`` itself: the offline plan); for a prediction from observations, only what was observed by the
+    start, so that no plan of an observed-only run reads the recorded future."""
+    if prediction.windows_share_scene_grid:
+        return problem
+    grid = prediction.window(problem.t_start, problem.parameterization.horizon)
+    return replace(problem, scene=replace(prediction.scene, grid=grid, t_start=grid.t0, start=problem.scene.start))
+
+
 def drive(
     scene: Scene,
     planner: Planner,
@@ -502,7 +515,8 @@ def drive(
         prediction: the occupancy prediction (default: ``make_prediction(scene, config.prediction)``).
         true_state: ``(nx,)`` true initial state (default: drawn from the initial distribution with
             ``config.seed``).
-        initial_plan: the offline plan from the scene start, when already computed (e.g. to compare with it).
+        initial_plan: the first plan from the scene start, when already computed: a plan of
+            :func:`initial_problem` ``(problem0, prediction)`` (for the oracle, the offline plan itself).
         progress: callable ``progress(t, replan)`` after each replan (terminal progress lines).
         keep_snapshots: keep the figure data of every replan (``DriveResult.snapshots``), a window of
             ``snapshot_half_width`` [m] around the vehicle at most ``snapshot_cells`` cells wide.
@@ -596,10 +610,12 @@ def drive(
                           "swept": sub.amax(dim=0).numpy().copy(), "extent": tuple(float(e) for e in extent)})
     t_start = scene.t_start
     assert t_start is not None  # set by Scene.__post_init__
-    # -- the first (offline) plan from the initial distribution
+    # -- the first plan from the initial distribution, on what the prediction shows at the start: the scene's own
+    # occupancy for the oracle, only what was observed by then otherwise (never the recorded future)
+    problem_init = initial_problem(problem0, prediction)
     if initial_plan is None:
         t0 = time.perf_counter()
-        initial_plan = planner.plan(problem0)
+        initial_plan = planner.plan(problem_init)
         wall0 = time.perf_counter() - t0
     else:
         wall0 = float(initial_plan.timings.get("total", math.nan))
@@ -608,7 +624,7 @@ def drive(
         active = activate(initial_plan.reference, t_start, initial_plan.params, "plan")
         replans.append(Replan(t_start, "initial", wall0, p_coll=p0, warm_start=False, t_effective=t_start))
     else:
-        active, p_b = brake(problem0.scene.grid, problem0.reference_start(dtype, device), t_start)
+        active, p_b = brake(problem_init.scene.grid, problem0.reference_start(dtype, device), t_start)
         replans.append(Replan(t_start, "initial", wall0, warm_start=False, fallback="brake",
                               reason=f"the initial plan failed: {initial_plan.message or initial_plan.status.value}",
                               previous_p_coll=p_b))
