@@ -18,6 +18,16 @@ def _seed_and_threads():
 
 
 @pytest.fixture
+def one_torch_thread():
+    """One torch thread for the test (small tensors: fastest, and timing-stable on a shared machine), restored
+    after it. Modules use it with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture
 def gen() -> torch.Generator:
     return torch.Generator().manual_seed(1234)
 

@@ -23,12 +23,7 @@ def _cli_args(fast: list[str]) -> list[str]:
     return [a for kv in fast for a in ("--set", kv)]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_plan_scene_equals_the_plan_command_on_a_commonroad_scenario(tmp_path):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-import torch
 from density_testdata import SMALL, TINY, make_data
 
 
@@ -18,9 +17,5 @@ def small_data(tmp_path_factory):
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    """Small tensors: one torch thread is fastest (and timing-stable on a shared machine)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+def _one_thread(one_torch_thread):
+    """Every test here on one torch thread (tests/conftest.py)."""
