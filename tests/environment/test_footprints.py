@@ -226,3 +226,30 @@ def test_footprint_model_is_checked():
         FootprintConfig(model="box")
     with pytest.raises(ValueError, match="shape_std"):
         FootprintConfig(shape_std=0.0)
+
+
+def test_prediction_error_grows_with_velocity_and_acceleration_terms():
+    """``e = hypot(rate tau, accel tau^2 / 2)`` per axis; without accelerations the linear growth alone (the
+    defaults), and the predicted footprint's standard deviations are the recorded ones convolved with it."""
+    from density_planner.environment.footprints import prediction_errors
+
+    tau = np.array([0.0, 1.0, 2.0, 5.0])
+    e_u, e_w = prediction_errors(tau, FootprintConfig())
+    np.testing.assert_allclose(e_u, 1.0 * tau)
+    np.testing.assert_allclose(e_w, 0.3 * tau)
+    cfg = FootprintConfig(prediction_accel_std_along=0.6, prediction_accel_std_across=0.4)
+    e_u, e_w = prediction_errors(tau, cfg)
+    np.testing.assert_allclose(e_u, np.sqrt((1.0 * tau) ** 2 + (0.3 * tau**2) ** 2))
+    np.testing.assert_allclose(e_w, np.sqrt((0.3 * tau) ** 2 + (0.2 * tau**2) ** 2))
+    assert e_u[-1] == pytest.approx(math.hypot(5.0, 7.5)) and e_w[-1] == pytest.approx(math.hypot(1.5, 5.0))
+    one = np.ones((1, 4))
+    tracks = RoadUserTracks(np.zeros((1, 4)), np.zeros((1, 4)), np.zeros((1, 4)), 10.0 * one, np.array([4.5]),
+                            np.array([1.8]), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64))
+    s_front0, _, s_w0 = footprint_stds(tracks, cfg)
+    predicted = RoadUserTracks(tracks.x, tracks.y, tracks.heading, tracks.speed, tracks.length, tracks.width,
+                               tracks.cls, tracks.ids, tau[None, :])
+    s_front, _, s_w = footprint_stds(predicted, cfg)
+    np.testing.assert_allclose(s_front, np.hypot(s_front0, e_u[None, :]))
+    np.testing.assert_allclose(s_w, np.hypot(s_w0, e_w[None, :]))
+    with pytest.raises(ValueError, match="prediction_accel_std_along"):
+        FootprintConfig(prediction_accel_std_along=-1.0)

@@ -37,9 +37,10 @@ bicycles without a size use their class stds as half sizes.
 
 Past a road user's last recorded state (recordings shorter than the planning window) it is *predicted*, never
 dropped (:func:`extrapolate_tracks`): constant velocity and heading from its last recorded slice, with a position
-error that grows linearly with the time ``tau`` since that slice, standard deviations
-``e_along = prediction_std_rate_along * tau`` and ``e_across = prediction_std_rate_across * tau``. The footprint
-is the convolution of the Gaussian above with that error: every standard deviation becomes
+error that grows with the time ``tau`` since that slice, standard deviations ``e_along =
+hypot(prediction_std_rate_along * tau, prediction_accel_std_along * tau^2 / 2)`` and ``e_across`` alike (an
+unknown velocity and, when the accelerations are set, an unknown acceleration; :func:`prediction_errors`). The
+footprint is the convolution of the Gaussian above with that error: every standard deviation becomes
 ``sqrt(s^2 + e^2)`` and the peak drops by the factor ``prod_axes s / sqrt(s^2 + e^2)`` (the expected occupancy
 of a point under the position error; the along-heading factor uses the geometric mean of ``s_front`` and
 ``s_back``).
@@ -118,12 +119,17 @@ class FootprintConfig:
     prediction_std_rate_along: float = 1.0
     #: growth of the across-heading position error of a predicted road user [m per s]
     prediction_std_rate_across: float = 0.3
+    #: unknown acceleration of a predicted road user along / across its heading [m/s^2]: adds ``a tau^2 / 2`` to
+    #: the position error (0: the linear growth alone)
+    prediction_accel_std_along: float = 0.0
+    prediction_accel_std_across: float = 0.0
     #: maximum number of window cells evaluated at once (memory: about 40 bytes each)
     chunk_cells: int = 4_000_000
 
     def __post_init__(self) -> None:
         for name in ("length_factor", "along_margin", "width_factor", "across_margin", "skew", "coarse_cell",
-                     "prediction_std_rate_along", "prediction_std_rate_across"):
+                     "prediction_std_rate_along", "prediction_std_rate_across", "prediction_accel_std_along",
+                     "prediction_accel_std_across"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"FootprintConfig.{name} must be a finite number >= 0, got {value}")
@@ -270,6 +276,14 @@ def extrapolate_tracks(tracks: RoadUserTracks, times: np.ndarray) -> RoadUserTra
     return RoadUserTracks(x, y, heading, speed, tracks.length, tracks.width, tracks.cls, tracks.ids, predicted_for)
 
 
+def prediction_errors(tau: np.ndarray, config: FootprintConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Position-error standard deviations ``(e_along, e_across)`` [m] of a road user predicted ``tau`` [s] past its
+    last recorded (or observed) state: ``hypot(rate tau, accel tau^2 / 2)`` per axis (module docstring)."""
+    t2 = 0.5 * tau * tau
+    return (np.hypot(config.prediction_std_rate_along * tau, config.prediction_accel_std_along * t2),
+            np.hypot(config.prediction_std_rate_across * tau, config.prediction_accel_std_across * t2))
+
+
 def footprint_stds(
     tracks: RoadUserTracks, config: FootprintConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -283,9 +297,8 @@ def footprint_stds(
         s0 = np.where(np.isfinite(v), config.shape_std, np.nan)
         s_u, s_w = s0.copy(), s0.copy()
         if tracks.predicted_for is not None:
-            tau = np.nan_to_num(tracks.predicted_for)
-            s_u = np.hypot(s_u, config.prediction_std_rate_along * tau)
-            s_w = np.hypot(s_w, config.prediction_std_rate_across * tau)
+            e_u, e_w = prediction_errors(np.nan_to_num(tracks.predicted_for), config)
+            s_u, s_w = np.hypot(s_u, e_u), np.hypot(s_w, e_w)
         return s_u, s_u.copy(), s_w
     s_along = config.length_factor * tracks.length + config.along_margin
     s_across = config.width_factor * tracks.width + config.across_margin
@@ -298,8 +311,7 @@ def footprint_stds(
     s_w = np.broadcast_to(s_across[:, None], v.shape).copy()
     s_w[~np.isfinite(v)] = np.nan
     if tracks.predicted_for is not None:
-        tau = np.nan_to_num(tracks.predicted_for)
-        e_u, e_w = config.prediction_std_rate_along * tau, config.prediction_std_rate_across * tau
+        e_u, e_w = prediction_errors(np.nan_to_num(tracks.predicted_for), config)
         s_front, s_back = np.hypot(s_front, e_u), np.hypot(s_back, e_u)
         s_w = np.hypot(s_w, e_w)
     return s_front, s_back, s_w
@@ -327,8 +339,7 @@ def _prediction_peak_factor(tracks: RoadUserTracks, config: FootprintConfig) -> 
     s_front, s_back, s_w = footprint_stds(
         RoadUserTracks(tracks.x, tracks.y, tracks.heading, tracks.speed, tracks.length, tracks.width,
                        tracks.cls, tracks.ids), config)
-    tau = np.nan_to_num(tracks.predicted_for)
-    e_u, e_w = config.prediction_std_rate_along * tau, config.prediction_std_rate_across * tau
+    e_u, e_w = prediction_errors(np.nan_to_num(tracks.predicted_for), config)
     s_u = np.sqrt(s_front * s_back)
     return s_u / np.hypot(s_u, e_u) * s_w / np.hypot(s_w, e_w)
 

@@ -21,14 +21,14 @@ the planners already read:
                                           x(tau) = x + v / omega (sin theta(tau) - sin theta),
                                           y(tau) = y - v / omega (cos theta(tau) - cos theta),
 
-  with ``tau = t_k - t_obs``. The position error grows linearly with ``tau``: standard deviations
-  ``e_along = std_rate_along * tau`` along and ``e_across = std_rate_across * tau`` across the heading
-  (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users that end before the
-  grid). The footprints are those of :mod:`.footprints` (split Gaussian convolved with the position error,
-  :func:`~.footprints.rasterise_road_users` with ``predicted_for = tau``) on the scene's static map (outside the
-  drivable area and static obstacles: occupied). Road users not yet seen at ``t`` are absent. Red-light strips keep
-  their recorded phases (signal programmes are known infrastructure) and set-based obstacles their sets (they are
-  the file's own prediction, not a recording).
+  with ``tau = t_k - t_obs``. The position error grows with ``tau``: standard deviations
+  ``e_along = hypot(std_rate_along * tau, accel_std_along * tau^2 / 2)`` along and ``e_across`` alike across the
+  heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users that end
+  before the grid, and no acceleration term). The footprints are those of :mod:`.footprints` (split Gaussian
+  convolved with the position error, :func:`~.footprints.rasterise_road_users` with ``predicted_for = tau``) on
+  the scene's static map (outside the drivable area and static obstacles: occupied). Road users not yet seen at
+  ``t`` are absent. Red-light strips keep their recorded phases (signal programmes are known infrastructure) and
+  set-based obstacles their sets (they are the file's own prediction, not a recording).
 
 The observed prediction at ``t`` is a function of the observations at times ``<= t`` only
 (``tests/online/test_prediction.py`` changes the recording after ``t`` and checks the window is unchanged).
@@ -78,6 +78,10 @@ class PredictionConfig:
     std_rate_along: float = 1.0
     #: growth of the across-heading position standard deviation [m per s of prediction time]
     std_rate_across: float = 0.3
+    #: unknown acceleration along / across the heading [m/s^2]: adds ``a tau^2 / 2`` to the position standard
+    #: deviations (0: the linear growth alone)
+    accel_std_along: float = 0.0
+    accel_std_across: float = 0.0
     #: road users not observed for longer than this at the replanning time are dropped (left the sensor range) [s]
     max_observation_age: float = 0.5
     #: turn rates below this are treated as zero in "ctrv" (straight-line limit) [rad/s]
@@ -86,7 +90,8 @@ class PredictionConfig:
     def __post_init__(self) -> None:
         check_choice("online.prediction.kind", self.kind, PREDICTION_KINDS)
         check_choice("online.prediction.motion_model", self.motion_model, ("cv", "ctrv"))
-        for name in ("std_rate_along", "std_rate_across", "max_observation_age", "min_turn_rate"):
+        for name in ("std_rate_along", "std_rate_across", "accel_std_along", "accel_std_across",
+                     "max_observation_age", "min_turn_rate"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"online.prediction.{name} must be a finite number >= 0, got {v!r}")
@@ -179,7 +184,9 @@ class ObservedPrediction(Prediction):
         self.config = config or PredictionConfig()
         fp = footprint or _scene_footprint(scene)
         self.footprint = replace(fp, prediction_std_rate_along=self.config.std_rate_along,
-                                 prediction_std_rate_across=self.config.std_rate_across)
+                                 prediction_std_rate_across=self.config.std_rate_across,
+                                 prediction_accel_std_along=self.config.accel_std_along,
+                                 prediction_accel_std_across=self.config.accel_std_across)
         from .commonroad import obstacle_class_id
 
         road = scene.road
