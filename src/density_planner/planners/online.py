@@ -36,8 +36,13 @@ class OnlineDensityPlanner(Planner):
         self.name = name
 
     def plan(self, problem: PlanningProblem) -> PlanResult:
-        """The first (offline) plan from the initial distribution."""
-        return self.inner.plan(problem)
+        """The first plan from the initial distribution, as :meth:`plan_from` makes it: on what the prediction shows
+        at the start (:func:`~density_planner.evaluation.online.initial_problem`; the oracle's: ``problem``)."""
+        from ..environment.prediction import make_prediction
+        from ..evaluation.online import initial_problem
+
+        kind = dataclasses.replace(self.ctx.config.online.prediction, kind=self.prediction)
+        return self.inner.plan(initial_problem(problem, make_prediction(problem.scene, kind)))
 
     def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
         """Drive online from ``true_state``; the result's ``states`` are the executed states, its extras hold the
@@ -66,7 +71,7 @@ class OnlineDensityPlanner(Planner):
                    "tube_precompute": float(res.replans[0].wall_time)}  # the first plan is offline work
         return PlanResult(self.name, PlanStatus.SUCCESS if ok else PlanStatus.FAILED,
                           states=torch.as_tensor(res.states, dtype=torch.float32), timings=timings, extras=extras,
-                          message="" if ok else "the first (offline) plan failed")
+                          message="" if ok else "the first plan failed")
 
 
 def _factory(prediction: str, name: str):
@@ -77,7 +82,7 @@ def _factory(prediction: str, name: str):
     return make
 
 
-# the first plan is made offline from the initial distribution (plan), the replans online from the measurement
+# the first plan from the initial distribution on the prediction at the start, the replans from the measurement
 for _name, _prediction, _help in (
     ("density_online", "observed", "density planner online: replans every online.period from the measurement with "
      "the observed-only prediction ([online])"),
