@@ -5,6 +5,9 @@ For every chosen scenario, one true initial state (drawn from the initial distri
 
 * ``offline``: the density planner's full plan from the initial distribution (horizon: the goal's end, as
   ``plan``), tracked by the controller from the true state;
+* ``offline-observed``: planned once like ``offline``, but on what was observed at the start (the observed-only
+  prediction's window, the observed run's own first plan), tracked from the true state: what replanning adds under
+  the same information;
 * ``online-observed`` / ``online-oracle``: ``drive`` (receding horizon, replans every ``online.period``) with the
   observed-only prediction / the oracle (recorded future); the oracle run starts from that same offline plan, the
   observed run from its own first plan on what was observed by the start (``evaluation.online.initial_problem``);
@@ -49,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.api import build_scene, drive_config
     from density_planner.config import load_config, update
     from density_planner.environment.prediction import make_prediction
-    from density_planner.evaluation.online import drive
+    from density_planner.evaluation.online import drive, initial_problem
     from density_planner.evaluation.simulate import execute
     from density_planner.evaluation.verdict import judge
     from density_planner.planners.context import build_context, run_system
@@ -78,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             fh.write(json.dumps(rec) + "\n")
 
     for f in files:
-        methods = ["offline", "online-observed", "online-oracle"] + (["mpc"] if args.mpc else [])
+        methods = ["offline", "offline-observed", "online-observed", "online-oracle"] + (["mpc"] if args.mpc else [])
         if all((f.name, m) in done for m in methods):
             continue
         # the oracle run needs the grid to cover its windows: build the scene for it (also used by the others)
@@ -114,6 +117,23 @@ def main(argv: list[str] | None = None) -> int:
             write({**base, "method": "offline", "status": None if v is None else v.status,
                    "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_plan})
             print(f"{f.name} offline: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_plan:.1f} s)",
+                  flush=True)
+        if (f.name, "offline-observed") not in done:
+            # planned once, like the offline plan, but on what was observed at the start (the observed run's own
+            # first plan), then tracked: what replanning adds under the same information
+            pobs = initial_problem(problem, make_prediction(scene, update(cfg.online.prediction, {"kind": "observed"})))
+            t1 = time.perf_counter()
+            plan_o = planner.plan(pobs)
+            t_o = time.perf_counter() - t1
+            ex = execute(planner, pobs, x0.to(torch.float32), plan=plan_o, controller=ctx.controller,
+                         config=cfg.evaluation, time_online=False)
+            v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
+                      dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
+                if ex.states.shape[0] else None
+            pc = float(plan_o.collision.max) if plan_o.collision is not None else math.nan
+            write({**base, "method": "offline-observed", "status": None if v is None else v.status,
+                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_o})
+            print(f"{f.name} offline-observed: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_o:.1f} s)",
                   flush=True)
         for kind in ("observed", "oracle"):
             m = f"online-{kind}"
