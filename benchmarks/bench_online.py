@@ -107,33 +107,27 @@ def main(argv: list[str] | None = None) -> int:
         t_plan = time.perf_counter() - t1
         base = {"scenario": f.name, "scene_time": t_scene, "goal_interval": list(scene.road.goal.time_interval),
                 "t_start": scene.t_start}
-        if (f.name, "offline") not in done:
-            ex = execute(planner, problem, x0.to(torch.float32), plan=plan, controller=ctx.controller,
+        for method in ("offline", "offline-observed"):  # a plan made once, tracked from the true state
+            if (f.name, method) in done:
+                continue
+            prob, plan_m, t_m = problem, plan, t_plan
+            if method == "offline-observed":
+                # planned once, like the offline plan, but on what was observed at the start (the observed run's
+                # own first plan), then tracked: what replanning adds under the same information
+                prob = initial_problem(problem, make_prediction(scene, update(cfg.online.prediction,
+                                                                              {"kind": "observed"})))
+                t1 = time.perf_counter()
+                plan_m = planner.plan(prob)
+                t_m = time.perf_counter() - t1
+            ex = execute(planner, prob, x0.to(torch.float32), plan=plan_m, controller=ctx.controller,
                          config=cfg.evaluation, time_online=False)
             v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
                       dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
                 if ex.states.shape[0] else None
-            pc = float(plan.collision.max) if plan.collision is not None else math.nan
-            write({**base, "method": "offline", "status": None if v is None else v.status,
-                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_plan})
-            print(f"{f.name} offline: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_plan:.1f} s)",
-                  flush=True)
-        if (f.name, "offline-observed") not in done:
-            # planned once, like the offline plan, but on what was observed at the start (the observed run's own
-            # first plan), then tracked: what replanning adds under the same information
-            pobs = initial_problem(problem, make_prediction(scene, update(cfg.online.prediction, {"kind": "observed"})))
-            t1 = time.perf_counter()
-            plan_o = planner.plan(pobs)
-            t_o = time.perf_counter() - t1
-            ex = execute(planner, pobs, x0.to(torch.float32), plan=plan_o, controller=ctx.controller,
-                         config=cfg.evaluation, time_online=False)
-            v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
-                      dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
-                if ex.states.shape[0] else None
-            pc = float(plan_o.collision.max) if plan_o.collision is not None else math.nan
-            write({**base, "method": "offline-observed", "status": None if v is None else v.status,
-                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_o})
-            print(f"{f.name} offline-observed: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_o:.1f} s)",
+            pc = float(plan_m.collision.max) if plan_m.collision is not None else math.nan
+            write({**base, "method": method, "status": None if v is None else v.status,
+                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_m})
+            print(f"{f.name} {method}: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_m:.1f} s)",
                   flush=True)
         for kind in ("observed", "oracle"):
             m = f"online-{kind}"

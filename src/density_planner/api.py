@@ -68,6 +68,17 @@ def load_run_config(config: str | Path | None = None, overrides: Sequence[str] =
     return with_system(load_config(RunConfig, config, list(overrides)), **system)
 
 
+def _resolve_run_config(run_config: RunConfig | None, config: str | Path | None, overrides: Sequence[str],
+                        **system: str | None) -> RunConfig:
+    """``run_config`` with the ``[system]`` keywords, or :func:`load_run_config` of ``config`` and ``overrides``
+    (not both)."""
+    if run_config is None:
+        return load_run_config(config, overrides, **system)
+    if config is not None or overrides:
+        raise ValueError("give either run_config or config / overrides, not both")
+    return with_system(run_config, **system)
+
+
 # ------------------------------------------------------------------------------------------------ the scene
 def build_scene(env: str, run_config: RunConfig | None = None, *, seed: int | None = None,
                 file: str | Path | None = None, data_dir: str | Path | None = None, recording: int | None = None,
@@ -259,11 +270,8 @@ def plan_scene(env: str = "random", *, seed: int | None = None, file: str | Path
     """
     from .density.split import prediction_processes, set_prediction_processes
 
-    if run_config is not None and (config is not None or overrides):
-        raise ValueError("give either run_config or config / overrides, not both")
-    cfg = with_system(run_config, system=system, models=models, controller=controller, density=density) \
-        if run_config is not None else load_run_config(config, overrides, system=system, models=models,
-                                                        controller=controller, density=density)
+    cfg = _resolve_run_config(run_config, config, overrides, system=system, models=models, controller=controller,
+                              density=density)
     scene = build_scene(env, cfg, seed=seed, file=file, data_dir=data_dir, recording=recording,
                         start_time=start_time)
     setup = set_up(scene, cfg, kind=env, planner=planner,
@@ -392,11 +400,8 @@ def drive_scene(env: str = "random", *, seed: int | None = None, file: str | Pat
     from .evaluation.online import drive
 
     check_drivable(planner)
-    if run_config is not None and (config is not None or overrides):
-        raise ValueError("give either run_config or config / overrides, not both")
-    cfg = with_system(run_config, system=system, models=models, controller=controller, density=density) \
-        if run_config is not None else load_run_config(config, overrides, system=system, models=models,
-                                                        controller=controller, density=density)
+    cfg = _resolve_run_config(run_config, config, overrides, system=system, models=models, controller=controller,
+                              density=density)
     cfg = drive_config(cfg, env, prediction=prediction, period=period)
     scene = build_scene(env, cfg, seed=seed, file=file)
     setup = set_up(scene, cfg, kind=env, planner=planner,

@@ -483,8 +483,8 @@ def initial_problem(problem: PlanningProblem, prediction: Prediction) -> Plannin
     start, so that no plan of an observed-only run reads the recorded future."""
     if prediction.windows_share_scene_grid:
         return problem
-    grid = prediction.window(problem.t_start, problem.parameterization.horizon)
-    return replace(problem, scene=replace(prediction.scene, grid=grid, t_start=grid.t0, start=problem.scene.start))
+    return replace(problem, scene=prediction.scene_at(problem.t_start, problem.parameterization.horizon,
+                                                      start=problem.scene.start))
 
 
 def drive(

@@ -41,8 +41,13 @@ class OnlineDensityPlanner(Planner):
         from ..environment.prediction import make_prediction
         from ..evaluation.online import initial_problem
 
-        kind = dataclasses.replace(self.ctx.config.online.prediction, kind=self.prediction)
-        return self.inner.plan(initial_problem(problem, make_prediction(problem.scene, kind)))
+        return self.inner.plan(initial_problem(problem, make_prediction(problem.scene, self.online_config.prediction)))
+
+    @property
+    def online_config(self):
+        """``[online]`` with the prediction kind of this planner's name."""
+        online = self.ctx.config.online
+        return dataclasses.replace(online, prediction=dataclasses.replace(online.prediction, kind=self.prediction))
 
     def plan_from(self, problem: PlanningProblem, true_state: Tensor) -> PlanResult:
         """Drive online from ``true_state``; the result's ``states`` are the executed states, its extras hold the
@@ -50,8 +55,7 @@ class OnlineDensityPlanner(Planner):
         from ..evaluation.online import drive
 
         cfg = self.ctx.config
-        online = dataclasses.replace(cfg.online, prediction=dataclasses.replace(cfg.online.prediction,
-                                                                                kind=self.prediction))
+        online = self.online_config
         res = drive(problem.scene, self.inner, self.ctx.controller, system=problem.system, config=online,
                     planning=cfg.planning, risk=problem.risk, evaluation=cfg.evaluation, verdict_config=cfg.verdict,
                     true_state=true_state, keep_snapshots=False)
