@@ -36,9 +36,9 @@ if TYPE_CHECKING:  # torch and the models load on first use: importing this modu
     from .planners.problem import PlanningProblem
     from .settings import RunConfig
 
-__all__ = ["load_run_config", "with_system", "build_scene", "PlanSetup", "set_up", "judge", "PlanOutcome",
-           "plan_scene", "write_plan_solution", "write_plan_figures", "drive_config", "check_drivable",
-           "DriveOutcome", "drive_scene", "write_run_figures"]
+__all__ = ["load_run_config", "with_system", "build_scene", "default_distribution_seed", "PlanSetup", "set_up",
+           "judge", "PlanOutcome", "plan_scene", "write_plan_solution", "write_plan_figures", "drive_config",
+           "check_drivable", "DriveOutcome", "drive_scene", "write_run_figures"]
 
 
 # ------------------------------------------------------------------------------------------------ configuration
@@ -109,6 +109,12 @@ def build_scene(env: str, run_config: RunConfig | None = None, *, seed: int | No
         return build_from_source(request, run_config, system=system, where=where, quiet=quiet)
     finally:
         set_raster_threads(before)
+
+
+def default_distribution_seed(distribution_seed: int | None, seed: int | None) -> int:
+    """The seed of the initial law's draw: ``distribution_seed`` where given, else the scene's ``seed``, else 0 (as
+    ``--distribution-seed`` defaults to ``--seed``)."""
+    return distribution_seed if distribution_seed is not None else (seed or 0)
 
 
 # ------------------------------------------------------------------------------------------------ problem, planner
@@ -275,7 +281,7 @@ def plan_scene(env: str = "random", *, seed: int | None = None, file: str | Path
     scene = build_scene(env, cfg, seed=seed, file=file, data_dir=data_dir, recording=recording,
                         start_time=start_time)
     setup = set_up(scene, cfg, kind=env, planner=planner,
-                   distribution_seed=distribution_seed if distribution_seed is not None else (seed or 0),
+                   distribution_seed=default_distribution_seed(distribution_seed, seed),
                    device=device, dtype=dtype, progress=progress)
     before = prediction_processes()
     if setup.context.device.type == "cpu" and processes > 1:
@@ -405,7 +411,7 @@ def drive_scene(env: str = "random", *, seed: int | None = None, file: str | Pat
     cfg = drive_config(cfg, env, prediction=prediction, period=period)
     scene = build_scene(env, cfg, seed=seed, file=file)
     setup = set_up(scene, cfg, kind=env, planner=planner,
-                   distribution_seed=distribution_seed if distribution_seed is not None else (seed or 0),
+                   distribution_seed=default_distribution_seed(distribution_seed, seed),
                    device=device, dtype=dtype)
     result = drive(scene, setup.planner, setup.context.controller, system=setup.problem.system, config=cfg.online,
                    planning=cfg.planning, risk=cfg.risk, evaluation=cfg.evaluation, verdict_config=cfg.verdict,

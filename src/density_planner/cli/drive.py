@@ -62,7 +62,14 @@ def run(args: argparse.Namespace) -> int:
     the files."""
     import time
 
-    from ..api import DriveOutcome, check_drivable, drive_config, set_up, write_run_figures
+    from ..api import (
+        DriveOutcome,
+        check_drivable,
+        default_distribution_seed,
+        drive_config,
+        set_up,
+        write_run_figures,
+    )
     from ..checks import check_seed
     from ..config import dumps_toml, load_config
     from ..evaluation.online import drive
@@ -79,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     scene = scene_from_args(args, run_config, both_cores=True)
     t_scene = time.perf_counter() - t0
-    dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
+    dist_seed = default_distribution_seed(args.distribution_seed, args.seed)
     setup = set_up(scene, run_config, kind=args.kind, planner=args.planner, distribution_seed=dist_seed,
                    device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
                    progress=show_progress(args))

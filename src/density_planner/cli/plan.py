@@ -99,11 +99,11 @@ def run(args: argparse.Namespace) -> int:
 def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
     """The rest of :func:`run` once the scene is built: problem, planner (:func:`density_planner.api.set_up`),
     output process, then :func:`_plan_and_write`."""
-    from ..api import set_up
+    from ..api import default_distribution_seed, set_up
     from ..density.split import prediction_processes, set_prediction_processes
     from ..parallel import default_workers
 
-    dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
+    dist_seed = default_distribution_seed(args.distribution_seed, args.seed)
     setup = set_up(scene, run_config, kind=args.kind, planner=args.planner, distribution_seed=dist_seed,
                    device=resolve_device(args.device), dtype=resolve_dtype(args.dtype),
                    progress=show_progress(args))

@@ -45,6 +45,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..api import default_distribution_seed
     from ..config import dumps_toml, load_config, to_dict
     from ..evaluation.risk_validation import validate_risk
     from ..io.atomic import atomic_write_json, atomic_write_text
@@ -63,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     out = out_dir(args.out)
     run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
     scene = scene_from_args(args, run_config)
-    dist_seed = args.distribution_seed if args.distribution_seed is not None else (args.seed or 0)
+    dist_seed = default_distribution_seed(args.distribution_seed, args.seed)
     system = run_system(run_config, args.kind)
     problem = PlanningProblem.from_scene(scene, seed=dist_seed, risk=run_config.risk, planning=run_config.planning,
                                          system=system)
