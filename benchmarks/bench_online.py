@@ -13,6 +13,9 @@ For every chosen scenario, one true initial state (drawn from the initial distri
   observed run from its own first plan on what was observed by the start (``evaluation.online.initial_problem``);
 * ``mpc`` (``--mpc``): MPC M0 step by step from the true state (reads the scene's grid: the oracle occupancy).
 
+``--methods`` runs only some of them (e.g. ``--methods online-observed`` with ``--set online.prediction...``
+to compare prediction models).
+
 Usage::
 
     PYTHONPATH=src python benchmarks/bench_online.py --scenarios ../shared/data/commonroad-suite --every 10 \
@@ -36,6 +39,10 @@ import numpy as np
 import torch
 
 
+#: the methods compared (module docstring)
+METHODS = ("offline", "offline-observed", "online-observed", "online-oracle", "mpc")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenarios", type=Path, required=True, help="folder of CommonRoad *.xml")
@@ -43,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--files", nargs="*", default=None, help="explicit file names instead of --every")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--mpc", action="store_true", help="also run MPC M0")
+    p.add_argument("--methods", nargs="*", choices=METHODS, default=None,
+                   help="run only these methods (default: all but mpc, which --mpc adds)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = p.parse_args(argv)
@@ -81,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             fh.write(json.dumps(rec) + "\n")
 
     for f in files:
-        methods = ["offline", "offline-observed", "online-observed", "online-oracle"] + (["mpc"] if args.mpc else [])
+        methods = args.methods or [m for m in METHODS if m != "mpc" or args.mpc]
         if all((f.name, m) in done for m in methods):
             continue
         # the oracle run needs the grid to cover its windows: build the scene for it (also used by the others)
@@ -103,12 +112,13 @@ def main(argv: list[str] | None = None) -> int:
         x0 = problem.initial_distribution.sample(1, torch.Generator().manual_seed(cfg.online.seed),
                                                  dtype=torch.float64)[0]
         t1 = time.perf_counter()
-        plan = planner.plan(problem)
+        # the offline plan (also the oracle run's first plan)
+        plan = planner.plan(problem) if {"offline", "online-oracle"} & set(methods) else None
         t_plan = time.perf_counter() - t1
         base = {"scenario": f.name, "scene_time": t_scene, "goal_interval": list(scene.road.goal.time_interval),
                 "t_start": scene.t_start}
         for method in ("offline", "offline-observed"):  # a plan made once, tracked from the true state
-            if (f.name, method) in done:
+            if (f.name, method) in done or method not in methods:
                 continue
             prob, plan_m, t_m = problem, plan, t_plan
             if method == "offline-observed":
@@ -131,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
         for kind in ("observed", "oracle"):
             m = f"online-{kind}"
-            if (f.name, m) in done:
+            if (f.name, m) in done or m not in methods:
                 continue
             ocfg = update(cfg.online, {"prediction": {"kind": kind}})
             t2 = time.perf_counter()
@@ -152,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                    "wall": time.perf_counter() - t2})
             print(f"{f.name} {m}: {res.verdict.summary()} mean P_coll {s['p_coll_mean']}, {s['n_replans']} replans "
                   f"(median {s['replan_wall_time_median']}), fallbacks {s['fallbacks']}", flush=True)
-        if args.mpc and (f.name, "mpc") not in done:
+        if "mpc" in methods and (f.name, "mpc") not in done:
             mpc = make_planner("mpc", ctx)
             t3 = time.perf_counter()
             try:

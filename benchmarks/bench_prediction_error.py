@@ -1,7 +1,9 @@
 """How wrong is the observed-only prediction on recorded traffic? For every car, truck, bus and motorcycle seen at
 ``t_start``, ``t_start + 2 s`` and ``t_start + 4 s`` of each CommonRoad file, its prediction (``--motion-model``
-cv or ctrv, from its last observed state) against its recorded position ``tau`` later, in the frame of its observed
-heading: RMS, median and 95th percentile of the along- and across-heading errors per ``tau`` (docs/environments.md,
+cv, ctrv or lane, from its last observed state) against its recorded position ``tau`` later, in the frame of its
+observed heading: RMS, median and 95th percentile of the along- and across-heading errors per ``tau`` (for the lane
+model's mixture of branches, a vehicle's error on each axis is the root of the weighted mean of its branches' squared
+errors) (docs/environments.md,
 "How wrong is constant velocity on recorded traffic?"). ``--half 0|1`` takes every second file (0, 2, 4, ... or
 1, 3, 5, ...) to fit on one half and check on the other.
 
@@ -22,7 +24,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenarios", type=Path, required=True)
     p.add_argument("--half", type=int, choices=(0, 1), default=None)
-    p.add_argument("--motion-model", choices=("cv", "ctrv"), default="cv")
+    p.add_argument("--motion-model", choices=("cv", "ctrv", "lane"), default="cv")
     args = p.parse_args()
 
     from density_planner.api import load_run_config
@@ -50,6 +52,7 @@ def main() -> None:
             if obs.ids.size == 0:
                 continue
             tracks = pred.tracks(t0, t0 + taus)
+            weight = np.ones(tracks.n_users) if tracks.weight is None else tracks.weight
             for i, oid in enumerate(obs.ids):
                 u = users.get(int(oid))
                 if u is None or u.static or u.kind not in VEHICLES:
@@ -63,9 +66,12 @@ def main() -> None:
                     t = t0 + tau
                     if t < times[0] or t > times[-1] + 1e-6:
                         continue
-                    dx = np.interp(t, times, poses[:, 0]) - tracks.x[i, j]
-                    dy = np.interp(t, times, poses[:, 1]) - tracks.y[i, j]
-                    errors[float(tau)].append((dx * c + dy * s, -dx * s + dy * c))
+                    rows = tracks.ids == oid  # one row per branch of the lane model
+                    dx = np.interp(t, times, poses[:, 0]) - tracks.x[rows, j]
+                    dy = np.interp(t, times, poses[:, 1]) - tracks.y[rows, j]
+                    w = weight[rows] / weight[rows].sum()
+                    errors[float(tau)].append((np.sqrt(np.sum(w * (dx * c + dy * s) ** 2)),
+                                               np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2))))
     print(f"{len(files)} files, motion model {args.motion_model}")
     head = ("tau s", "n", "along RMS", "median", "p95", "across RMS", "median", "p95")
     print(" ".join(f"{h:>{w}}" for h, w in zip(head, (6, 6, 10, 7, 6, 11, 7, 6))))

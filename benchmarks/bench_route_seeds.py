@@ -36,9 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     from density_planner.control.reference import PiecewiseConstantInputs, plan_grid_reference
     from density_planner.environment.commonroad import load_commonroad_scene
+    from density_planner.environment.lanes import scene_lane_graph
     from density_planner.io.atomic import atomic_write_text
     from density_planner.planners.problem import PlanningProblem
-    from density_planner.planners.routes import route_seed_parameters, scene_lane_graph
+    from density_planner.planners.routes import route_seed_parameters
 
     files = sorted(args.scenarios.glob("*.xml"))
     if args.limit:

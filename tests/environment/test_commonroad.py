@@ -442,7 +442,7 @@ def test_far_coordinates_are_translated_to_a_local_frame(tmp_path):
     assert scene.road.goal.shapes.equals_exact(near.road.goal.shapes, 1e-6)
     assert near.meta["frame_offset"] == [0.0, 0.0]
     # the lanes the route seeds follow are in the scene's frame too (they were in the file's, 5e6 m away)
-    from density_planner.planners.routes import scene_lane_graph
+    from density_planner.environment.lanes import scene_lane_graph
 
     lanes, lanes_near = scene_lane_graph(scene), scene_lane_graph(near)
     assert lanes is not None and lanes_near is not None and lanes.ids == lanes_near.ids

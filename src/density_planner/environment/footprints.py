@@ -164,6 +164,9 @@ class RoadUserTracks:
         ids: ``(N,)`` track ids of the source.
         predicted_for: optional ``(N, T)`` time [s] since the user's last recorded state where the slice is a
             prediction (see :func:`extrapolate_tracks`), 0 where recorded; ``None``: everything recorded.
+        weight: optional ``(N,)`` probability of each row, for predictions that are a mixture of hypotheses (one
+            row per branch of a lane-following prediction, the rows of a user summing to 1): a row's footprint
+            is scaled by it, so the occupancy is the mixture's expected occupancy; ``None``: 1 for every row.
     """
 
     x: np.ndarray
@@ -175,11 +178,15 @@ class RoadUserTracks:
     cls: np.ndarray
     ids: np.ndarray
     predicted_for: np.ndarray | None = None
+    weight: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n, t = np.shape(self.x)
         if self.predicted_for is not None and np.shape(self.predicted_for) != (n, t):
             raise ValueError(f"RoadUserTracks.predicted_for must have shape {(n, t)}")
+        if self.weight is not None and (np.shape(self.weight) != (n,) or not np.all(np.isfinite(self.weight))
+                                        or np.any(np.asarray(self.weight) < 0) or np.any(np.asarray(self.weight) > 1)):
+            raise ValueError(f"RoadUserTracks.weight must be {(n,)} probabilities in [0, 1]")
         for name in ("y", "heading", "speed"):
             if np.shape(getattr(self, name)) != (n, t):
                 raise ValueError(
@@ -398,7 +405,8 @@ def rasterise_road_users(
             "sb": s_back[n_idx, k_idx],
             "sw": s_w[n_idx, k_idx],
             "c": np.asarray(cfg.certainty, dtype=np.float64)[tracks.cls[n_idx]]
-            * _prediction_peak_factor(tracks, cfg)[n_idx, k_idx],
+            * _prediction_peak_factor(tracks, cfg)[n_idx, k_idx]
+            * (1.0 if tracks.weight is None else np.asarray(tracks.weight, dtype=np.float64)[n_idx]),
         }
         if cfg.model == "shape":
             hl, hw = shape_half_sizes(tracks, cfg)

@@ -23,13 +23,15 @@ import dataclasses
 import functools
 import logging
 import math
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["Lane", "LaneGraph", "lane_graph_from_file", "remember_lane_graph", "NON_DRIVABLE_LANELET_TYPES"]
+__all__ = ["Lane", "LaneGraph", "LanePath", "lane_graph_from_file", "scene_lane_graph", "remember_lane_graph",
+           "NON_DRIVABLE_LANELET_TYPES"]
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +119,26 @@ class Lane:
         return np.arctan2(seg[idx, 1], seg[idx, 0])
 
 
+@dataclass(frozen=True)
+class LanePath:
+    """Where a vehicle that follows lanes is after given distances along them (:meth:`LaneGraph.follow`).
+
+    Attributes:
+        xy: ``(T, 2)`` points on the centre lines [m] at the distances; past the end of the last lane (no
+            successor), on the straight line that continues its last segment.
+        heading: ``(T,)`` direction of the centre line there [rad].
+        weight: probability of this branch (the branches of one start sum to 1).
+        offset: signed distance of the start point from the first lane's centre line [m], positive to the left.
+        lanes: the ids of the lanes followed, in order.
+    """
+
+    xy: np.ndarray
+    heading: np.ndarray
+    weight: float
+    offset: float
+    lanes: tuple[int, ...]
+
+
 class LaneGraph:
     """Lanes keyed by id, with the successor / lane-change structure (see the module docstring)."""
 
@@ -176,6 +198,66 @@ class LaneGraph:
         lane = self.lanes[lane_id]
         s = float(lane.centerline.project(_shapely().Point(float(xy[0]), float(xy[1]))))
         return float(lane.heading_at(np.array([s]))[0])
+
+    def follow(self, xy: tuple[float, float], heading: float, distances: np.ndarray, *,
+               max_heading_error: float = 0.6, search_radius: float = 1.0, max_branches: int = 4) -> list[LanePath]:
+        """The paths of a vehicle at ``xy`` heading ``heading`` [rad] that follows the lanes' centre lines, at the
+        arc ``distances (T,)`` [m] from its projection on them (``[]`` where no lane matches: :meth:`lanes_at`).
+
+        It starts on every lane that contains ``xy`` in its direction (overlapping lanes of an intersection), else
+        on the nearest within ``search_radius``, with equal weights; at a fork each branch takes an equal share of
+        its weight, as long as there are at most ``max_branches`` paths (past that, only the straightest successor
+        is followed). Lane changes are not predicted."""
+        shapely = _shapely()
+        point = shapely.Point(float(xy[0]), float(xy[1]))
+        cand = self.lanes_at(xy, heading, max_heading_error=max_heading_error, search_radius=search_radius)
+        if not cand:
+            return []
+        inside = [i for i in cand if self.lanes[i].polygon.intersects(point)]
+        starts = inside[:max_branches] if inside else cand[:1]
+        distances = np.asarray(distances, dtype=np.float64)
+        need = float(distances.max()) if distances.size else 0.0
+        paths: list[tuple[tuple[int, ...], float, float]] = []  # (lanes, weight, s0)
+        for lane_id in starts:
+            s0 = float(self.lanes[lane_id].centerline.project(point))
+            active = [((lane_id,), 1.0 / len(starts), self.lanes[lane_id].length - s0)]
+            while active:
+                ids, w, covered = active.pop()
+                succ = self.lanes[ids[-1]].successors
+                if covered >= need or not succ:
+                    paths.append((ids, w, s0))
+                    continue
+                if len(paths) + len(active) + len(succ) > max_branches:
+                    succ = (min(succ, key=lambda k: abs(_wrap(float(np.diff(self.lanes[k].heading_at(
+                        np.array([0.0, self.lanes[k].length]))).item())))),)
+                for k in succ:
+                    active.append((ids + (k,), w / len(succ), covered + self.lanes[k].length))
+        out = []
+        for ids, w, s0 in paths:
+            first = self.lanes[ids[0]]
+            poly = [first.center]
+            for k in ids[1:]:
+                c = self.lanes[k].center
+                poly.append(c[1:] if np.hypot(*(c[0] - poly[-1][-1])) < 1e-6 else c)
+            pts = np.vstack(poly)
+            seg = np.diff(pts, axis=0)
+            seg_len = np.hypot(seg[:, 0], seg[:, 1])
+            keep = seg_len > 1e-9
+            pts = np.vstack([pts[:1], pts[1:][keep]])
+            seg, seg_len = seg[keep], seg_len[keep]
+            cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+            s = s0 + distances
+            idx = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+            head = np.arctan2(seg[idx, 1], seg[idx, 0])
+            beyond = np.maximum(s - cum[-1], 0.0)
+            px = np.interp(s, cum, pts[:, 0]) + beyond * np.cos(head)
+            py = np.interp(s, cum, pts[:, 1]) + beyond * np.sin(head)
+            k0 = min(int(np.searchsorted(cum, s0, side="right")) - 1, len(seg) - 1)
+            h0 = math.atan2(seg[max(k0, 0), 1], seg[max(k0, 0), 0])
+            base = np.array([np.interp(s0, cum, pts[:, 0]), np.interp(s0, cum, pts[:, 1])])
+            offset = -math.sin(h0) * (float(xy[0]) - base[0]) + math.cos(h0) * (float(xy[1]) - base[1])
+            out.append(LanePath(np.stack([px, py], axis=-1), head, float(w), float(offset), ids))
+        return out
 
     def lanes_touching(self, shapes: Any) -> list[int]:
         """Ids of the lanes whose area intersects ``shapes`` (a shapely geometry) with positive area, or that
@@ -285,3 +367,35 @@ def lane_graph_from_file(path: str | Path) -> LaneGraph:
         scenario, _ = read_commonroad(key[0])
         _store(key, LaneGraph.from_lanelet_network(scenario.lanelet_network))
     return _GRAPHS[key]
+
+
+#: lane graphs moved into a scene's local frame, by the file's graph (one offset per file)
+_TRANSLATED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def scene_lane_graph(scene: Any) -> LaneGraph | None:
+    """The lane graph of a scene: ``scene.lane_graph`` where set, else read from the CommonRoad file named in
+    ``scene.meta["file"]`` (cached) and moved into the scene's frame (``meta["frame_offset"]``: the importer
+    translates scenarios with large, e.g. UTM, coordinates); ``None`` for scenes without one (random, inD)."""
+    graph = getattr(scene, "lane_graph", None)
+    if graph is not None:
+        return graph
+    meta = getattr(scene, "meta", {}) or {}
+    path = meta.get("file")
+    if meta.get("source") != "commonroad" or not path:
+        return None
+    try:
+        graph = lane_graph_from_file(path)
+        ox, oy = (float(v) for v in (meta.get("frame_offset") or (0.0, 0.0)))
+        if ox or oy:
+            key = ("translated", ox, oy)
+            cached = _TRANSLATED.get(graph)
+            if cached is None or cached[0] != key:
+                cached = (key, graph.translated(-ox, -oy))
+                _TRANSLATED[graph] = cached
+            return cached[1]
+        return graph
+    except (OSError, ValueError) as exc:
+        log.warning("no lane graph for %s (%s): no lane-based route seeds or predictions", getattr(scene, "name", "?"),
+                    exc)
+        return None

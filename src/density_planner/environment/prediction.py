@@ -63,6 +63,10 @@ log = logging.getLogger(__name__)
 
 #: prediction kinds, as named in ``[online.prediction] kind`` and ``--prediction``
 PREDICTION_KINDS = ("observed", "oracle")
+#: motion models of the observed prediction (``[online.prediction] motion_model``)
+MOTION_MODELS = ("cv", "ctrv", "lane")
+#: road-user classes (:data:`~.footprints.ROAD_USER_CLASSES`) that the "lane" model moves along lanes: car, truck
+_LANE_CLASSES = (0, 1)
 
 
 @dataclass(frozen=True)
@@ -72,8 +76,10 @@ class PredictionConfig:
     #: "observed": built only from observations up to the replanning time (road scenes; scenes without road data
     #: keep their own obstacle model); "oracle": the scene's blurred recorded future, known in advance (the paper)
     kind: Literal["observed", "oracle"] = "observed"
-    #: motion model of the observed prediction: "cv" constant velocity and heading, "ctrv" constant turn rate
-    motion_model: Literal["cv", "ctrv"] = "cv"
+    #: motion model of the observed prediction: "cv" constant velocity and heading, "ctrv" constant turn rate,
+    #: "lane" constant speed along the centre lines of the lanes a vehicle is in (a mixture over the branches it
+    #: may take; pedestrians, bicycles and vehicles off the lanes: constant velocity)
+    motion_model: Literal["cv", "ctrv", "lane"] = "cv"
     #: growth of the along-heading position standard deviation [m per s of prediction time]
     std_rate_along: float = 1.0
     #: growth of the across-heading position standard deviation [m per s of prediction time]
@@ -86,12 +92,26 @@ class PredictionConfig:
     max_observation_age: float = 0.5
     #: turn rates below this are treated as zero in "ctrv" (straight-line limit) [rad/s]
     min_turn_rate: float = 1e-3
+    #: "lane": a vehicle follows a lane whose direction at its position is within this of its heading [rad]
+    lane_max_heading_error: float = 0.6
+    #: "lane": a vehicle outside every lane follows the nearest one within this distance [m]
+    lane_search_radius: float = 1.0
+    #: "lane": time constant [s] with which the offset from the lane's centre line decays (0: kept)
+    lane_offset_time: float = 0.0
+    #: "lane": at most this many branches (lanes to follow through forks) per vehicle; past it, the straightest
+    #: successor is followed
+    lane_max_branches: int = 4
 
     def __post_init__(self) -> None:
         check_choice("online.prediction.kind", self.kind, PREDICTION_KINDS)
-        check_choice("online.prediction.motion_model", self.motion_model, ("cv", "ctrv"))
+        check_choice("online.prediction.motion_model", self.motion_model, MOTION_MODELS)
+        if isinstance(self.lane_max_branches, bool) or not isinstance(self.lane_max_branches, int) \
+                or self.lane_max_branches < 1:
+            raise ValueError(f"online.prediction.lane_max_branches must be an integer >= 1, got "
+                             f"{self.lane_max_branches!r}")
         for name in ("std_rate_along", "std_rate_across", "accel_std_along", "accel_std_across",
-                     "max_observation_age", "min_turn_rate"):
+                     "max_observation_age", "min_turn_rate", "lane_max_heading_error", "lane_search_radius",
+                     "lane_offset_time"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"online.prediction.{name} must be a finite number >= 0, got {v!r}")
@@ -202,6 +222,7 @@ class ObservedPrediction(Prediction):
             speeds = None if tr.speeds is None else tr.speeds[rec]
             self._users.append((tr, tr.times[rec], tr.poses[rec], speeds, obstacle_class_id(tr.kind)))
         self._static: torch.Tensor | None = None
+        self._lanes: Any = None  # the scene's lane graph ("lane" model), False where it has none
 
     # -- observations -------------------------------------------------------------------------------------
     def observe(self, t: float) -> _Observation:
@@ -231,9 +252,18 @@ class ObservedPrediction(Prediction):
                             a[:, 8].astype(np.int64), a[:, 9].astype(np.int64))
 
     def tracks(self, t: float, times: np.ndarray) -> RoadUserTracks:
-        """Road users predicted at ``times (T,)`` from the observations at ``t`` (``predicted_for = tau``)."""
+        """Road users predicted at ``times (T,)`` from the observations at ``t`` (``predicted_for = tau``); with
+        ``motion_model = "lane"``, one row per branch of a vehicle's lanes (``weight``: its probability)."""
         obs = self.observe(t)
         tau = np.maximum(np.asarray(times, dtype=np.float64)[None, :] - obs.t_obs[:, None], 0.0)  # (N, T)
+        x, y, th = self._kinematic(obs, tau)
+        speed = np.broadcast_to(obs.speed[:, None], tau.shape).copy()
+        if self.config.motion_model == "lane":
+            return self._along_lanes(obs, tau, x, y, th, speed)
+        return RoadUserTracks(x, y, th, speed, obs.length, obs.width, obs.cls, obs.ids, tau)
+
+    def _kinematic(self, obs: _Observation, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(x, y, heading) (N, T)`` of constant velocity, or constant turn rate (``motion_model = "ctrv"``)."""
         th0, v = obs.heading[:, None], obs.speed[:, None]
         w = obs.turn_rate[:, None]
         if self.config.motion_model == "ctrv":
@@ -245,9 +275,41 @@ class ObservedPrediction(Prediction):
         else:
             th = np.broadcast_to(th0, tau.shape).copy()
             dx, dy = v * np.cos(th0) * tau, v * np.sin(th0) * tau
-        x, y = obs.x[:, None] + dx, obs.y[:, None] + dy
-        speed = np.broadcast_to(v, tau.shape).copy()
-        return RoadUserTracks(x, y, th, speed, obs.length, obs.width, obs.cls, obs.ids, tau)
+        return obs.x[:, None] + dx, obs.y[:, None] + dy, th
+
+    def _along_lanes(self, obs: _Observation, tau: np.ndarray, x: np.ndarray, y: np.ndarray, th: np.ndarray,
+                     speed: np.ndarray) -> RoadUserTracks:
+        """``motion_model = "lane"``: every vehicle moving forward on a lane, at its speed along the lanes'
+        centre lines (:meth:`~.lanes.LaneGraph.follow`), its offset from the centre line decaying with
+        ``lane_offset_time``; the others keep the constant-velocity rows ``x, y, th``."""
+        from .lanes import scene_lane_graph
+
+        cfg = self.config
+        if self._lanes is None:
+            self._lanes = scene_lane_graph(self.scene) or False
+            if self._lanes is False:
+                log.warning("%s: no lane graph; the lane prediction falls back to constant velocity",
+                            self.scene.name)
+        rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]] = []
+        for i in range(obs.x.shape[0]):
+            paths = []
+            if self._lanes and obs.cls[i] in _LANE_CLASSES and obs.speed[i] >= 0:
+                paths = self._lanes.follow((obs.x[i], obs.y[i]), obs.heading[i], obs.speed[i] * tau[i],
+                                           max_heading_error=cfg.lane_max_heading_error,
+                                           search_radius=cfg.lane_search_radius, max_branches=cfg.lane_max_branches)
+            if not paths:
+                rows.append((i, x[i], y[i], th[i], 1.0))
+                continue
+            keep = np.ones_like(tau[i]) if cfg.lane_offset_time == 0 else np.exp(-tau[i] / cfg.lane_offset_time)
+            for path in paths:
+                d = path.offset * keep
+                rows.append((i, path.xy[:, 0] - d * np.sin(path.heading), path.xy[:, 1] + d * np.cos(path.heading),
+                             path.heading, path.weight))
+        user = np.array([r[0] for r in rows], dtype=np.int64)
+        stack = (lambda k: np.stack([r[k] for r in rows])) if rows else (lambda k: np.zeros((0, tau.shape[1])))
+        return RoadUserTracks(stack(1), stack(2), stack(3), speed[user], obs.length[user], obs.width[user],
+                              obs.cls[user], obs.ids[user], tau[user],
+                              weight=np.array([r[4] for r in rows], dtype=np.float64))
 
     # -- rendering ----------------------------------------------------------------------------------------
     def static(self) -> torch.Tensor:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,7 +40,7 @@ from torch import Tensor
 
 from ..checks import check_positive
 from ..control.reference import PiecewiseConstantInputs, plan_grid_reference
-from ..environment.lanes import LaneGraph, lane_graph_from_file
+from ..environment.lanes import LaneGraph, scene_lane_graph
 from ..systems.base import System
 
 __all__ = [
@@ -910,37 +909,6 @@ def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
         return model.occupancy(x, slices[: heading.shape[-1]]).cpu().numpy().astype(np.float64)
 
     return occupancy
-
-
-#: lane graphs moved into a scene's local frame, by the file's graph (one offset per file)
-_TRANSLATED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def scene_lane_graph(scene: Any) -> LaneGraph | None:
-    """The lane graph of a scene: ``scene.lane_graph`` where set, else read from the CommonRoad file named in
-    ``scene.meta["file"]`` (cached) and moved into the scene's frame (``meta["frame_offset"]``: the importer
-    translates scenarios with large, e.g. UTM, coordinates); ``None`` for scenes without one (random, inD)."""
-    graph = getattr(scene, "lane_graph", None)
-    if graph is not None:
-        return graph
-    meta = getattr(scene, "meta", {}) or {}
-    path = meta.get("file")
-    if meta.get("source") != "commonroad" or not path:
-        return None
-    try:
-        graph = lane_graph_from_file(path)
-        ox, oy = (float(v) for v in (meta.get("frame_offset") or (0.0, 0.0)))
-        if ox or oy:
-            key = ("translated", ox, oy)
-            cached = _TRANSLATED.get(graph)
-            if cached is None or cached[0] != key:
-                cached = (key, graph.translated(-ox, -oy))
-                _TRANSLATED[graph] = cached
-            return cached[1]
-        return graph
-    except (OSError, ValueError) as exc:
-        log.warning("no lane graph for %s (%s): no route-seeded candidates", getattr(scene, "name", "?"), exc)
-        return None
 
 
 def route_seed_parameters(
