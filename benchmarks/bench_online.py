@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-
 #: the methods compared (module docstring)
 METHODS = ("offline", "offline-observed", "online-observed", "online-oracle", "mpc")
 

@@ -167,3 +167,68 @@ def test_a_drive_first_plan_reads_only_what_was_observed_at_the_start():
         recorded.append(ObservedPrediction(scene).window(2.0, 3.0).probs.clone())  # seen 2 s later
     assert not torch.equal(recorded[0], recorded[1])  # the recordings differ after the start ...
     assert torch.equal(observed[0], observed[1])  # ... what was observed at the start does not
+
+
+# -- the lane-following motion model ------------------------------------------------------------------------
+def _fork_graph():
+    """A 3.5-m lane along y = 0 from x = 0 to 50 that forks into a straight lane (x 50 -> 100) and a quarter circle
+    of radius 20 m turning left (centre (50, 20))."""
+    from density_planner.environment.lanes import Lane, LaneGraph
+
+    def straight(x0, x1):
+        xs = np.linspace(x0, x1, 11)
+        return np.column_stack([xs, np.full(11, 1.75)]), np.column_stack([xs, np.full(11, -1.75)])
+
+    phi = np.linspace(-math.pi / 2, 0.0, 91)
+    arc = lambda r: np.column_stack([50.0 + r * np.cos(phi), 20.0 + r * np.sin(phi)])  # noqa: E731
+    l1, r1 = straight(0.0, 50.0)
+    l2, r2 = straight(50.0, 100.0)
+    return LaneGraph([Lane(1, l1, r1, successors=(2, 3)), Lane(2, l2, r2), Lane(3, arc(18.25), arc(21.75))])
+
+
+def test_follow_splits_at_a_fork_and_stays_on_the_centre_lines():
+    graph = _fork_graph()
+    d = np.array([0.0, 10.0, 30.0, 45.0, 120.0])
+    paths = graph.follow((30.0, 0.5), 0.05, d)
+    assert sorted(p.lanes for p in paths) == [(1, 2), (1, 3)]
+    assert math.isclose(sum(p.weight for p in paths), 1.0) and all(math.isclose(p.weight, 0.5) for p in paths)
+    for p in paths:
+        assert math.isclose(p.offset, 0.5, abs_tol=1e-9)  # left of the centre line
+        np.testing.assert_allclose(p.xy[:2], [[30.0, 0.0], [40.0, 0.0]], atol=1e-9)
+    straight = next(p for p in paths if p.lanes == (1, 2))
+    np.testing.assert_allclose(straight.xy[2:], [[60.0, 0.0], [75.0, 0.0], [150.0, 0.0]], atol=1e-9)  # 150: past
+    turn = next(p for p in paths if p.lanes == (1, 3))
+    # 25 m past the fork on the arc of radius 20 (polyline of 1-degree chords: ~1e-4 relative)
+    ang = -math.pi / 2 + 25.0 / 20.0
+    np.testing.assert_allclose(turn.xy[3], [50.0 + 20 * math.cos(ang), 20.0 + 20 * math.sin(ang)], atol=0.05)
+    np.testing.assert_allclose(turn.heading[3], ang + math.pi / 2, atol=0.02)
+    # past the end of the arc (a polyline of 90 chords): on the line continuing its last chord (heading 89.5 deg)
+    chords = 90 * 2 * 20.0 * math.sin(math.radians(0.5))
+    h = math.radians(89.5)
+    past = 100.0 - chords
+    np.testing.assert_allclose(turn.xy[4], [70.0 + past * math.cos(h), 20.0 + past * math.sin(h)], atol=1e-6)
+    # one branch at most: the straightest successor; the wrong heading or a far point: no path
+    assert [p.lanes for p in graph.follow((30.0, 0.5), 0.0, d, max_branches=1)] == [(1, 2)]
+    assert graph.follow((30.0, 0.5), math.pi, d) == []
+    assert graph.follow((30.0, 9.0), 0.0, d) == []
+
+
+def test_lane_model_predicts_a_mixture_along_the_lanes_and_keeps_other_users_straight():
+    car = _user(v=10.0, x0=0.0)  # on the lane (y = 0), at x = 20 m at t = 2 s
+    walker = dataclasses.replace(_user(v=1.0, x0=30.0, oid=2), kind="pedestrian")
+    scene = _synthetic([car, walker])
+    pred = ObservedPrediction(scene, PredictionConfig(motion_model="lane"), lane_graph=_fork_graph())
+    times = 2.0 + 0.1 * np.arange(61)
+    tr = pred.tracks(2.0, times)
+    assert list(tr.ids) == [1, 1, 2] and np.allclose(tr.weight, [0.5, 0.5, 1.0])
+    end = tr.x[:2, -1], tr.y[:2, -1]  # 60 m later: 30 m past the fork, straight or on the turn
+    assert np.isclose(end[0].max(), 80.0, atol=1e-6) and np.isclose(end[1][np.argmax(end[0])], 0.0, atol=1e-6)
+    assert end[1].max() > 5.0
+    np.testing.assert_allclose(tr.x[2], 32.0 + (times - 2.0), atol=1e-9)  # the pedestrian: constant velocity
+    # the occupancy of the two branches sums to the car's footprint: half on each past the fork, all before it
+    probs = pred.window(2.0, 6.0).probs
+    cv = ObservedPrediction(scene, PredictionConfig(motion_model="cv")).window(2.0, 6.0).probs
+    k = 10  # 1 s: 30 m, before the fork: both branches on the same spot, the same as constant velocity
+    torch.testing.assert_close(probs[k], cv[k], atol=1e-5, rtol=0)
+    k = 60  # 6 s: 80 m along; the straight branch's peak is half the constant-velocity peak at the same place
+    assert math.isclose(float(probs[k].max()), 0.5 * float(cv[k].max()), rel_tol=0.02)

@@ -196,7 +196,9 @@ class ObservedPrediction(Prediction):
     name = "observed"
 
     def __init__(self, scene: Scene, config: PredictionConfig | None = None,
-                 footprint: FootprintConfig | None = None):
+                 footprint: FootprintConfig | None = None, *, lane_graph: Any = None):
+        """``lane_graph``: the lanes of the ``"lane"`` motion model (:class:`~.lanes.LaneGraph`; default: the
+        scene's, :func:`~.lanes.scene_lane_graph`)."""
         super().__init__(scene)
         if scene.road is None:
             raise ValueError(f"scene {scene.name!r} has no road data (recorded road users); the observed prediction "
@@ -222,7 +224,7 @@ class ObservedPrediction(Prediction):
             speeds = None if tr.speeds is None else tr.speeds[rec]
             self._users.append((tr, tr.times[rec], tr.poses[rec], speeds, obstacle_class_id(tr.kind)))
         self._static: torch.Tensor | None = None
-        self._lanes: Any = None  # the scene's lane graph ("lane" model), False where it has none
+        self._lanes: Any = lane_graph  # the lanes of the "lane" model (read on first use), False where none
 
     # -- observations -------------------------------------------------------------------------------------
     def observe(self, t: float) -> _Observation:
