@@ -3,6 +3,7 @@ sum."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -253,3 +254,23 @@ def test_prediction_error_grows_with_velocity_and_acceleration_terms():
     np.testing.assert_allclose(s_w, np.hypot(s_w0, e_w[None, :]))
     with pytest.raises(ValueError, match="prediction_accel_std_along"):
         FootprintConfig(prediction_accel_std_along=-1.0)
+
+
+@pytest.mark.parametrize("model", ["gaussian", "shape"])
+def test_a_row_weight_scales_its_footprint(model):
+    tr = users([-15.0, 15.0], [0.0, 0.0], [0.0, 0.0], [5.0, 5.0])
+    cfg = dataclasses.replace(EXACT, model=model)
+    full = raster(tr, cfg)
+    half = raster(dataclasses.replace(tr, weight=np.array([0.5, 1.0])), cfg)
+    left, right = slice(0, 300), slice(300, None)  # the first user's cells (x < 0), then the second's
+    assert full[left].max() > 0.5 and full[right].max() > 0.5
+    np.testing.assert_allclose(half[left], 0.5 * full[left], atol=1e-6)
+    np.testing.assert_allclose(half[right], full[right], atol=1e-6)
+
+
+@pytest.mark.parametrize("weight", [np.array([0.5]), np.array([0.5, 1.5]), np.array([-0.1, 1.0]),
+                                    np.array([np.nan, 1.0])])
+def test_row_weights_must_be_probabilities_one_per_row(weight):
+    tr = users([0.0, 8.0], [0.0, 0.0], [0.0, 0.0], [5.0, 5.0])
+    with pytest.raises(ValueError, match="weight"):
+        dataclasses.replace(tr, weight=weight)
