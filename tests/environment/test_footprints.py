@@ -258,11 +258,11 @@ def test_prediction_error_grows_with_velocity_and_acceleration_terms():
 
 @pytest.mark.parametrize("model", ["gaussian", "shape"])
 def test_a_row_weight_scales_its_footprint(model):
-    tr = users([-15.0, 15.0], [0.0, 0.0], [0.0, 0.0], [5.0, 5.0])
+    tr = users([0.0, 0.0], [-15.0, 15.0], [0.0, 0.0], [5.0, 5.0])  # side by side, 30 m apart across
     cfg = dataclasses.replace(EXACT, model=model)
     full = raster(tr, cfg)
     half = raster(dataclasses.replace(tr, weight=np.array([0.5, 1.0])), cfg)
-    left, right = slice(0, 300), slice(300, None)  # the first user's cells (x < 0), then the second's
+    left, right = (slice(None), slice(0, 300)), (slice(None), slice(300, None))  # y < 0: the first user's cells
     assert full[left].max() > 0.5 and full[right].max() > 0.5
     np.testing.assert_allclose(half[left], 0.5 * full[left], atol=1e-6)
     np.testing.assert_allclose(half[right], full[right], atol=1e-6)
