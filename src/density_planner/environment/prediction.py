@@ -28,8 +28,8 @@ the planners already read:
   expected occupancy), its offset from the centre line kept (or decaying with ``lane_offset_time``); lane changes
   are not predicted, and other road users keep constant velocity. The position error grows with ``tau``: standard
   deviations ``e_along = hypot(std_rate_along * tau, accel_std_along * tau^2 / 2)`` along and ``e_across`` alike
-  across the heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users that end
-  before the grid, and no acceleration term). The footprints are those of :mod:`.footprints` (split Gaussian
+  across the heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users
+  that end before the grid, and no acceleration term). The footprints are those of :mod:`.footprints` (split Gaussian
   convolved with the position error, :func:`~.footprints.rasterise_road_users` with ``predicted_for = tau``) on
   the scene's static map (outside the drivable area and static obstacles: occupied). Road users not yet seen at
   ``t`` are absent. Red-light strips keep their recorded phases (signal programmes are known infrastructure) and
