@@ -89,8 +89,7 @@ def build_scene(env: str, run_config: RunConfig | None = None, *, seed: int | No
     region) use the run's system in the model set of that source. ``raster_threads`` (CPU): threads of the
     occupancy grid's upsampling (the same grid for any number; default: as set, 1). ``where``: how errors name the
     source (default ``--env KIND``); ``quiet``: silence commonroad-io's warnings on legacy elements."""
-    from .environment.footprints import raster_threads as current_threads
-    from .environment.footprints import set_raster_threads
+    from .environment.footprints import using_raster_threads
     from .environment.sources import SceneRequest
     from .environment.sources import build_scene as build_from_source
     from .planners.context import run_system
@@ -102,13 +101,8 @@ def build_scene(env: str, run_config: RunConfig | None = None, *, seed: int | No
     run_config = run_config if run_config is not None else load_run_config()
     request = SceneRequest(env, seed=seed, file=file, data_dir=data_dir, recording=recording, start_time=start_time)
     system = run_system(run_config, env)
-    before = current_threads()
-    if raster_threads is not None:
-        set_raster_threads(raster_threads)
-    try:
+    with using_raster_threads(raster_threads):
         return build_from_source(request, run_config, system=system, where=where, quiet=quiet)
-    finally:
-        set_raster_threads(before)
 
 
 def default_distribution_seed(distribution_seed: int | None, seed: int | None) -> int:

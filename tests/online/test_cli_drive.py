@@ -69,6 +69,9 @@ def test_drive_commonroad_observed(tmp_path):
     assert run["prediction"] == "observed"
     assert run["verdict"]["basis"] == "road"
     assert len(run["replans"]) == 2  # initial, 1.0 s
+    # the observed window of the replan is built from the observations (timed), the summary gives its median
+    assert run["replans"][1]["prediction_time"] > 0
+    assert run["prediction_time_median"] == pytest.approx(run["replans"][1]["prediction_time"])
     assert (out / "run.gif").stat().st_size > 1_000
 
 

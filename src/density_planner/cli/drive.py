@@ -115,10 +115,12 @@ def run(args: argparse.Namespace) -> int:
     v = outcome.verdict
     n_fb = summary["n_fallbacks"]
     med = summary["replan_wall_time_median"]
+    pred = summary["prediction_time_median"]
     late = summary["n_tracked_late"]
     late_text = f", {late} tracked late (online.overrun = delay)" if late else ""
     print(f"{args.planner} online ({result.prediction} prediction) on {scene.name}: {v.summary()}; "
-          f"{summary['n_replans']} replans (median {math.nan if med is None else med:.3f} s){late_text}, {n_fb} "
+          f"{summary['n_replans']} replans (median {math.nan if med is None else med:.3f} s, its prediction "
+          f"{math.nan if pred is None else pred:.3f} s){late_text}, {n_fb} "
           f"fallbacks; wrote {', '.join(str(out / w) for w in written)}")
     from . import plan_exit_code
 

@@ -57,6 +57,8 @@ interpolation error is at most ``h^2 / (8 s^2)`` of the peak (about 1.4 % for h 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +74,7 @@ __all__ = [
     "rasterise_road_users",
     "raster_threads",
     "set_raster_threads",
+    "using_raster_threads",
     "resample_tracks",
     "extrapolate_tracks",
 ]
@@ -369,6 +372,18 @@ def set_raster_threads(threads: int) -> None:
 def raster_threads() -> int:
     """The number set by :func:`set_raster_threads` (0: torch's current number)."""
     return _RASTER_THREADS
+
+
+@contextmanager
+def using_raster_threads(threads: int | None) -> Iterator[None]:
+    """:func:`set_raster_threads` for the duration of a ``with`` block, then the number before; ``None``: as set."""
+    before = _RASTER_THREADS
+    if threads is not None:
+        set_raster_threads(threads)
+    try:
+        yield
+    finally:
+        set_raster_threads(before)
 
 
 def rasterise_road_users(

@@ -262,6 +262,7 @@ class DriveResult:
 
     def summary(self) -> dict[str, Any]:
         walls = np.array([r.wall_time for r in self.replans if r.status != "initial"])
+        preds = np.array([r.prediction_time for r in self.replans if r.status != "initial"])
         fallbacks = [r for r in self.replans if r.fallback]
         pc = np.array([r.p_coll for r in self.replans if math.isfinite(r.p_coll)])
         red = np.array([r.cost_reduction for r in self.replans if math.isfinite(r.cost_reduction)])
@@ -274,6 +275,9 @@ class DriveResult:
             "n_replans": int(walls.size),
             "replan_wall_time_median": float(np.median(walls)) if walls.size else None,
             "replan_wall_time_p95": float(np.percentile(walls, 95)) if walls.size else None,
+            # building each replan's occupancy window (the prediction), before the replan itself
+            "prediction_time_median": float(np.median(preds)) if preds.size else None,
+            "prediction_time_p95": float(np.percentile(preds, 95)) if preds.size else None,
             "n_fallbacks": len(fallbacks),
             # replans tracked after their measurement time (online.overrun = "delay")
             "n_tracked_late": late,
