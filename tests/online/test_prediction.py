@@ -232,3 +232,15 @@ def test_lane_model_predicts_a_mixture_along_the_lanes_and_keeps_other_users_str
     torch.testing.assert_close(probs[k], cv[k], atol=1e-5, rtol=0)
     k = 60  # 6 s: 80 m along; the straight branch's peak is half the constant-velocity peak at the same place
     assert math.isclose(float(probs[k].max()), 0.5 * float(cv[k].max()), rel_tol=0.02)
+
+
+def test_lane_model_offset_from_the_centre_line_is_kept_or_decays():
+    car = _user(v=10.0, x0=0.0)
+    car = dataclasses.replace(car, poses=car.poses + np.array([0.0, 0.8, 0.0]))  # 0.8 m left of the centre line
+    scene = _synthetic([car])
+    times = 1.0 + np.array([0.0, 1.0, 2.0])
+    kept = ObservedPrediction(scene, PredictionConfig(motion_model="lane"), lane_graph=_fork_graph())
+    np.testing.assert_allclose(kept.tracks(1.0, times).y[0], 0.8, atol=1e-9)  # 10-30 m along: before the fork
+    decays = ObservedPrediction(scene, PredictionConfig(motion_model="lane", lane_offset_time=1.0),
+                                lane_graph=_fork_graph())
+    np.testing.assert_allclose(decays.tracks(1.0, times).y[0], 0.8 * np.exp(-(times - 1.0)), atol=1e-9)
