@@ -220,7 +220,8 @@ class LaneGraph:
         paths: list[tuple[tuple[int, ...], float, float]] = []  # (lanes, weight, s0)
         for lane_id in starts:
             s0 = float(self.lanes[lane_id].centerline.project(point))
-            active = [((lane_id,), 1.0 / len(starts), self.lanes[lane_id].length - s0)]
+            active: list[tuple[tuple[int, ...], float, float]] = [
+                ((lane_id,), 1.0 / len(starts), self.lanes[lane_id].length - s0)]
             while active:
                 ids, w, covered = active.pop()
                 succ = self.lanes[ids[-1]].successors
@@ -234,11 +235,11 @@ class LaneGraph:
                     active.append((ids + (k,), w / len(succ), covered + self.lanes[k].length))
         out = []
         for ids, w, s0 in paths:
-            first = self.lanes[ids[0]]
-            poly = [first.center]
-            for k in ids[1:]:
-                c = self.lanes[k].center
-                poly.append(c[1:] if np.hypot(*(c[0] - poly[-1][-1])) < 1e-6 else c)
+            centres = [self.lanes[k].center for k in ids]
+            poly: list[np.ndarray] = []
+            for c in centres:
+                assert c is not None  # set by Lane.__post_init__
+                poly.append(c[1:] if poly and np.hypot(*(c[0] - poly[-1][-1])) < 1e-6 else c)
             pts = np.vstack(poly)
             seg = np.diff(pts, axis=0)
             seg_len = np.hypot(seg[:, 0], seg[:, 1])
