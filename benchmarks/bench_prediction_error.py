@@ -3,7 +3,7 @@
 cv, ctrv or lane, from its last observed state) against its recorded position ``tau`` later, in the frame of its
 observed heading: RMS, median and 95th percentile of the along- and across-heading errors per ``tau`` (for the lane
 model's mixture of branches, a vehicle's error on each axis is the root of the weighted mean of its branches' squared
-errors) (docs/environments.md,
+errors; and the position error of the mixture, of its most likely branch and of its best branch) (docs/environments.md,
 "How wrong is constant velocity on recorded traffic?"). ``--half 0|1`` takes every second file (0, 2, 4, ... or
 1, 3, 5, ...) to fit on one half and check on the other.
 
@@ -70,8 +70,10 @@ def main() -> None:
                     dx = np.interp(t, times, poses[:, 0]) - tracks.x[rows, j]
                     dy = np.interp(t, times, poses[:, 1]) - tracks.y[rows, j]
                     w = weight[rows] / weight[rows].sum()
+                    dist = np.hypot(dx, dy)
                     errors[float(tau)].append((np.sqrt(np.sum(w * (dx * c + dy * s) ** 2)),
-                                               np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2))))
+                                               np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2)),
+                                               np.sqrt(np.sum(w * dist**2)), dist[np.argmax(w)], dist.min()))
     print(f"{len(files)} files, motion model {args.motion_model}")
     head = ("tau s", "n", "along RMS", "median", "p95", "across RMS", "median", "p95")
     print(" ".join(f"{h:>{w}}" for h, w in zip(head, (6, 6, 10, 7, 6, 11, 7, 6))))
@@ -82,6 +84,13 @@ def main() -> None:
         print(f"{tau:6.1f} {len(a):6d} {np.sqrt(np.mean(a[:, 0] ** 2)):10.2f} {np.median(a[:, 0]):7.2f} "
               f"{np.percentile(a[:, 0], 95):6.1f} {np.sqrt(np.mean(a[:, 1] ** 2)):11.2f} {np.median(a[:, 1]):7.2f} "
               f"{np.percentile(a[:, 1], 95):6.1f}")
+    print("\nposition error [m], median / RMS: of the mixture (root of the weighted mean square), of its most likely "
+          "branch, of its best branch (one branch: all three the same)")
+    for tau, rows in errors.items():
+        if rows:
+            a = np.asarray(rows)[:, 2:]
+            print(f"{tau:6.1f} " + "  ".join(f"{np.median(a[:, m]):5.2f} / {np.sqrt(np.mean(a[:, m] ** 2)):5.2f}"
+                                             for m in range(3)))
 
 
 if __name__ == "__main__":
