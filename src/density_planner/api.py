@@ -163,12 +163,11 @@ def judge(setup: PlanSetup, result: PlanResult) -> Verdict | None:
 
 # ------------------------------------------------------------------------------------------------ the outcome
 @dataclass
-class PlanOutcome:
-    """A plan and its verdict (:func:`plan_scene`)."""
+class _Outcome:
+    """What :class:`PlanOutcome` and :class:`DriveOutcome` share: the set-up, the status of the verdict, and the
+    set-up's part of the summary and of the files."""
 
     setup: PlanSetup
-    result: PlanResult
-    verdict: Verdict | None
 
     @property
     def scene(self) -> Scene:
@@ -180,17 +179,53 @@ class PlanOutcome:
 
     @property
     def status(self) -> str:
-        """``"success"`` when the plan passed every part of its verdict, else ``"failed"``."""
-        return "failed" if self.verdict is None else self.verdict.status
+        raise NotImplementedError
 
     @property
     def ok(self) -> bool:
         return self.status == "success"
 
+    def _setup_summary(self) -> dict[str, Any]:
+        """The summary's keys that describe the set-up: the scene, the initial law's seed, the density predictor
+        and the whole configuration."""
+        from .config import to_dict
+
+        setup = self.setup
+        return {
+            "scene": setup.scene.to_json_dict(),
+            "distribution_seed": setup.distribution_seed,
+            "density_predictor": getattr(setup.context.predictor(), "name", setup.run_config.system.density),
+            "config": to_dict(setup.run_config),
+        }
+
+    def _write_summary(self, out: str | Path, name: str, summary: dict[str, Any]) -> tuple[Path, list[Path]]:
+        """``summary`` as the JSON file ``name`` and ``config.toml`` into the folder ``out`` (created), each
+        written atomically; returns the folder and the paths written."""
+        from .config import dumps_toml
+        from .io.atomic import atomic_write_json, atomic_write_text
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(out / name, summary)
+        atomic_write_text(out / "config.toml", dumps_toml(self.setup.run_config))
+        return out, [out / name, out / "config.toml"]
+
+
+@dataclass
+class PlanOutcome(_Outcome):
+    """A plan and its verdict (:func:`plan_scene`)."""
+
+    result: PlanResult
+    verdict: Verdict | None
+
+    @property
+    def status(self) -> str:
+        """``"success"`` when the plan passed every part of its verdict, else ``"failed"``."""
+        return "failed" if self.verdict is None else self.verdict.status
+
     def summary(self) -> dict[str, Any]:
         """The content of ``plan.json`` (without the command line's own keys): the planner's result, the verdict,
         the scene, the models and the whole configuration."""
-        from .config import to_dict
         from .planners.context import run_model_set
 
         setup = self.setup
@@ -199,12 +234,9 @@ class PlanOutcome:
             "status": self.status,
             "planner_status": self.result.status.value,
             "verdict": None if self.verdict is None else self.verdict.to_dict(),
-            "scene": setup.scene.to_json_dict(),
-            "distribution_seed": setup.distribution_seed,
             "controller": type(setup.context.controller).__name__,
             "models": run_model_set(setup.run_config, setup.kind).name,
-            "density_predictor": getattr(setup.context.predictor(), "name", setup.run_config.system.density),
-            "config": to_dict(setup.run_config),
+            **self._setup_summary(),
         })
         return summary
 
@@ -228,14 +260,7 @@ class PlanOutcome:
         """``plan.json``, ``config.toml``, on CommonRoad scenes ``solution.xml``, and with ``figures`` plan.png,
         costs.png (and plan.gif with ``gif``) into the folder ``out`` (created); each file written atomically.
         Returns the paths written."""
-        from .config import dumps_toml
-        from .io.atomic import atomic_write_json, atomic_write_text
-
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(out / "plan.json", self.summary())
-        atomic_write_text(out / "config.toml", dumps_toml(self.setup.run_config))
-        written = [out / "plan.json", out / "config.toml"]
+        out, written = self._write_summary(out, "plan.json", self.summary())
         if self.result.states is None:
             return written
         if self.setup.kind == "commonroad":
@@ -268,7 +293,7 @@ def plan_scene(env: str = "random", *, seed: int | None = None, file: str | Path
     Returns:
         a :class:`PlanOutcome` (``.result``, ``.verdict``, ``.status``, ``.write(out)``).
     """
-    from .density.split import prediction_processes, set_prediction_processes
+    from .density.split import using_prediction_processes
 
     cfg = _resolve_run_config(run_config, config, overrides, system=system, models=models, controller=controller,
                               density=density)
@@ -277,13 +302,8 @@ def plan_scene(env: str = "random", *, seed: int | None = None, file: str | Path
     setup = set_up(scene, cfg, kind=env, planner=planner,
                    distribution_seed=default_distribution_seed(distribution_seed, seed),
                    device=device, dtype=dtype, progress=progress)
-    before = prediction_processes()
-    if setup.context.device.type == "cpu" and processes > 1:
-        set_prediction_processes(processes)
-    try:
+    with using_prediction_processes(processes if setup.context.device.type == "cpu" and processes > 1 else None):
         result = setup.planner.plan(setup.problem)
-    finally:
-        set_prediction_processes(before)
     return PlanOutcome(setup, result, judge(setup, result))
 
 
@@ -335,11 +355,10 @@ def check_drivable(planner: str, where: str = "planner") -> None:
 
 
 @dataclass
-class DriveOutcome:
+class DriveOutcome(_Outcome):
     """An online run (:func:`drive_scene`): the set-up and the :class:`~density_planner.evaluation.online.
     DriveResult` (executed states, every replan, the verdict of the executed trajectory)."""
 
-    setup: PlanSetup
     result: DriveResult
 
     @property
@@ -351,39 +370,24 @@ class DriveOutcome:
     def status(self) -> str:
         return self.verdict.status
 
-    @property
-    def ok(self) -> bool:
-        return self.status == "success"
-
     def summary(self) -> dict[str, Any]:
         """The content of ``run.json`` (without the command line's own keys)."""
-        from .config import to_dict
-
-        setup, initial = self.setup, self.result.initial_plan
+        initial = self.result.initial_plan
         summary = self.result.summary()
         summary.update({
-            "scene": setup.scene.to_json_dict(),
-            "planner": setup.planner_name,
-            "distribution_seed": setup.distribution_seed,
-            "density_predictor": getattr(setup.context.predictor(), "name", setup.run_config.system.density),
+            "planner": self.setup.planner_name,
             "initial_plan": None if initial is None else {
                 "status": initial.status.value, "timings": initial.timings,
                 "collision_probability_max": None if initial.collision is None else float(initial.collision.max)},
-            "config": to_dict(setup.run_config),
+            **self._setup_summary(),
         })
         return summary
 
     def write(self, out: str | Path, *, figures: bool = True, gif: bool = False) -> list[Path]:
         """``run.json``, ``config.toml`` and with ``figures`` run.png (and run.gif with ``gif``) into ``out``."""
-        from .config import dumps_toml
-        from .io.atomic import atomic_write_json, atomic_write_text
-
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(out / "run.json", self.summary())
-        atomic_write_text(out / "config.toml", dumps_toml(self.setup.run_config))
-        return [out / "run.json", out / "config.toml"] + (
-            [out / n for n in write_run_figures(out, self.setup.scene, self.result, gif=gif)] if figures else [])
+        out, written = self._write_summary(out, "run.json", self.summary())
+        return written + ([out / n for n in write_run_figures(out, self.scene, self.result, gif=gif)]
+                          if figures else [])
 
 
 def drive_scene(env: str = "random", *, seed: int | None = None, file: str | Path | None = None,

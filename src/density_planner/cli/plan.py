@@ -100,7 +100,7 @@ def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
     """The rest of :func:`run` once the scene is built: problem, planner (:func:`density_planner.api.set_up`),
     output process, then :func:`_plan_and_write`."""
     from ..api import default_distribution_seed, set_up
-    from ..density.split import prediction_processes, set_prediction_processes
+    from ..density.split import using_prediction_processes
     from ..parallel import default_workers
 
     dist_seed = default_distribution_seed(args.distribution_seed, args.seed)
@@ -112,15 +112,14 @@ def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
     outputs = _OutputProcess.start(out, scene, setup.problem, run_config, gif=not args.no_gif,
                                    solution=args.kind == "commonroad")
     clock.lap("setup")
-    before = prediction_processes()
-    if setup.context.device.type == "cpu":  # the exact re-check of the plan split over two cores (same figures)
-        set_prediction_processes(min(2, default_workers()))
+    # the exact re-check of the plan split over two cores (same figures)
+    processes = min(2, default_workers()) if setup.context.device.type == "cpu" else None
     try:
-        return _plan_and_write(args, setup, out, outputs, clock, t_scene)
+        with using_prediction_processes(processes):
+            return _plan_and_write(args, setup, out, outputs, clock, t_scene)
     finally:  # an error, Ctrl-C or no plan: the output process ends here (after its files: nothing to do)
         if outputs is not None:
             outputs.cancel()
-        set_prediction_processes(before)
 
 
 def _plan_and_write(args, setup, out, outputs, clock, t_scene) -> int:

@@ -17,6 +17,8 @@ another batch size).
 from __future__ import annotations
 
 import multiprocessing as mp
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -25,7 +27,8 @@ from ..control.reference import Reference
 from ..parallel import ForkedCall, ForkedCallError
 from .base import DensityPredictor, DensityTrajectory
 
-__all__ = ["predict_split", "split_possible", "prediction_processes", "set_prediction_processes"]
+__all__ = ["predict_split", "split_possible", "prediction_processes", "set_prediction_processes",
+           "using_prediction_processes"]
 
 _PROCESSES = 1
 
@@ -42,6 +45,19 @@ def set_prediction_processes(processes: int) -> None:
 def prediction_processes() -> int:
     """The number set by :func:`set_prediction_processes` (default 1)."""
     return _PROCESSES
+
+
+@contextmanager
+def using_prediction_processes(processes: int | None) -> Iterator[None]:
+    """:func:`set_prediction_processes` for the duration of a ``with`` block, then the number before; ``None``: as
+    set."""
+    before = _PROCESSES
+    if processes is not None:
+        set_prediction_processes(processes)
+    try:
+        yield
+    finally:
+        set_prediction_processes(before)
 
 
 def split_possible(processes: int, *tensors: Tensor) -> bool:
