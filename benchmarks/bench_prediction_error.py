@@ -1,6 +1,6 @@
 """How wrong is the observed-only prediction on recorded traffic? For every car, truck, bus and motorcycle seen at
 ``t_start``, ``t_start + 2 s`` and ``t_start + 4 s`` of each CommonRoad file, its prediction (``--motion-model``
-cv, ctrv or lane, from its last observed state) against its recorded position ``tau`` later, in the frame of its
+cv, ctrv or lane, the lane model at constant speed or with ``--lane-speed idm``, from its last observed state) against its recorded position ``tau`` later, in the frame of its
 observed heading: RMS, median and 95th percentile of the along- and across-heading errors per ``tau`` (for the lane
 model's mixture of branches, a vehicle's error on each axis is the root of the weighted mean of its branches' squared
 errors; and the position error of the mixture, of its most likely branch and of its best branch) (docs/environments.md,
@@ -25,6 +25,8 @@ def main() -> None:
     p.add_argument("--scenarios", type=Path, required=True)
     p.add_argument("--half", type=int, choices=(0, 1), default=None)
     p.add_argument("--motion-model", choices=("cv", "ctrv", "lane"), default="cv")
+    p.add_argument("--lane-speed", choices=("constant", "idm"), default="constant",
+                   help="the lane model's speed: constant, or the car-following model (IDM)")
     args = p.parse_args()
 
     from density_planner.api import load_run_config
@@ -46,7 +48,7 @@ def main() -> None:
             print(f"{f.name}: skipped ({str(exc).splitlines()[0]})")
             continue
         users = {u.obstacle_id: u for u in scene.road.obstacles}
-        pred = ObservedPrediction(scene, PredictionConfig(motion_model=args.motion_model))
+        pred = ObservedPrediction(scene, PredictionConfig(motion_model=args.motion_model, lane_speed=args.lane_speed))
         for t0 in scene.t_start + np.array([0.0, 2.0, 4.0]):
             obs = pred.observe(t0)
             if obs.ids.size == 0:
@@ -74,7 +76,7 @@ def main() -> None:
                     errors[float(tau)].append((np.sqrt(np.sum(w * (dx * c + dy * s) ** 2)),
                                                np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2)),
                                                np.sqrt(np.sum(w * dist**2)), dist[np.argmax(w)], dist.min()))
-    print(f"{len(files)} files, motion model {args.motion_model}")
+    print(f"{len(files)} files, motion model {args.motion_model}" + (f", lane speed {args.lane_speed}" if args.motion_model == "lane" else ""))
     head = ("tau s", "n", "along RMS", "median", "p95", "across RMS", "median", "p95")
     print(" ".join(f"{h:>{w}}" for h, w in zip(head, (6, 6, 10, 7, 6, 11, 7, 6))))
     for tau, rows in errors.items():

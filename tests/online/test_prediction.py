@@ -244,3 +244,36 @@ def test_lane_model_offset_from_the_centre_line_is_kept_or_decays():
     decays = ObservedPrediction(scene, PredictionConfig(motion_model="lane", lane_offset_time=1.0),
                                 lane_graph=_fork_graph())
     np.testing.assert_allclose(decays.tracks(1.0, times).y[0], 0.8 * np.exp(-(times - 1.0)), atol=1e-9)
+
+
+def test_lane_model_with_car_following_stops_behind_a_stopped_car_and_is_constant_speed_on_a_free_road():
+    follower = _user(v=10.0, x0=0.0)  # at x = 10 m at t = 1 s, on the lane
+    stopped = _user(v=0.0, x0=45.0, oid=2)  # 35 m ahead, standing on the lane before the fork
+    times = 1.0 + 0.1 * np.arange(51)
+    idm = PredictionConfig(motion_model="lane", lane_speed="idm")
+    const = PredictionConfig(motion_model="lane")
+    # alone on the road: the same mixture as at constant speed (both branches)
+    alone = _synthetic([follower])
+    a = ObservedPrediction(alone, idm, lane_graph=_fork_graph()).tracks(1.0, times)
+    b = ObservedPrediction(alone, const, lane_graph=_fork_graph()).tracks(1.0, times)
+    assert list(a.ids) == list(b.ids) == [1, 1]
+    np.testing.assert_allclose(a.x, b.x, atol=1e-6)
+    np.testing.assert_allclose(a.y, b.y, atol=1e-6)
+    np.testing.assert_allclose(a.speed, b.speed, atol=1e-9)
+    # behind the stopped car: at constant speed it drives through it; with car following it stops behind it
+    scene = _synthetic([follower, stopped])
+    tr = ObservedPrediction(scene, idm, lane_graph=_fork_graph()).tracks(1.0, times)
+    through = ObservedPrediction(scene, const, lane_graph=_fork_graph()).tracks(1.0, times)
+    rows = tr.ids == 1
+    assert through.x[through.ids == 1, -1].max() > 55.0
+    bumper_gap = 45.0 - tr.x[rows] - 4.0  # both 4 m long
+    assert bumper_gap.min() > 2.0 and tr.speed[rows, -1].max() < 2.0  # nearly at rest, s0 = 2 m behind or more
+    np.testing.assert_allclose(tr.x[tr.ids == 2], 45.0, atol=1e-9)  # the stopped car stays
+    assert np.all(np.diff(tr.x[rows], axis=1) >= -1e-9)
+
+
+def test_lane_speed_config_is_checked():
+    with pytest.raises(ValueError, match="lane_speed"):
+        PredictionConfig(lane_speed="fast")
+    with pytest.raises(ValueError, match="online.prediction.idm.min_gap"):
+        PredictionConfig(idm=dataclasses.replace(PredictionConfig().idm, min_gap=-2.0))

@@ -44,13 +44,14 @@ from __future__ import annotations
 import logging
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 import torch
 
 from ..checks import check_choice
+from .car_following import IDMConfig, find_leaders, idm_distances
 from .footprints import FootprintConfig, RoadUserTracks, rasterise_road_users
 from .grid import OccupancyGrid
 from .scene import Scene
@@ -70,8 +71,14 @@ log = logging.getLogger(__name__)
 PREDICTION_KINDS = ("observed", "oracle")
 #: motion models of the observed prediction (``[online.prediction] motion_model``)
 MOTION_MODELS = ("cv", "ctrv", "lane")
+#: speeds along the lanes of the "lane" model (``[online.prediction] lane_speed``)
+LANE_SPEEDS = ("constant", "idm")
 #: road-user classes (:data:`~.footprints.ROAD_USER_CLASSES`) that the "lane" model moves along lanes: car, truck
 _LANE_CLASSES = (0, 1)
+#: the class of pedestrians (never a leader of the car-following model)
+_PEDESTRIAN = 2
+#: arc-length step [m] of the lane paths the car-following model moves vehicles along
+_PATH_STEP = 0.5
 
 
 @dataclass(frozen=True)
@@ -106,10 +113,15 @@ class PredictionConfig:
     #: "lane": at most this many branches (lanes to follow through forks) per vehicle; past it, the straightest
     #: successor is followed
     lane_max_branches: int = 4
+    #: "lane": the speed along the lanes: "constant" (the observed speed), or "idm": the intelligent driver model
+    #: behind the road user ahead on the path (:mod:`.car_following`; its parameters in ``[online.prediction.idm]``)
+    lane_speed: Literal["constant", "idm"] = "constant"
+    idm: IDMConfig = field(default_factory=IDMConfig)
 
     def __post_init__(self) -> None:
         check_choice("online.prediction.kind", self.kind, PREDICTION_KINDS)
         check_choice("online.prediction.motion_model", self.motion_model, MOTION_MODELS)
+        check_choice("online.prediction.lane_speed", self.lane_speed, LANE_SPEEDS)
         if isinstance(self.lane_max_branches, bool) or not isinstance(self.lane_max_branches, int) \
                 or self.lane_max_branches < 1:
             raise ValueError(f"online.prediction.lane_max_branches must be an integer >= 1, got "
@@ -286,9 +298,10 @@ class ObservedPrediction(Prediction):
 
     def _along_lanes(self, obs: _Observation, tau: np.ndarray, x: np.ndarray, y: np.ndarray, th: np.ndarray,
                      speed: np.ndarray) -> RoadUserTracks:
-        """``motion_model = "lane"``: every vehicle moving forward on a lane, at its speed along the lanes'
-        centre lines (:meth:`~.lanes.LaneGraph.follow`), its offset from the centre line decaying with
-        ``lane_offset_time``; the others keep the constant-velocity rows ``x, y, th``."""
+        """``motion_model = "lane"``: every vehicle moving forward on a lane, along the lanes' centre lines
+        (:meth:`~.lanes.LaneGraph.follow`) at its speed (``lane_speed = "constant"``) or with the car-following
+        model behind the road user ahead (``"idm"``, :meth:`_car_following`), its offset from the centre line
+        decaying with ``lane_offset_time``; the others keep the constant-velocity rows ``x, y, th``."""
         from .lanes import scene_lane_graph
 
         cfg = self.config
@@ -297,26 +310,73 @@ class ObservedPrediction(Prediction):
             if self._lanes is False:
                 log.warning("%s: no lane graph; the lane prediction falls back to constant velocity",
                             self.scene.name)
-        rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, float]] = []
+        idm = cfg.lane_speed == "idm"
+        # (user, path or None, weight): a path holds the points at the distances travelled at constant speed, or,
+        # for the car-following model, at every _PATH_STEP metres up to that distance
+        rows: list[tuple[int, Any, float]] = []
         for i in range(obs.x.shape[0]):
             paths = []
             if self._lanes and obs.cls[i] in _LANE_CLASSES and obs.speed[i] >= 0:
-                paths = self._lanes.follow((obs.x[i], obs.y[i]), obs.heading[i], obs.speed[i] * tau[i],
+                reach = obs.speed[i] * tau[i]
+                if idm:
+                    reach = _PATH_STEP * np.arange(int(math.ceil(float(reach.max()) / _PATH_STEP)) + 2)
+                paths = self._lanes.follow((obs.x[i], obs.y[i]), obs.heading[i], reach,
                                            max_heading_error=cfg.lane_max_heading_error,
                                            search_radius=cfg.lane_search_radius, max_branches=cfg.lane_max_branches)
             if not paths:
-                rows.append((i, x[i], y[i], th[i], 1.0))
-                continue
-            keep = np.ones_like(tau[i]) if cfg.lane_offset_time == 0 else np.exp(-tau[i] / cfg.lane_offset_time)
-            for path in paths:
-                d = path.offset * keep
-                rows.append((i, path.xy[:, 0] - d * np.sin(path.heading), path.xy[:, 1] + d * np.cos(path.heading),
-                             path.heading, path.weight))
+                rows.append((i, None, 1.0))
+            rows.extend((i, path, path.weight) for path in paths)
         user = np.array([r[0] for r in rows], dtype=np.int64)
-        stack = (lambda k: np.stack([r[k] for r in rows])) if rows else (lambda k: np.zeros((0, tau.shape[1])))
-        return RoadUserTracks(stack(1), stack(2), stack(3), speed[user], obs.length[user], obs.width[user],
-                              obs.cls[user], obs.ids[user], tau[user],
-                              weight=np.array([r[4] for r in rows], dtype=np.float64))
+        weight = np.array([r[2] for r in rows], dtype=np.float64)
+        n_rows = len(rows)
+        xs, ys, hs = (np.zeros((n_rows, tau.shape[1])) for _ in range(3))
+        row_speed = speed[user].copy()
+        if idm:
+            dist, row_speed = self._car_following(obs, tau, rows, user, weight)
+        keep = np.ones_like(tau) if cfg.lane_offset_time == 0 else np.exp(-tau / cfg.lane_offset_time)
+        for r, (i, path, _) in enumerate(rows):
+            if path is None:
+                xs[r], ys[r], hs[r] = x[i], y[i], th[i]
+                continue
+            if idm:  # the points at the distances travelled, on the path's chords
+                m = path.xy.shape[0]
+                pos = np.clip(dist[r] / _PATH_STEP, 0.0, m - 1.0)
+                k = np.minimum(np.floor(pos).astype(np.int64), m - 2)
+                frac = (pos - k)[:, None]
+                xy = path.xy[k] * (1.0 - frac) + path.xy[k + 1] * frac
+                head = path.heading[k]
+            else:
+                xy, head = path.xy, path.heading
+            d = path.offset * keep[i]
+            xs[r], ys[r], hs[r] = xy[:, 0] - d * np.sin(head), xy[:, 1] + d * np.cos(head), head
+        return RoadUserTracks(xs, ys, hs, row_speed, obs.length[user], obs.width[user], obs.cls[user],
+                              obs.ids[user], tau[user], weight=weight)
+
+    def _car_following(self, obs: _Observation, tau: np.ndarray, rows: list[tuple[int, Any, float]],
+                       user: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``lane_speed = "idm"``: ``(distance (R, T), speed (R, T))`` of every row along its path
+        (:mod:`.car_following`): each path row's leader is the road user ahead on its path
+        (:func:`~.car_following.find_leaders`), represented by that user's most probable row; rows without a path
+        (constant velocity) keep their speed and may lead."""
+        c = self.config.idm
+        n_rows = len(rows)
+        m = max([1] + [path.xy.shape[0] for _, path, _ in rows if path is not None])
+        dense = np.full((n_rows, m, 2), np.nan)
+        for r, (_, path, _) in enumerate(rows):
+            if path is not None:
+                dense[r, : path.xy.shape[0]] = path.xy
+        leader_user, ahead = find_leaders(dense, _PATH_STEP, user, np.stack([obs.x, obs.y], axis=-1), obs.heading,
+                                          obs.speed, obs.cls != _PEDESTRIAN, c)
+        best_row = np.full(obs.x.shape[0], -1, dtype=np.int64)  # each user's most probable row
+        for r in np.argsort(-weight, kind="stable"):
+            if best_row[user[r]] < 0:
+                best_row[user[r]] = r
+        has = leader_user >= 0
+        leader_row = np.where(has, best_row[np.maximum(leader_user, 0)], -1)
+        gap = np.where(has, ahead - 0.5 * (obs.length[user] + obs.length[np.maximum(leader_user, 0)]), np.inf)
+        on_path = np.array([path is not None for _, path, _ in rows], dtype=bool)
+        moving = on_path & (obs.speed[user] >= c.min_speed)
+        return idm_distances(tau[user], obs.speed[user], moving, leader_row, gap, c)
 
     # -- rendering ----------------------------------------------------------------------------------------
     def static(self) -> torch.Tensor:
