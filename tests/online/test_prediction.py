@@ -244,6 +244,12 @@ def test_lane_model_offset_from_the_centre_line_is_kept_or_decays():
     decays = ObservedPrediction(scene, PredictionConfig(motion_model="lane", lane_offset_time=1.0),
                                 lane_graph=_fork_graph())
     np.testing.assert_allclose(decays.tracks(1.0, times).y[0], 0.8 * np.exp(-(times - 1.0)), atol=1e-9)
+    # its heading relative to the lane (0.1 rad) likewise: the observed heading at tau = 0
+    turned = _synthetic([dataclasses.replace(car, poses=car.poses + np.array([0.0, 0.0, 0.1]))])
+    for offset_time, expect in ((0.0, np.full(3, 0.1)), (1.0, 0.1 * np.exp(-(times - 1.0)))):
+        tr = ObservedPrediction(turned, PredictionConfig(motion_model="lane", lane_offset_time=offset_time),
+                                lane_graph=_fork_graph()).tracks(1.0, times)
+        np.testing.assert_allclose(tr.heading[0], expect, atol=1e-9)
 
 
 def test_lane_model_with_car_following_stops_behind_a_stopped_car_and_is_constant_speed_on_a_free_road():
@@ -251,7 +257,7 @@ def test_lane_model_with_car_following_stops_behind_a_stopped_car_and_is_constan
     stopped = _user(v=0.0, x0=45.0, oid=2)  # 35 m ahead, standing on the lane before the fork
     times = 1.0 + 0.1 * np.arange(51)
     idm = PredictionConfig(motion_model="lane", lane_speed="idm")
-    const = PredictionConfig(motion_model="lane")
+    const = PredictionConfig(motion_model="lane", lane_speed="constant")
     # alone on the road: the same mixture as at constant speed (both branches)
     alone = _synthetic([follower])
     a = ObservedPrediction(alone, idm, lane_graph=_fork_graph()).tracks(1.0, times)

@@ -25,8 +25,10 @@ the planners already read:
   ``lane_max_heading_error`` of its direction) keeps its speed along the lanes' centre lines instead
   (:meth:`~.lanes.LaneGraph.follow`): at a fork each branch is a row of its own with an equal share of the
   probability (``RoadUserTracks.weight``, at most ``lane_max_branches`` rows; the occupancy is the mixture's
-  expected occupancy), its offset from the centre line kept (or decaying with ``lane_offset_time``); lane changes
-  are not predicted, and other road users keep constant velocity. The position error grows with ``tau``: standard
+  expected occupancy), its offset from the centre line kept (or decaying with ``lane_offset_time``); with
+  ``lane_speed = "idm"`` its speed along the path follows the intelligent driver model behind the road user ahead
+  on it (:mod:`.car_following`: constant speed on a free road, braking behind slower or stopped vehicles); lane
+  changes are not predicted, and other road users keep constant velocity. The position error grows with ``tau``: standard
   deviations ``e_along = hypot(std_rate_along * tau, accel_std_along * tau^2 / 2)`` along and ``e_across`` alike
   across the heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users
   that end before the grid, and no acceleration term). The footprints are those of :mod:`.footprints` (split Gaussian
@@ -89,9 +91,10 @@ class PredictionConfig:
     #: keep their own obstacle model); "oracle": the scene's blurred recorded future, known in advance (the paper)
     kind: Literal["observed", "oracle"] = "observed"
     #: motion model of the observed prediction: "cv" constant velocity and heading, "ctrv" constant turn rate,
-    #: "lane" constant speed along the centre lines of the lanes a vehicle is in (a mixture over the branches it
-    #: may take; pedestrians, bicycles and vehicles off the lanes: constant velocity)
-    motion_model: Literal["cv", "ctrv", "lane"] = "cv"
+    #: "lane" along the centre lines of the lanes a vehicle is in (a mixture over the branches it may take, at the
+    #: speed of ``lane_speed``; pedestrians, bicycles and vehicles off the lanes: constant velocity). Default "lane"
+    #: with ``lane_speed = "idm"`` since stop 40 (measured on the suite: docs/environments.md; "cv" until then)
+    motion_model: Literal["cv", "ctrv", "lane"] = "lane"
     #: growth of the along-heading position standard deviation [m per s of prediction time]
     std_rate_along: float = 1.0
     #: growth of the across-heading position standard deviation [m per s of prediction time]
@@ -115,7 +118,7 @@ class PredictionConfig:
     lane_max_branches: int = 4
     #: "lane": the speed along the lanes: "constant" (the observed speed), or "idm": the intelligent driver model
     #: behind the road user ahead on the path (:mod:`.car_following`; its parameters in ``[online.prediction.idm]``)
-    lane_speed: Literal["constant", "idm"] = "constant"
+    lane_speed: Literal["constant", "idm"] = "idm"
     idm: IDMConfig = field(default_factory=IDMConfig)
 
     def __post_init__(self) -> None:
@@ -300,8 +303,9 @@ class ObservedPrediction(Prediction):
                      speed: np.ndarray) -> RoadUserTracks:
         """``motion_model = "lane"``: every vehicle moving forward on a lane, along the lanes' centre lines
         (:meth:`~.lanes.LaneGraph.follow`) at its speed (``lane_speed = "constant"``) or with the car-following
-        model behind the road user ahead (``"idm"``, :meth:`_car_following`), its offset from the centre line
-        decaying with ``lane_offset_time``; the others keep the constant-velocity rows ``x, y, th``."""
+        model behind the road user ahead (``"idm"``, :meth:`_car_following`), its offset from the centre line and
+        its heading relative to the lane's kept or decaying with ``lane_offset_time`` (at ``tau = 0``: the observed
+        pose); the others keep the constant-velocity rows ``x, y, th``."""
         from .lanes import scene_lane_graph
 
         cfg = self.config
@@ -348,7 +352,9 @@ class ObservedPrediction(Prediction):
             else:
                 xy, head = path.xy, path.heading
             d = path.offset * keep[i]
-            xs[r], ys[r], hs[r] = xy[:, 0] - d * np.sin(head), xy[:, 1] + d * np.cos(head), head
+            # the heading relative to the lane is kept (or decays) as the offset is: at tau = 0, the observed pose
+            turn = math.remainder(float(obs.heading[i]) - float(path.heading[0]), 2 * math.pi) * keep[i]
+            xs[r], ys[r], hs[r] = xy[:, 0] - d * np.sin(head), xy[:, 1] + d * np.cos(head), head + turn
         return RoadUserTracks(xs, ys, hs, row_speed, obs.length[user], obs.width[user], obs.cls[user],
                               obs.ids[user], tau[user], weight=weight)
 
