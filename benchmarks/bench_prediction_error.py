@@ -1,6 +1,7 @@
 """How wrong is the observed-only prediction on recorded traffic? For every car, truck, bus and motorcycle seen at
 ``t_start``, ``t_start + 2 s`` and ``t_start + 4 s`` of each CommonRoad file, its prediction (``--motion-model``
-cv, ctrv or lane, the lane model at constant speed or with ``--lane-speed idm``, from its last observed state) against its recorded position ``tau`` later, in the frame of its
+cv, ctrv or lane, the lane model at constant speed or with ``--lane-speed idm``, from its last observed state)
+against its recorded position ``tau`` later, in the frame of its
 observed heading: RMS, median and 95th percentile of the along- and across-heading errors per ``tau`` (for the lane
 model's mixture of branches, a vehicle's error on each axis is the root of the weighted mean of its branches' squared
 errors; and the position error of the mixture, of its most likely branch and of its best branch) (docs/environments.md,
@@ -76,7 +77,8 @@ def main() -> None:
                     errors[float(tau)].append((np.sqrt(np.sum(w * (dx * c + dy * s) ** 2)),
                                                np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2)),
                                                np.sqrt(np.sum(w * dist**2)), dist[np.argmax(w)], dist.min()))
-    print(f"{len(files)} files, motion model {args.motion_model}" + (f", lane speed {args.lane_speed}" if args.motion_model == "lane" else ""))
+    lane = f", lane speed {args.lane_speed}" if args.motion_model == "lane" else ""
+    print(f"{len(files)} files, motion model {args.motion_model}{lane}")
     head = ("tau s", "n", "along RMS", "median", "p95", "across RMS", "median", "p95")
     print(" ".join(f"{h:>{w}}" for h, w in zip(head, (6, 6, 10, 7, 6, 11, 7, 6))))
     for tau, rows in errors.items():

@@ -21,16 +21,17 @@ the planners already read:
                                           x(tau) = x + v / omega (sin theta(tau) - sin theta),
                                           y(tau) = y - v / omega (cos theta(tau) - cos theta),
 
-  with ``tau = t_k - t_obs``; with ``motion_model = "lane"``, a car, truck or bus moving forward on a lane (within
-  ``lane_max_heading_error`` of its direction) keeps its speed along the lanes' centre lines instead
-  (:meth:`~.lanes.LaneGraph.follow`): at a fork each branch is a row of its own with an equal share of the
+  with ``tau = t_k - t_obs``; with ``motion_model = "lane"`` (the default since stop 40), a car, truck or bus
+  moving forward on a lane (within ``lane_max_heading_error`` of its direction) moves along the lanes' centre lines
+  instead (:meth:`~.lanes.LaneGraph.follow`): at a fork each branch is a row of its own with an equal share of the
   probability (``RoadUserTracks.weight``, at most ``lane_max_branches`` rows; the occupancy is the mixture's
-  expected occupancy), its offset from the centre line kept (or decaying with ``lane_offset_time``); with
-  ``lane_speed = "idm"`` its speed along the path follows the intelligent driver model behind the road user ahead
-  on it (:mod:`.car_following`: constant speed on a free road, braking behind slower or stopped vehicles); lane
-  changes are not predicted, and other road users keep constant velocity. The position error grows with ``tau``: standard
-  deviations ``e_along = hypot(std_rate_along * tau, accel_std_along * tau^2 / 2)`` along and ``e_across`` alike
-  across the heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users
+  expected occupancy), its offset from the centre line and its heading relative to the lane kept (or decaying with
+  ``lane_offset_time``); its speed along the path follows the intelligent driver model behind the road user ahead
+  on it (``lane_speed = "idm"``, default; :mod:`.car_following`: constant speed on a free road, braking behind
+  slower or stopped vehicles) or is kept (``"constant"``); lane changes are not predicted, and other road users
+  keep constant velocity. The position error grows with ``tau``: standard deviations
+  ``e_along = hypot(std_rate_along * tau, accel_std_along * tau^2 / 2)`` along and ``e_across`` alike across the
+  heading (``[online.prediction]``; defaults 1.0 and 0.3 m/s, the importer's own rates for road users
   that end before the grid, and no acceleration term). The footprints are those of :mod:`.footprints` (split Gaussian
   convolved with the position error, :func:`~.footprints.rasterise_road_users` with ``predicted_for = tau``) on
   the scene's static map (outside the drivable area and static obstacles: occupied). Road users not yet seen at
