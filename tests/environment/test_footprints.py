@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from density_planner.environment import FootprintConfig, RoadUserTracks, rasterise_road_users
 from density_planner.environment.footprints import footprint_stds, resample_tracks
@@ -274,3 +275,26 @@ def test_row_weights_must_be_probabilities_one_per_row(weight):
     tr = users([0.0, 8.0], [0.0, 0.0], [0.0, 0.0], [5.0, 5.0])
     with pytest.raises(ValueError, match="weight"):
         dataclasses.replace(tr, weight=weight)
+
+
+@pytest.mark.parametrize("factor, shape", [(2, (57, 80)), (3, (60, 79)), (4, (61, 81)), (3, (58, 77))])
+def test_upsample_active_equals_the_whole_interpolation(factor, shape):
+    from density_planner.environment.footprints import upsample_active
+
+    gen = torch.Generator().manual_seed(factor)
+    ncx, ncy = (shape[0] - 1 + factor - 1) // factor + 1, (shape[1] - 1 + factor - 1) // factor + 1
+    low = torch.zeros(7, ncx, ncy)
+    # a few sparse blobs that move between slices, one on the lattice's last row and column, one slice empty
+    for k in range(6):
+        i, j = int(torch.randint(0, ncx - 3, (1,), generator=gen)), int(torch.randint(0, ncy - 3, (1,), generator=gen))
+        low[k, i:i + 3, j:j + 2] = torch.rand(3, 2, generator=gen)
+    low[2, -1, -1] = 0.7
+    low[4, 0, -2:] = 0.3
+    whole = torch.nn.functional.interpolate(low[None], size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
+                                            mode="bilinear", align_corners=True)[0][:, : shape[0], : shape[1]]
+    base = torch.rand(7, *shape, generator=gen)
+    for tile in (1, 4, 16):
+        got = upsample_active(low, factor, base.clone(), tile=tile)  # added in place
+        torch.testing.assert_close(got, base + whole, atol=2e-6, rtol=0)  # float rounding of the weights (1/3)
+        assert bool((got[6] == base[6]).all()) and bool((got[whole == 0] == base[whole == 0]).all())
+    assert bool((upsample_active(torch.zeros(3, ncx, ncy), factor, torch.zeros(3, *shape)) == 0).all())

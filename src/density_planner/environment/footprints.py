@@ -72,6 +72,7 @@ __all__ = [
     "ROAD_USER_CLASSES",
     "footprint_stds",
     "rasterise_road_users",
+    "upsample_active",
     "raster_threads",
     "set_raster_threads",
     "using_raster_threads",
@@ -408,7 +409,12 @@ def rasterise_road_users(
     if np.shape(tracks.x)[1] != T:
         raise ValueError(f"tracks have {np.shape(tracks.x)[1]} slices but the grid has {T}")
     n_idx, k_idx = np.nonzero(tracks.present)
-    out: Tensor | None = None
+    # the static map in every slice (one pass over the grid: fresh memory, whose first touch is most of a large
+    # map's cost), the footprints added where they are
+    if static is not None:
+        out = static.to(torch.float32).expand(T, NX, NY).clone()
+    else:
+        out = torch.zeros((T, NX, NY), dtype=torch.float32)
     if n_idx.size:
         s_front, s_back, s_w = footprint_stds(tracks, cfg)
         pairs = {
@@ -439,25 +445,60 @@ def rasterise_road_users(
             if _RASTER_THREADS:
                 torch.set_num_threads(_RASTER_THREADS)
             try:
-                up = F.interpolate(
-                    low[None],
-                    size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1),
-                    mode="bilinear",
-                    align_corners=True,
-                )[0]
+                upsample_active(low, factor, out)
             finally:
                 if _RASTER_THREADS:
                     torch.set_num_threads(before)
             del low
-            out = up if up.shape[1:] == (NX, NY) else up[:, :NX, :NY].contiguous()
-        if out is None:
-            out = torch.zeros((T, NX, NY), dtype=torch.float32)
         _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
-    else:
-        out = torch.zeros((T, NX, NY), dtype=torch.float32)
-    if static is not None:
-        out += static.to(torch.float32)
     return out.clamp_(0.0, 1.0)
+
+
+#: side of the tiles of coarse cells :func:`upsample_active` upsamples one at a time [coarse cells]
+_UPSAMPLE_TILE = 16
+
+
+def upsample_active(low: Tensor, factor: int, out: Tensor, tile: int = _UPSAMPLE_TILE) -> Tensor:
+    """Add to ``out (T, NX, NY)`` (in place; returned) the bilinear upsampling (corners aligned) of the coarse
+    lattice ``low (T, ncx, ncy)`` (values >= 0) by ``factor``, cropped to ``out``'s cells: :func:`torch.nn.functional.interpolate`
+    of the whole lattice, computed only where it can be non-zero. The coarse cells are grouped in tiles of
+    ``tile x tile``; a tile is interpolated over the slices from the first to the last in which one of its nodes is
+    non-zero, and adds nothing elsewhere (the interpolation of four zero nodes is zero). Road users cover a few
+    percent of a map's tiles per slice: on USA_Lanker-2_13 (a window of 81 x 1090 x 1555 cells) the whole
+    interpolation took 0.56 s, the tiles take ~0.06 s. The same values as the whole interpolation up to float
+    rounding of the interpolation weights (<= 2e-6, tested)."""
+    t_n, ncx, ncy = low.shape
+    _, nx, ny = out.shape
+    if ncx <= tile or ncy <= tile:  # a small lattice: at once
+        up = F.interpolate(low[None], size=((ncx - 1) * factor + 1, (ncy - 1) * factor + 1), mode="bilinear",
+                           align_corners=True)[0]
+        out += up[:, :nx, :ny]
+        return out
+    # a tile's nodes are [a tile, (a + 1) tile] (inclusive): windows of tile + 1 nodes, stride tile, the last ones
+    # cut at the lattice's edge (ceil_mode); footprints are >= 0, so a window's maximum is > 0 where one is non-zero
+    active = F.max_pool2d(low[:, None], kernel_size=tile + 1, stride=tile, ceil_mode=True)[:, 0] > 0
+    assert active.shape[1:] == (-(-(ncx - 1) // tile), -(-(ncy - 1) // tile))
+    any_t = active.any(dim=0)
+    if not bool(any_t.any()):
+        return out
+    first = active.to(torch.uint8).argmax(dim=0)
+    last = t_n - 1 - active.flip(0).to(torch.uint8).argmax(dim=0)
+    for a, b in torch.nonzero(any_t).tolist():
+        k0, k1 = int(first[a, b]), int(last[a, b]) + 1
+        i0, j0 = a * tile, b * tile
+        i1, j1 = min(i0 + tile, ncx - 1), min(j0 + tile, ncy - 1)
+        fi0, fj0 = i0 * factor, j0 * factor
+        # a tile's last row and column of fine cells are the next tile's first: each is written by one tile
+        last_i, last_j = i1 == ncx - 1, j1 == ncy - 1
+        fi1 = min(i1 * factor + (1 if last_i else 0), nx)
+        fj1 = min(j1 * factor + (1 if last_j else 0), ny)
+        if fi0 >= fi1 or fj0 >= fj1:
+            continue
+        up = F.interpolate(low[None, k0:k1, i0:i1 + 1, j0:j1 + 1],
+                           size=((i1 - i0) * factor + 1, (j1 - j0) * factor + 1), mode="bilinear",
+                           align_corners=True)[0]
+        out[k0:k1, fi0:fi1, fj0:fj1] += up[:, : fi1 - fi0, : fj1 - fj0]
+    return out
 
 
 def _splat(
