@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..checks import check_positive
+
 __all__ = ["IDMConfig", "find_leaders", "idm_distances"]
 
 #: integration step of the car-following model [s]
@@ -71,12 +73,8 @@ class IDMConfig:
     def __post_init__(self) -> None:
         for name in ("max_accel", "comfort_decel", "max_decel", "min_gap", "min_headway", "max_headway",
                      "leader_offset", "leader_heading_error", "min_speed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"online.prediction.idm.{name} must be a finite number >= 0, got {v!r}")
-        for name in ("max_accel", "comfort_decel"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"online.prediction.idm.{name} must be > 0, got {getattr(self, name)!r}")
+            check_positive(f"online.prediction.idm.{name}", getattr(self, name),
+                           allow_zero=name not in ("max_accel", "comfort_decel"))
         if self.min_headway > self.max_headway:
             raise ValueError(f"online.prediction.idm.min_headway ({self.min_headway}) must be <= max_headway "
                              f"({self.max_headway})")
