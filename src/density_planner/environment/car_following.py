@@ -109,19 +109,25 @@ def find_leaders(paths: np.ndarray, step: float, row_user: np.ndarray, users_xy:
         if n_pts < 2:
             continue
         pts = pts[:n_pts]
-        d = np.hypot(users_xy[:, None, 0] - pts[None, :, 0], users_xy[:, None, 1] - pts[None, :, 1])  # (N, M)
+        reach = config.leader_offset + 0.5 * step
+        lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
+        users = np.nonzero(candidate & np.all((users_xy >= lo) & (users_xy <= hi), axis=1))[0]  # near the path
+        users = users[users != row_user[r]]
+        if users.size == 0:
+            continue
+        xy = users_xy[users]
+        d = np.hypot(xy[:, None, 0] - pts[None, :, 0], xy[:, None, 1] - pts[None, :, 1])  # (n, M)
         k = np.argmin(d, axis=1)
-        near = d[np.arange(d.shape[0]), k] <= config.leader_offset + 0.5 * step
+        near = d[np.arange(d.shape[0]), k] <= reach
         kk = np.minimum(k, n_pts - 2)
         h = head[r, kk]
-        along = k * step + (np.cos(h) * (users_xy[:, 0] - pts[k, 0]) + np.sin(h) * (users_xy[:, 1] - pts[k, 1]))
-        turn = np.abs(np.remainder(users_heading - h + math.pi, 2 * math.pi) - math.pi)
-        ok = candidate & near & (along > 0) & ((turn <= config.leader_heading_error)
-                                               | (np.abs(users_speed) < config.min_speed))
-        ok[row_user[r]] = False
+        along = k * step + (np.cos(h) * (xy[:, 0] - pts[k, 0]) + np.sin(h) * (xy[:, 1] - pts[k, 1]))
+        turn = np.abs(np.remainder(users_heading[users] - h + math.pi, 2 * math.pi) - math.pi)
+        ok = near & (along > 0) & ((turn <= config.leader_heading_error)
+                                   | (np.abs(users_speed[users]) < config.min_speed))
         if ok.any():
-            j = int(np.argmin(np.where(ok, along, np.inf)))
-            leader[r], ahead[r] = j, float(along[j])
+            m = int(np.argmin(np.where(ok, along, np.inf)))
+            leader[r], ahead[r] = int(users[m]), float(along[m])
     return leader, ahead
 
 
