@@ -461,12 +461,12 @@ _UPSAMPLE_TILE = 16
 def upsample_active(low: Tensor, factor: int, out: Tensor, tile: int = _UPSAMPLE_TILE) -> Tensor:
     """Add to ``out (T, NX, NY)`` (in place; returned) the bilinear upsampling (corners aligned) of the coarse
     lattice ``low (T, ncx, ncy)`` (values >= 0) by ``factor``, cropped to ``out``'s cells:
-    :func:`torch.nn.functional.interpolate` of the whole lattice, computed only where it can be non-zero. The coarse cells are grouped in tiles of
-    ``tile x tile``; a tile is interpolated over the slices from the first to the last in which one of its nodes is
-    non-zero, and adds nothing elsewhere (the interpolation of four zero nodes is zero). Road users cover a few
-    percent of a map's tiles per slice: on USA_Lanker-2_13 (a window of 81 x 1090 x 1555 cells) the whole
-    interpolation took 0.56 s, the tiles take ~0.06 s. The same values as the whole interpolation up to float
-    rounding of the interpolation weights (<= 2e-6, tested)."""
+    :func:`torch.nn.functional.interpolate` of the whole lattice, computed only where it can be non-zero. The coarse
+    cells are grouped in tiles of ``tile x tile``; a tile is interpolated over the slices from the first to the last
+    in which one of its nodes is non-zero, and adds nothing elsewhere (the interpolation of four zero nodes is zero).
+    Road users cover a few percent of a map's tiles per slice: on USA_Lanker-2_13 (a window of 81 x 1090 x 1555
+    cells) the whole interpolation took 0.56 s, the tiles take ~0.17 s. The same values as the whole interpolation
+    up to float rounding of the interpolation weights (<= 2e-6, tested)."""
     t_n, ncx, ncy = low.shape
     _, nx, ny = out.shape
     if ncx <= tile or ncy <= tile:  # a small lattice: at once
