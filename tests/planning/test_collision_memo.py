@@ -80,3 +80,25 @@ def test_windows_read_their_parents_memo():
             assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
             known.append(int(parent._known.sum()))
         assert known[1] - known[0] < known[0] / 10  # the second window found the first one's cells
+
+
+def test_a_grid_and_its_collision_memo_are_freed_without_the_cycle_collector():
+    """The memo lives in its grid's cache and refers back to the grid weakly: dropping the last reference to the
+    grid frees both at once (a cycle would keep a replan's full-size grids alive until the cyclic collector ran)."""
+    import gc
+    import weakref
+
+    from density_planner.environment.grid import OccupancyGrid
+
+    grid = OccupancyGrid(torch.rand(5, 40, 30), (0.0, 0.0), 0.5, 0.1, 0.0)
+    cfg = CostConfig()
+    cost = CollisionCost(grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
+    cost.desired(torch.tensor([[3.0, 4.0]]), torch.tensor([1]))  # fills the table
+    body = cost.grid
+    refs = [weakref.ref(grid), weakref.ref(body), weakref.ref(cost._memo)]
+    gc.disable()
+    try:
+        del grid, cost, body
+        assert all(r() is None for r in refs)
+    finally:
+        gc.enable()
