@@ -14,6 +14,8 @@ import torch
 from density_planner.evaluation.online import (
     OnlineConfig,
     _replan_parameterization,
+    _rescue,
+    best_objective,
     braking_parameters,
     drive,
     recentred,
@@ -139,6 +141,9 @@ def test_config_validation():
         OnlineConfig(replan_epochs=0)
     with pytest.raises(ValueError, match="brake_steer"):
         OnlineConfig(brake_steer=(2.0,))
+    for bad in (-0.1, 1.5, math.nan, True):
+        with pytest.raises(ValueError, match="online.rescue_p_coll must be a probability"):
+            OnlineConfig(rescue_p_coll=bad)
 
 
 # ------------------------------------------------------------------------------------------ with a planner
@@ -342,3 +347,72 @@ def test_online_planner_executes_in_receding_mode(setup):
     assert run.step_times.shape == (10,) and float(run.step_times[5]) > float(run.step_times[4])  # replan at 0.5 s
     torch.testing.assert_close(run.states[0], x0.to(run.states.dtype))
     assert run.plan.extras["prediction"] == "oracle" and len(run.plan.extras["replans"]) == 2
+
+
+def _full_cost(planner, problem, params):
+    """Stage 1's selection objective (every term on) of parameters ``(K, nu, S)``."""
+    from density_planner.control.reference import plan_grid_reference
+    from density_planner.cost.composite import build_cost
+    from density_planner.cost.terms import CostInputs
+
+    objective = build_cost(problem.scene, planner.config.cost, optimisation=True, system=problem.system,
+                           risk=problem.risk)
+    start = problem.reference_start(planner.dtype, planner.device)
+    x_plan, u_plan = plan_grid_reference(problem.system, start, params.to(planner.dtype), problem.parameterization)
+    with torch.no_grad():
+        return objective(CostInputs.single(x_plan, u_plan, planner._slices(problem))).total
+
+
+def test_stage1_extra_seeds_compete_with_fresh_candidates(setup):
+    """An extra seed is a stage-1 candidate: the chosen parameters never cost more than it (every term on)."""
+    car, _, scene, problem, planner, plan = setup
+    good = plan.params.detach()[None]
+    chosen, history, _ = planner.initialise(problem, torch.Generator().manual_seed(5), extra_seeds=good)
+    assert float(_full_cost(planner, problem, chosen[None])[0]) <= float(_full_cost(planner, problem, good)[0]) + 1e-6
+    assert history["seed_candidates"] == [1.0]
+    with pytest.raises(RuntimeError):  # a seed of the wrong shape is refused, not broadcast
+        planner.initialise(problem, torch.Generator().manual_seed(5), extra_seeds=torch.zeros(1, 3))
+
+
+def test_rescue_replaces_a_risky_warm_replan_by_a_better_one(setup):
+    """A warm start that drives into an obstacle: ten small steps keep its risk; the rescue (stage 1 with the warm
+    start among its candidates, then the same stage 2 on the same samples) finds a lower objective and is used."""
+    car, _, scene, problem, planner, plan = setup
+    t = 1.0
+    state = plan.reference.x_plan[10]
+    prob = _replan_problem(problem, scene, state, t)
+    # the riskiest of a few constant-input warm starts (full steering to one side, accelerating)
+    cands = [torch.stack([torch.full((10,), s), torch.full((10,), a)]).double()
+             for s in (-1.0, 0.0, 1.0) for a in (0.0, 2.0)]
+    tried = [(warm_replan(planner, prob, w, epochs=2, samples=50, seed=3)[0], w) for w in cands]
+    res, warm = max(tried, key=lambda rw: float(rw[0].collision.max))
+    assert float(res.collision.max) > 0.5  # the scene must offer a risky warm start for this test to mean anything
+    cfg = OnlineConfig(replan_epochs=2, replan_samples=50, rescue_p_coll=0.5)
+    from density_planner.evaluation.online import Replan
+
+    rec = Replan(t, "success", 0.0)
+    out = _rescue(planner, prob, warm, res, rec, cfg, seed=3)
+    assert rec.rescue == "used" and out is not res
+    assert best_objective(out) < best_objective(res)
+    assert rec.rescue_p_coll == pytest.approx(float(out.collision.max))
+    assert float(out.collision.max) < float(res.collision.max)
+    # the same stage-2 samples: a rescue's stage 1 draws from a generator of its own
+    again, _ = warm_replan(planner, prob, warm, epochs=2, samples=50, seed=3)
+    assert again.cost_history["stage2"]["total"] == res.cost_history["stage2"]["total"]
+
+
+def test_drive_records_rescues(setup):
+    car, ctrl, scene, problem, planner, plan = setup
+    cfg = OnlineConfig(duration=2.0, period=0.5, replan_epochs=2, replan_samples=30, overrun="use",
+                       rescue_p_coll=0.0)  # every warm replan is rescued
+    res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, keep_snapshots=False)
+    warm = [r for r in res.replans[1:] if r.warm_start]
+    assert warm and all(r.rescue in ("used", "kept") and math.isfinite(r.rescue_p_coll) for r in warm)
+    for r in warm:
+        if r.rescue == "used":
+            assert r.p_coll == pytest.approx(r.rescue_p_coll)
+    summ = res.summary()
+    assert summ["rescues"]["used"] + summ["rescues"]["kept"] == len(warm)
+    never = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, rescue_p_coll=1.0),
+                  initial_plan=plan, keep_snapshots=False)
+    assert all(r.rescue is None and math.isnan(r.rescue_p_coll) for r in never.replans)

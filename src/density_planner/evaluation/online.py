@@ -136,6 +136,11 @@ class OnlineConfig:
     #: averaged inputs drift off the old path (CHN_Sha-12_1: 1.2 m, 2 m^2 of the body off the road in the turn 11 s
     #: ahead), and 10 stage-2 steps did not repair it: every replan added its drift and the run left the road
     refit_iterations: int = 3
+    #: a warm replan whose collision probability (its samples, max over time) exceeds this is rescued: a replan
+    #: from stage 1 (fresh candidates, the warm start among them) competes with it and the lower stage-2 objective
+    #: is tracked (1: never). Ten small stage-2 steps from the warm start cannot brake for a slower vehicle ahead
+    #: or choose another lane (docs/planner.md, "Online driving")
+    rescue_p_coll: float = 0.5
     #: seed of the true initial state
     seed: int = 0
     #: the occupancy an online planner reads
@@ -146,6 +151,10 @@ class OnlineConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"online.{name} must be a finite number > 0, got {v!r}")
+        if isinstance(self.rescue_p_coll, bool) or not isinstance(self.rescue_p_coll, (int, float)) \
+                or not 0 <= self.rescue_p_coll <= 1:
+            raise ValueError(f"online.rescue_p_coll must be a probability in [0, 1] (1: no rescue), got "
+                             f"{self.rescue_p_coll!r}")
         for name in ("period", "duration", "unsafe_p_coll", "restart_distance", "replan_lr", "replan_update_clip"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
@@ -199,6 +208,11 @@ class Replan:
     #: relative decrease of the stage-2 objective from the warm start (first iterate) to the returned plan (best
     #: iterate): 0 when no step improved on the warm start; NaN without a stage-2 history
     cost_reduction: float = math.nan
+    #: a rescue (``online.rescue_p_coll``): None (none ran), "used" (its plan replaced the warm replan's) or "kept"
+    #: (the warm replan's plan was better)
+    rescue: str | None = None
+    #: collision probability of the rescue's plan (NaN when none ran)
+    rescue_p_coll: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         def num(v: float) -> float | None:
@@ -207,7 +221,8 @@ class Replan:
         return {"t": self.t, "status": self.status, "wall_time": self.wall_time, "prediction_time":
                 self.prediction_time, "p_coll": num(self.p_coll), "warm_start": self.warm_start,
                 "fallback": self.fallback, "reason": self.reason, "previous_p_coll": num(self.previous_p_coll),
-                "t_effective": num(self.t_effective), "cost_reduction": num(self.cost_reduction)}
+                "t_effective": num(self.t_effective), "cost_reduction": num(self.cost_reduction),
+                "rescue": self.rescue, "rescue_p_coll": num(self.rescue_p_coll)}
 
 
 @dataclass
@@ -282,6 +297,7 @@ class DriveResult:
             # replans tracked after their measurement time (online.overrun = "delay")
             "n_tracked_late": late,
             "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
+            "rescues": {k: sum(r.rescue == k for r in self.replans) for k in ("used", "kept")},
             "p_coll_mean": float(pc.mean()) if pc.size else None,
             # share of the replans that improved on their warm start, and their median relative improvement
             "replans_improved": float((red > 0).mean()) if red.size else None,
@@ -407,12 +423,26 @@ def braking_parameters(system: System, v0: float, segment_duration: float, n_seg
     return out
 
 
+#: offset of the seed of a rescue replan's stage-1 generator from its replan's seed (:func:`warm_replan`)
+_STAGE1_SEED_OFFSET = 1_000_003
+
+
+def best_objective(result: PlanResult) -> float:
+    """The lowest finite stage-2 objective of a replan (``inf`` when none): what :func:`warm_replan`'s stage 2
+    minimised, comparable between replans of one problem on the same samples."""
+    totals = [v for v in (result.cost_history.get("stage2") or {}).get("total", []) if math.isfinite(v)]
+    return min(totals) if totals else math.inf
+
+
 def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
-                seed: int = 0, lr: float = 0.0, update_clip: float = 0.0) -> tuple[PlanResult, bool]:
+                seed: int = 0, lr: float = 0.0, update_clip: float = 0.0,
+                extra_seeds: Tensor | None = None) -> tuple[PlanResult, bool]:
     """A replan of the density planner: stage 2 (``epochs`` iterations, ``samples`` initial samples) from the
-    warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``. Returns the result and whether
-    the warm start was used. The reported collision probability is that of the best iterate's sample cloud (no
-    fresh draw: a replan is judged by the next one)."""
+    warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``, with ``extra_seeds (K, nu, S)``
+    among its candidates (:meth:`DensityPlanner.initialise`; its own generator, so that stage 2 draws the same
+    samples as a warm replan with the same ``seed``). Returns the result and whether the warm start was used. The
+    reported collision probability is that of the best iterate's sample cloud (no fresh draw: a replan is judged
+    by the next one)."""
     cfg = planner.config
     fast = copy.copy(planner)
     fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
@@ -428,7 +458,8 @@ def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor 
     timings: dict[str, float] = {}
     used_warm = warm is not None
     if warm is None:
-        warm, _, _ = fast.initialise(problem, gen)
+        gen1 = gen if extra_seeds is None else torch.Generator().manual_seed(int(seed) + _STAGE1_SEED_OFFSET)
+        warm, _, _ = fast.initialise(problem, gen1, extra_seeds=extra_seeds)
         timings["stage1"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     (best, params, ref, traj), hist, (_x0, _lr0, log_q0), slices = fast.refine(
@@ -443,6 +474,28 @@ def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor 
     return PlanResult(planner.name, PlanStatus.SUCCESS, params=params, reference=ref.select(0),
                       states=ref.x_plan[0], cost=cost, collision=coll, timings=timings,
                       cost_history={"stage2": hist}, iterations={"stage2": int(epochs)}), used_warm
+
+
+def _rescue(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor, result: PlanResult, rec: Replan,
+            config: OnlineConfig, *, seed: int) -> PlanResult:
+    """A warm replan whose collision probability exceeds ``online.rescue_p_coll`` competes with a replan from
+    stage 1 (route seeds and random candidates, the warm start and the warm replan's plan among them, then the same
+    stage 2 on the same samples): the one with the lower stage-2 objective is returned (``rec.rescue``: "used" or
+    "kept"). Ten small stage-2 steps from the warm start cannot brake for a slower vehicle ahead, nor choose
+    another lane; stage 1 can."""
+    assert result.params is not None  # checked by the caller
+    seeds = torch.stack([warm.to(result.params.dtype), result.params.detach()])
+    rescue, _ = warm_replan(planner, problem, None, epochs=config.replan_epochs, samples=config.replan_samples,
+                            seed=seed, lr=config.replan_lr, update_clip=config.replan_update_clip,
+                            extra_seeds=seeds)
+    rec.rescue_p_coll = float(rescue.collision.max) if rescue.collision is not None else math.nan
+    if rescue.ok and best_objective(rescue) < best_objective(result):
+        rec.rescue = "used"
+        log.info("t = %.2f s: rescue replan used (P_coll %.3f instead of %.3f)", rec.t, rec.rescue_p_coll,
+                 float(result.collision.max) if result.collision is not None else math.nan)
+        return rescue
+    rec.rescue = "kept"
+    return result
 
 
 # --------------------------------------------------------------------------------------------------- runner
@@ -717,6 +770,10 @@ def drive(
                                                              samples=config.replan_samples, seed=i_replan,
                                                              lr=config.replan_lr,
                                                              update_clip=config.replan_update_clip)
+                        if (rec.warm_start and warm is not None and result.ok and result.params is not None
+                                and result.collision is not None
+                                and float(result.collision.max) > config.rescue_p_coll):
+                            result = _rescue(dp, prob, warm, result, rec, config, seed=i_replan)
                     else:
                         result, rec.warm_start = planner.plan(prob), False
                 except Exception as exc:  # noqa: BLE001 - a failed replan is a recorded fallback, never a crash

@@ -267,8 +267,11 @@ class DensityPlanner(Planner):
         return None if seeds is None else seeds.params
 
     # ------------------------------------------------------------------ stage 1
-    def initialise(self, problem: PlanningProblem, generator: torch.Generator) -> tuple[Tensor, dict, int]:
-        """Stage 1: returns the best parameters ``(nu, S)``, the cost history of the best candidate, iterations."""
+    def initialise(self, problem: PlanningProblem, generator: torch.Generator,
+                   extra_seeds: Tensor | None = None) -> tuple[Tensor, dict, int]:
+        """Stage 1: returns the best parameters ``(nu, S)``, the cost history of the best candidate, iterations.
+        ``extra_seeds (K, nu, S)``: candidates treated like the route seeds (every term on from the start), e.g. an
+        online replan's warm start competing with fresh candidates."""
         cfg = self.config
         system, par = problem.system, problem.parameterization
         low, high = self._bounds(problem)
@@ -283,6 +286,10 @@ class DensityPlanner(Planner):
         n_seeds = 0 if seeds is None else int(seeds.shape[0])
         # beside route seeds (they start on the road, near the goal) fewer random candidates and epochs serve
         seeded = n_seeds > 0 and self.candidate_seeds is None
+        if extra_seeds is not None and extra_seeds.shape[0] > 0:
+            extra = extra_seeds.to(dtype=self.dtype, device=self.device).reshape(-1, system.nu, par.n_segments)
+            seeds = extra if seeds is None else torch.cat([seeds.to(dtype=self.dtype, device=self.device), extra])
+            n_seeds = int(seeds.shape[0])
         n_random = cfg.routes.random_candidates if seeded else cfg.n_candidates
         epochs = cfg.routes.epochs_init if seeded else cfg.epochs_init
         p0 = cfg.init_std * torch.randn(n_random, system.nu, par.n_segments, dtype=torch.float64,
