@@ -28,6 +28,11 @@ def main() -> None:
     p.add_argument("--motion-model", choices=("cv", "ctrv", "lane"), default="cv")
     p.add_argument("--lane-speed", choices=("constant", "idm"), default="constant",
                    help="the lane model's speed: constant, or the car-following model (IDM)")
+    p.add_argument("--accel-hold", type=float, default=None,
+                   help="with --lane-speed idm: the observed acceleration is kept this long [s] (default: the "
+                        "config's online.prediction.accel_hold)")
+    p.add_argument("--accel-window", type=float, default=None,
+                   help="the observed acceleration's window [s] (default: online.prediction.accel_window)")
     args = p.parse_args()
 
     from density_planner.api import load_run_config
@@ -49,7 +54,11 @@ def main() -> None:
             print(f"{f.name}: skipped ({str(exc).splitlines()[0]})")
             continue
         users = {u.obstacle_id: u for u in scene.road.obstacles}
-        pred = ObservedPrediction(scene, PredictionConfig(motion_model=args.motion_model, lane_speed=args.lane_speed))
+        extra = {} if args.accel_hold is None else {"accel_hold": args.accel_hold}
+        if args.accel_window is not None:
+            extra["accel_window"] = args.accel_window
+        pred = ObservedPrediction(scene, PredictionConfig(motion_model=args.motion_model, lane_speed=args.lane_speed,
+                                                          **extra))
         for t0 in scene.t_start + np.array([0.0, 2.0, 4.0]):
             obs = pred.observe(t0)
             if obs.ids.size == 0:
@@ -78,6 +87,9 @@ def main() -> None:
                                                np.sqrt(np.sum(w * (-dx * s + dy * c) ** 2)),
                                                np.sqrt(np.sum(w * dist**2)), dist[np.argmax(w)], dist.min()))
     lane = f", lane speed {args.lane_speed}" if args.motion_model == "lane" else ""
+    if args.motion_model == "lane" and args.lane_speed == "idm":
+        chosen = PredictionConfig(**extra)
+        lane += f", acceleration held {chosen.accel_hold:g} s (window {chosen.accel_window:g} s)"
     print(f"{len(files)} files, motion model {args.motion_model}{lane}")
     head = ("tau s", "n", "along RMS", "median", "p95", "across RMS", "median", "p95")
     print(" ".join(f"{h:>{w}}" for h, w in zip(head, (6, 6, 10, 7, 6, 11, 7, 6))))

@@ -103,3 +103,35 @@ def test_leaders_are_the_nearest_road_users_ahead_on_the_path():
 def test_config_rejects_bad_values(change):
     with pytest.raises(ValueError, match="online.prediction.idm"):
         IDMConfig(**change)
+
+
+def test_an_observed_acceleration_is_kept_for_the_hold_then_the_speed():
+    """Free road: v(tau) = v0 + a min(tau, hold), never below 0; the distances are its integral."""
+    tau = np.arange(0.0, 4.0 + 1e-9, DT)
+    v0, a = np.array([6.0, 2.0, 0.2, 10.0]), np.array([-3.0, -4.0, 1.5, 0.0])
+    s, v = idm_distances(tau, v0, np.ones(4, bool), np.full(4, -1), np.full(4, np.inf), CFG, accel=a,
+                         accel_hold=1.0)
+    v_expected = np.maximum(v0[:, None] + a[:, None] * np.minimum(tau, 1.0)[None], 0.0)
+    np.testing.assert_allclose(v, v_expected, atol=1e-9)
+    # braking 6 -> 3 m/s in 1 s then 3 m/s; 2 m/s at -4 m/s^2 stops after 0.5 m; 0.2 -> 1.7 m/s; 10 m/s kept
+    s_expected = np.stack([np.where(tau <= 1, 6 * tau - 1.5 * tau**2, 4.5 + 3 * (tau - 1)),
+                           np.where(tau <= 0.5, 2 * tau - 2 * tau**2, 0.5),
+                           np.where(tau <= 1, 0.2 * tau + 0.75 * tau**2, 0.95 + 1.7 * (tau - 1)),
+                           10 * tau])
+    np.testing.assert_allclose(s, s_expected, atol=1e-9)
+    # no acceleration given, or a hold of 0: the observed speed is kept
+    s0, _ = idm_distances(tau, v0, np.ones(4, bool), np.full(4, -1), np.full(4, np.inf), CFG, accel=a,
+                          accel_hold=0.0)
+    np.testing.assert_allclose(s0, v0[:, None] * tau[None], atol=1e-9)
+
+
+def test_a_follower_of_a_braking_leader_brakes_too():
+    """The leader observed braking to a stop 30 m ahead: its follower (same speed, steady gap) brakes behind it and
+    stops short of it; with the leader's acceleration ignored neither brakes."""
+    tau = np.arange(0.0, 10.0 + 1e-9, DT)
+    speed, leader, gap = np.array([8.0, 8.0]), np.array([-1, 0]), np.array([np.inf, 30.0])
+    s, v = idm_distances(tau, speed, np.ones(2, bool), leader, gap, CFG, accel=np.array([-4.0, 0.0]), accel_hold=2.0)
+    assert v[0, 20] == pytest.approx(0.0, abs=1e-9) and s[0, -1] == pytest.approx(8.0, abs=1e-6)  # 8^2 / (2 * 4)
+    assert np.min(gap[1] + s[0] - s[1]) > 0.5 * CFG.min_gap and v[1, -1] < 0.5
+    s_c, _ = idm_distances(tau, speed, np.ones(2, bool), leader, gap, CFG)
+    np.testing.assert_allclose(s_c, 8.0 * tau[None].repeat(2, 0), atol=1e-9)

@@ -283,3 +283,28 @@ def test_lane_speed_config_is_checked():
         PredictionConfig(lane_speed="fast")
     with pytest.raises(ValueError, match="online.prediction.idm.min_gap"):
         PredictionConfig(idm=dataclasses.replace(PredictionConfig().idm, min_gap=-2.0))
+
+
+def test_the_observed_acceleration_is_the_recent_speed_change_and_braking_cars_are_predicted_to_stop():
+    t = np.arange(0.0, 6.0 + 1e-9, 0.1)
+    v = np.maximum(10.0 - 2.0 * t, 0.0)  # braking at 2 m/s^2 from 10 m/s: stops at 5 s
+    x = np.where(t <= 5.0, 20.0 + 10.0 * t - t**2, 45.0)
+    braking = ObstacleTrack(1, "car", 4.0, 1.8, t, np.column_stack([x, np.zeros_like(t), np.zeros_like(t)]),
+                            speeds=v)
+    scene = _synthetic([braking])
+    cfg = PredictionConfig(motion_model="lane", lane_speed="idm", accel_hold=3.0, accel_window=1.0)
+    pred = ObservedPrediction(scene, cfg, lane_graph=_fork_graph())
+    obs = pred.observe(2.0)
+    assert obs.accel[0] == pytest.approx(-2.0, abs=1e-9)  # (6 - 8) / 1 s
+    # also from positions alone (no recorded speeds): the same up to the finite differences' lag
+    no_speed = dataclasses.replace(braking, speeds=None)
+    obs_p = ObservedPrediction(_synthetic([no_speed]), cfg, lane_graph=_fork_graph()).observe(2.0)
+    assert obs_p.accel[0] == pytest.approx(-2.0, abs=0.05)
+    # at 2 s (x = 36 m, 6 m/s) kept braking for 3 s: it stops at x = 36 + 6^2 / (2 * 2) = 45 m, as recorded
+    times = 2.0 + 0.1 * np.arange(41)
+    tr = pred.tracks(2.0, times)
+    np.testing.assert_allclose(tr.x[:, -1], 45.0, atol=1e-6)
+    np.testing.assert_allclose(tr.x[0], np.interp(times, t, x), atol=1e-6)
+    # the observed speed kept (accel_hold = 0): it drives on through x = 45 m
+    kept = ObservedPrediction(scene, dataclasses.replace(cfg, accel_hold=0.0), lane_graph=_fork_graph())
+    assert kept.tracks(2.0, times).x[:, -1].min() > 55.0

@@ -21,7 +21,14 @@ model keep the prediction equal to constant speed wherever nothing is ahead:
   ``[min_headway, max_headway]``: a vehicle following at an observed steady gap keeps it (``a_int = 0`` at
   ``tau = 0`` when the speeds match) and reacts only to closing speed or a gap shorter than its own.
 
-Stopped vehicles (observed speed below ``min_speed``) stay where they are; they are leaders for the others.
+**Observed acceleration** (``accel``, ``accel_hold`` > 0; ``[online.prediction] accel_hold``): the free-road speed
+is no longer the observed one but ``v_ref(tau) = max(0, v_obs + a_obs min(tau, accel_hold))``, the observed
+acceleration ``a_obs`` kept for ``accel_hold`` seconds (a car braking for a red light is predicted to stop, one
+pulling away to speed up), and the free-road term becomes ``a_free = a_max (1 - (v / v_ref)^4) + dv_ref/dtau``, so
+that a vehicle on a free road follows ``v_ref`` exactly and one slowed by its leader recovers towards it.
+
+Stopped vehicles (observed speed below ``min_speed``, not observed pulling away) stay where they are; they are
+leaders for the others.
 The leader of a row is found once, at the observation (:func:`find_leaders`): the nearest road user (vehicles and
 bicycles, not pedestrians) within ``leader_offset`` of the path whose heading is within ``leader_heading_error`` of the
 path's (or that stands still), ahead of the follower. Its advance along the follower's path is taken to be its own
@@ -132,7 +139,8 @@ def find_leaders(paths: np.ndarray, step: float, row_user: np.ndarray, users_xy:
 
 
 def idm_distances(tau: np.ndarray, speed: np.ndarray, moving: np.ndarray, leader: np.ndarray, gap: np.ndarray,
-                  config: IDMConfig) -> tuple[np.ndarray, np.ndarray]:
+                  config: IDMConfig, accel: np.ndarray | None = None,
+                  accel_hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Distances travelled and speeds ``(s (R, K), v (R, K))`` at the times ``tau`` (``(K,)`` or one row per row,
     ``(R, K)``; >= 0) of rows that start at speeds ``speed (R,)`` (module docstring). All rows are integrated on one
     clock from ``tau = 0`` (a leader's distance is read at the follower's ``tau``).
@@ -141,6 +149,8 @@ def idm_distances(tau: np.ndarray, speed: np.ndarray, moving: np.ndarray, leader
         moving: ``(R,)`` rows that follow the model; the others keep their speed (``s = speed * tau``).
         leader: ``(R,)`` the row whose distance leads each row (``-1``: a free road).
         gap: ``(R,)`` bumper-to-bumper gap to the leader at ``tau = 0`` [m] (``inf`` for a free road).
+        accel, accel_hold: ``(R,)`` observed accelerations [m/s^2], kept for ``accel_hold`` seconds on a free road
+            (module docstring, "observed acceleration"); ``None`` or a hold of 0: the observed speed is kept.
     """
     speed = np.asarray(speed, dtype=np.float64)
     r_rows = speed.shape[0]
@@ -153,6 +163,10 @@ def idm_distances(tau: np.ndarray, speed: np.ndarray, moving: np.ndarray, leader
     has = (leader >= 0) & np.isfinite(gap)
     lead = np.where(has, leader, 0)
     v_obs = np.maximum(speed, 0.0)
+    # the free-road speed: the observed one, or changing at the observed acceleration for accel_hold seconds
+    a_obs = np.zeros(r_rows) if accel is None or accel_hold <= 0 else np.nan_to_num(np.asarray(accel, np.float64))
+    hold = float(accel_hold) if accel is not None else 0.0
+    v_top = np.maximum(v_obs, v_obs + a_obs * hold)  # the fastest a row may get
     with np.errstate(divide="ignore", invalid="ignore"):
         headway = np.where(has & (v_obs > 0), (gap - c.min_gap) / v_obs, c.max_headway)
     headway = np.clip(np.nan_to_num(headway, nan=c.max_headway), c.min_headway, c.max_headway)
@@ -160,18 +174,24 @@ def idm_distances(tau: np.ndarray, speed: np.ndarray, moving: np.ndarray, leader
     s = np.zeros((r_rows, n + 1))
     v = np.zeros((r_rows, n + 1))
     v[:, 0] = speed
-    follows = moving & (v_obs > 0)
+    follows = moving & (v_top > 0)
+    a_ceiling = np.maximum(c.max_accel, a_obs)  # an observed acceleration is kept even above max_accel
     for k in range(n):
         vk, sk = v[:, k], s[:, k]
+        tk = k * dt
+        v_ref = np.maximum(v_obs + a_obs * min(tk, hold), 0.0)
+        dv_ref = np.where((tk < hold) & ((v_ref > 0) | (a_obs > 0)), a_obs, 0.0)  # none once braked to a stop
         with np.errstate(divide="ignore", invalid="ignore"):
-            a_free = c.max_accel * (1.0 - (vk / v_obs) ** 4)
+            a_free = c.max_accel * (1.0 - (vk / v_ref) ** 4) + dv_ref
+        # a free-road speed of 0: starting (observed accelerating from a stop), or braked to a stop
+        a_free = np.where(v_ref > 0, a_free, np.where(dv_ref > 0, dv_ref, np.where(vk > 0, -c.max_decel, 0.0)))
         g = np.where(has, gap + s[lead, k] - sk, np.inf)
         closing = vk - v[lead, k]
         s_star = c.min_gap + np.maximum(0.0, vk * headway + vk * closing / root)
         a_int = np.where(has, c.max_accel * (1.0 - (s_star / np.maximum(g, 0.1)) ** 2), np.inf)
-        a = np.clip(np.minimum(a_free, a_int), -c.max_decel, c.max_accel)
+        a = np.clip(np.minimum(a_free, a_int), -c.max_decel, a_ceiling)
         a = np.where(follows, np.nan_to_num(a, nan=0.0), 0.0)
-        v_next = np.clip(vk + a * dt, 0.0, np.maximum(v_obs, vk))
+        v_next = np.clip(vk + a * dt, 0.0, np.maximum(v_top, vk))
         v_next = np.where(follows, v_next, vk)
         s[:, k + 1] = sk + 0.5 * (vk + v_next) * dt
         v[:, k + 1] = v_next
