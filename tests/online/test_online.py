@@ -401,11 +401,11 @@ def test_rescue_replaces_a_risky_warm_replan_by_a_better_one(setup):
     assert again.cost_history["stage2"]["total"] == res.cost_history["stage2"]["total"]
 
 
-def test_drive_records_rescues(setup):
+def test_drive_records_rescues(setup, tmp_path):
     car, ctrl, scene, problem, planner, plan = setup
     cfg = OnlineConfig(duration=2.0, period=0.5, replan_epochs=2, replan_samples=30, overrun="use",
                        rescue_p_coll=0.0)  # every warm replan is rescued
-    res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, keep_snapshots=False)
+    res = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan)
     warm = [r for r in res.replans[1:] if r.warm_start]
     assert warm and all(r.rescue in ("used", "kept") and math.isfinite(r.rescue_p_coll) for r in warm)
     for r in warm:
@@ -413,6 +413,9 @@ def test_drive_records_rescues(setup):
             assert r.p_coll == pytest.approx(r.rescue_p_coll)
     summ = res.summary()
     assert summ["rescues"]["used"] + summ["rescues"]["kept"] == len(warm)
+    from density_planner.viz.online import plot_run
+
+    assert plot_run(scene, res, tmp_path / "run.png", n_panels=2).stat().st_size > 10_000  # a rescue among panels
     never = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, rescue_p_coll=1.0),
                   initial_plan=plan, keep_snapshots=False)
     assert all(r.rescue is None and math.isnan(r.rescue_p_coll) for r in never.replans)

@@ -52,13 +52,14 @@ def _panel(ax, scene: Scene, result: Any, snap: dict, *, full_path: bool = True,
         rec = next((r for r in result.replans if abs(r.t - t) < 1e-6), None)
         extra = ""
         if rec is not None:
-            extra = f", {rec.status}" + (f", fallback {rec.fallback}" if rec.fallback else "")
+            extra = f", {rec.status}" + (f", fallback {rec.fallback}" if rec.fallback else "") + (
+                ", rescued" if getattr(rec, "rescue", None) == "used" else "")
         ax.set_title(f"t = {t - result.times[0]:.1f} s{extra}", fontsize=8)
 
 
 def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) -> Path:
-    """``run.png``: overview (executed path over the scene, fallbacks marked, verdict) and ``n_panels`` replanning
-    times (predicted occupancy, true shapes, the plan tracked from then, the path so far)."""
+    """``run.png``: overview (executed path over the scene, fallbacks and rescues marked, verdict) and ``n_panels``
+    replanning times (predicted occupancy, true shapes, the plan tracked from then, the path so far)."""
     xs = result.states
     roi = _region_of_interest(scene, xs, None)
     x0, x1, y0, y1 = roi
@@ -98,13 +99,19 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
     ax.plot([], [], "--", color="tab:green", lw=0.8, label="plans at replanning times")
     ax.plot(xs[:, 0], xs[:, 1], "-", color="tab:orange", lw=2.0, label="executed", zorder=6)
     ax.plot(xs[0, 0], xs[0, 1], "o", color="tab:green", ms=7, mec="white", zorder=7, label="start (true)")
+    rescued = False
     for r in result.replans:
+        k = min(int(np.searchsorted(result.times, r.t - 1e-9)), len(xs) - 1)
         if r.fallback:
-            k = min(int(np.searchsorted(result.times, r.t - 1e-9)), len(xs) - 1)
             mk = "x" if r.fallback == "brake" else "s"
             ax.plot(xs[k, 0], xs[k, 1], mk, color="tab:red", ms=6, mfc="none", zorder=8)
+        if getattr(r, "rescue", None) == "used":
+            ax.plot(xs[k, 0], xs[k, 1], "D", color="tab:purple", ms=6, mfc="none", zorder=8)
+            rescued = True
     ax.plot([], [], "s", color="tab:red", mfc="none", label="fallback: previous reference")
     ax.plot([], [], "x", color="tab:red", label="fallback: braking")
+    if rescued:
+        ax.plot([], [], "D", color="tab:purple", mfc="none", label="rescue replan used")
     frame_map(ax, x0, x1, y0, y1)
     ax.legend(loc="best", fontsize=7, framealpha=0.8)
     walls = [r.wall_time for r in result.replans if r.status != "initial"]
@@ -112,6 +119,15 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
                  f"{np.median(walls) if walls else float('nan'):.2f} s", fontsize=10)
     if snaps:
         idx = np.unique(np.round(np.linspace(0, len(snaps) - 1, n_panels)).astype(int))
+        # the first replan that changed course (a rescue used, a fallback) is shown: it replaces the nearest panel
+        events = [r.t for r in result.replans if r.status != "initial"
+                  and (r.fallback or getattr(r, "rescue", None) == "used")]
+        if events and len(idx) > 1:
+            i_ev = int(np.argmin([abs(sn["t"] - events[0]) for sn in snaps]))
+            if i_ev not in idx:
+                near = int(np.argmin(np.abs(idx[1:] - i_ev))) + 1  # never the first panel (the start)
+                idx[near] = i_ev
+                idx = np.unique(idx)
         for j, i in enumerate(idx):
             a = fig.add_subplot(gs[j // ncol, 1 + j % ncol])
             _panel(a, scene, result, snaps[i])
