@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.api import build_scene, drive_config
     from density_planner.config import load_config, update
     from density_planner.environment.prediction import make_prediction
-    from density_planner.evaluation.online import drive, initial_problem
+    from density_planner.evaluation.online import drive, executed_p_coll, initial_problem
     from density_planner.evaluation.simulate import execute
     from density_planner.evaluation.verdict import judge
     from density_planner.planners.context import build_context, run_system
@@ -134,8 +134,11 @@ def main(argv: list[str] | None = None) -> int:
                       dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
                 if ex.states.shape[0] else None
             pc = float(plan_m.collision.max) if plan_m.collision is not None else math.nan
+            pe = executed_p_coll(scene, system, cfg.risk, ex.states.detach().numpy(), problem.parameterization.plan_dt) \
+                if ex.states.shape[0] else math.nan
             write({**base, "method": method, "status": None if v is None else v.status,
-                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "plan_time": t_m})
+                   "verdict": None if v is None else v.to_dict(), "p_coll": pc, "p_coll_executed": pe,
+                   "plan_time": t_m})
             print(f"{f.name} {method}: {None if v is None else v.summary()} P_coll {pc:.3f} ({t_m:.1f} s)",
                   flush=True)
         for kind in ("observed", "oracle"):
@@ -157,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
             s = res.summary()
             for key in ("times", "states", "inputs"):
                 s.pop(key)
-            write({**base, "method": m, "status": s["status"], "p_coll": s["p_coll_mean"], "run": s,
+            write({**base, "method": m, "status": s["status"], "p_coll": s["p_coll_mean"],
+                   "p_coll_executed": s["p_coll_executed"], "run": s,
                    "wall": time.perf_counter() - t2})
             print(f"{f.name} {m}: {res.verdict.summary()} mean P_coll {s['p_coll_mean']}, {s['n_replans']} replans "
                   f"(median {s['replan_wall_time_median']}), fallbacks {s['fallbacks']}", flush=True)
@@ -168,7 +172,10 @@ def main(argv: list[str] | None = None) -> int:
                 ex = execute(mpc, problem, x0.to(torch.float32), config=cfg.evaluation)
                 v = judge(scene, ex.states.detach().numpy(), ex.applied_inputs.detach().numpy(), system=system,
                           dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation)
+                pe = executed_p_coll(scene, system, cfg.risk, ex.states.detach().numpy(),
+                                     problem.parameterization.plan_dt)
                 write({**base, "method": "mpc", "status": v.status, "verdict": v.to_dict(), "p_coll": math.nan,
+                       "p_coll_executed": pe,
                        "wall": time.perf_counter() - t3})
                 print(f"{f.name} mpc: {v.summary()}", flush=True)
             except Exception as exc:  # noqa: BLE001 - recorded
@@ -183,8 +190,9 @@ def table(rec_path: Path) -> None:
     recs = [json.loads(line) for line in rec_path.read_text().splitlines()]
     methods = sorted({r["method"] for r in recs})
     n_sc = len({r["scenario"] for r in recs})
-    print(f"\n{n_sc} scenarios\n\n| method | verdict success | goal reached | collision-free | mean P_coll |")
-    print("|---|---|---|---|---|")
+    print(f"\n{n_sc} scenarios\n\n| method | verdict success | goal reached | collision-free | mean P_coll "
+          "(the planner's own) | mean P_coll of the executed run (recorded future) |")
+    print("|---|---|---|---|---|---|")
     for m in methods:
         rs = [r for r in recs if r["method"] == m]
         ok = sum(r.get("status") == "success" for r in rs)
@@ -193,8 +201,10 @@ def table(rec_path: Path) -> None:
         free = sum(bool((r.get("verdict") or (r.get("run") or {}).get("verdict") or {}).get("collision_free"))
                    for r in rs)
         pcs = [r["p_coll"] for r in rs if isinstance(r.get("p_coll"), (int, float)) and math.isfinite(r["p_coll"])]
+        pes = [r["p_coll_executed"] for r in rs
+               if isinstance(r.get("p_coll_executed"), (int, float)) and math.isfinite(r["p_coll_executed"])]
         print(f"| {m} | {ok}/{len(rs)} | {goal}/{len(rs)} | {free}/{len(rs)} | "
-              f"{np.mean(pcs) if pcs else float('nan'):.3f} |")
+              f"{np.mean(pcs) if pcs else float('nan'):.3f} | {np.mean(pes) if pes else float('nan'):.3f} |")
 
 
 if __name__ == "__main__":

@@ -274,6 +274,8 @@ class DriveResult:
     #: ``(T - 1,)`` online computation per planning step [s]: the controller evaluations, plus the replan (and its
     #: prediction) at replanning steps
     step_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: collision probability of the executed trajectory on the scene's own occupancy (:func:`executed_p_coll`)
+    p_coll_executed: float = math.nan
 
     def summary(self) -> dict[str, Any]:
         walls = np.array([r.wall_time for r in self.replans if r.status != "initial"])
@@ -299,6 +301,7 @@ class DriveResult:
             "fallbacks": {k: sum(r.fallback == k for r in fallbacks) for k in ("previous", "brake")},
             "rescues": {k: sum(r.rescue == k for r in self.replans) for k in ("used", "kept")},
             "p_coll_mean": float(pc.mean()) if pc.size else None,
+            "p_coll_executed": float(self.p_coll_executed) if math.isfinite(self.p_coll_executed) else None,
             # share of the replans that improved on their warm start, and their median relative improvement
             "replans_improved": float((red > 0).mean()) if red.size else None,
             "cost_reduction_median": float(np.median(red)) if red.size else None,
@@ -531,6 +534,17 @@ def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_
     slices = grid.slices_for(t, plan_dt, n).to(states.device)
     rep = CollisionModel(grid.to(states.device), system, risk).probability(states[None, :n], slices)
     return float(rep.max)
+
+
+def executed_p_coll(scene: Scene, system: System, risk: RiskConfig, states: np.ndarray | Tensor,
+                    dt: float) -> float:
+    """Collision probability (max over time) of an executed trajectory ``states (T, nx)`` (from the scene start,
+    every ``dt`` seconds; the vehicle's body) on the scene's own occupancy grid: on recorded traffic the blurred
+    recorded future, whatever the run's planner read. One estimator for every method (offline plans tracked, online
+    runs with any prediction), unlike each planner's own figure; NaN where the grid does not cover the start."""
+    assert scene.t_start is not None  # set by Scene.__post_init__
+    x = torch.as_tensor(np.asarray(states, dtype=np.float64) if not isinstance(states, Tensor) else states)
+    return _nominal_p_coll(scene.grid, system, risk, float(scene.t_start), dt, x.to(scene.grid.probs.dtype))
 
 
 def initial_problem(problem: PlanningProblem, prediction: Prediction) -> PlanningProblem:
@@ -885,4 +899,5 @@ def drive(
                     config=verdict_config, evaluation=evaluation)
     return DriveResult(times, x_all, u_all, replans, verdict, x_init, snapshots, prediction.name,
                        float(np.median(ctrl_times)) if ctrl_times else math.nan, initial_plan,
-                       np.asarray(step_times, dtype=float))
+                       np.asarray(step_times, dtype=float),
+                       executed_p_coll(scene, system, risk, x_all, plan_dt))
