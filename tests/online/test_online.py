@@ -284,6 +284,14 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert all(0.0 <= r.cost_reduction <= 1.0 for r in res.replans[1:])
     summ = res.summary()
     assert summ["replans_improved"] == pytest.approx(np.mean([r.cost_reduction > 0 for r in res.replans[1:]]))
+    # the executed run's risk on the scene's own occupancy: the collision model on its states, max over time
+    from density_planner.risk.collision import CollisionModel
+
+    slices = scene.grid.slices_for(0.0, 0.1, res.states.shape[0])
+    direct = CollisionModel(scene.grid, car, problem.risk).probability(
+        torch.as_tensor(res.states, dtype=scene.grid.probs.dtype)[None], slices)
+    assert summ["p_coll_executed"] == pytest.approx(float(direct.max), abs=1e-6)
+    assert 0.0 <= summ["p_coll_executed"] <= 1.0
     assert res.verdict is not None and res.verdict.basis == "occupancy"
     assert np.isfinite(res.states).all()
     # the true initial state is a draw from the initial law, and deterministic given online.seed
@@ -419,3 +427,32 @@ def test_drive_records_rescues(setup, tmp_path):
     never = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, rescue_p_coll=1.0),
                   initial_plan=plan, keep_snapshots=False)
     assert all(r.rescue is None and math.isnan(r.rescue_p_coll) for r in never.replans)
+
+
+def test_executed_p_coll_reads_the_scene_occupancy_along_the_path(setup):
+    """Standing in a free cell: 0; standing on an occupied one (all of the vehicle's body inside a blob): ~1."""
+    from density_planner.evaluation.online import executed_p_coll
+
+    car, _, scene, problem, planner, plan = setup
+    probs = scene.grid.probs[0]
+    free = torch.nonzero(probs < 1e-6)
+    occ = torch.nonzero(probs > 0.99)
+    assert free.shape[0] and occ.shape[0]
+
+    def standing(ij):
+        xy = torch.tensor(scene.grid.origin, dtype=torch.float64) + (ij.double() + 0.5) * scene.grid.cell_size
+        x = torch.zeros(11, car.nx, dtype=torch.float64)
+        x[:, :2] = xy
+        return x
+
+    # a cell whose neighbourhood is free / occupied over the next second (the body covers a few cells)
+    def pick(idx, value):
+        for ij in idx[torch.randperm(idx.shape[0], generator=torch.Generator().manual_seed(0))[:200]]:
+            i, j = int(ij[0]), int(ij[1])
+            window = scene.grid.probs[:11, max(i - 40, 0):i + 41, max(j - 40, 0):j + 41]
+            if (value == 0 and float(window.max()) < 1e-6) or (value == 1 and float(window.min()) > 0.99):
+                return ij
+        pytest.skip("no such neighbourhood on this scene")
+
+    assert executed_p_coll(scene, car, problem.risk, standing(pick(free, 0)), 0.1) == pytest.approx(0.0, abs=1e-6)
+    assert executed_p_coll(scene, car, problem.risk, standing(pick(occ, 1)), 0.1) > 0.95
