@@ -134,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
                       dt=problem.parameterization.plan_dt, config=cfg.verdict, evaluation=cfg.evaluation) \
                 if ex.states.shape[0] else None
             pc = float(plan_m.collision.max) if plan_m.collision is not None else math.nan
-            pe = executed_p_coll(scene, system, cfg.risk, ex.states.detach().numpy(), problem.parameterization.plan_dt) \
-                if ex.states.shape[0] else math.nan
+            pe = math.nan
+            if ex.states.shape[0]:
+                pe = executed_p_coll(scene, system, cfg.risk, ex.states.detach().numpy(),
+                                     problem.parameterization.plan_dt)
             write({**base, "method": method, "status": None if v is None else v.status,
                    "verdict": None if v is None else v.to_dict(), "p_coll": pc, "p_coll_executed": pe,
                    "plan_time": t_m})
