@@ -456,3 +456,29 @@ def test_executed_p_coll_reads_the_scene_occupancy_along_the_path(setup):
 
     assert executed_p_coll(scene, car, problem.risk, standing(pick(free, 0)), 0.1) == pytest.approx(0.0, abs=1e-6)
     assert executed_p_coll(scene, car, problem.risk, standing(pick(occ, 1)), 0.1) > 0.95
+
+
+def test_executed_p_coll_reads_the_road_edge_as_the_planners_do():
+    """On a road scene the off-road cells are the road barrier's, not obstacles (``risk.road_edge = "barrier"``):
+    the executed risk equals the planning problem's collision model on the same trajectory."""
+    from pathlib import Path
+
+    from density_planner.environment.commonroad import load_commonroad_scene
+    from density_planner.evaluation.online import executed_p_coll
+    from density_planner.risk.collision import RiskConfig
+
+    data = Path(__file__).resolve().parents[2] / "src" / "density_planner" / "data" / "commonroad"
+    scene = load_commonroad_scene(data / "USA_Lanker-1_1_T-1.xml")
+    car = KinematicCar()
+    problem = PlanningProblem.from_scene(scene, seed=0, system=car)
+    x = torch.zeros(11, car.nx, dtype=torch.float64)
+    x[:, :3] = torch.tensor(scene.start[:3], dtype=torch.float64)
+    x[:, 0] += 6.0  # 6 m east of the start: off the road, clear of the road users
+    slices = scene.grid.slices_for(float(scene.t_start), 0.1, 11)
+    xs = x.to(scene.grid.probs.dtype)
+    expected = float(problem.collision().probability(xs[None], slices).max)
+    assert executed_p_coll(scene, car, problem.risk, x, 0.1) == pytest.approx(expected, abs=1e-6)
+    occupied = float(problem.collision(road_edge="occupied").probability(xs[None], slices).max)
+    edge_occupied = executed_p_coll(scene, car, RiskConfig(road_edge="occupied"), x, 0.1)
+    assert edge_occupied == pytest.approx(occupied, abs=1e-6)
+    assert expected < 0.05 and occupied > 0.99  # the road's edge is not an obstacle

@@ -523,16 +523,20 @@ def _replan_parameterization(par: PiecewiseConstantInputs, goal_end: float | Non
     return replace(par, n_segments=n)
 
 
-def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_dt: float, states: Tensor) -> float:
+def _nominal_p_coll(grid: Any, system: System, risk: RiskConfig, t: float, plan_dt: float, states: Tensor,
+                    ignore: Tensor | None = None) -> float:
     """Collision probability (max over time) of one nominal trajectory ``states (T, nx)`` on the planning grid from
-    absolute time ``t`` in the occupancy ``grid`` (the part inside the grid's span)."""
+    absolute time ``t`` in the occupancy ``grid`` (the part inside the grid's span). ``ignore``: ``(NX, NY)`` cells
+    read as free, the road's off-road cells under ``risk.road_edge = "barrier"`` (:func:`~density_planner.risk.
+    collision.collision_mask` of the scene: the planners' own convention; the windows share the scene's lattice)."""
     from ..risk.collision import CollisionModel
 
     n = min(states.shape[0], int(math.floor((grid.t_end - t) / plan_dt + 1e-6)) + 1)
     if n < 1:
         return math.nan
     slices = grid.slices_for(t, plan_dt, n).to(states.device)
-    rep = CollisionModel(grid.to(states.device), system, risk).probability(states[None, :n], slices)
+    mask = None if ignore is None else ignore.to(states.device)
+    rep = CollisionModel(grid.to(states.device), system, risk, ignore=mask).probability(states[None, :n], slices)
     return float(rep.max)
 
 
@@ -542,9 +546,12 @@ def executed_p_coll(scene: Scene, system: System, risk: RiskConfig, states: np.n
     every ``dt`` seconds; the vehicle's body) on the scene's own occupancy grid: on recorded traffic the blurred
     recorded future, whatever the run's planner read. One estimator for every method (offline plans tracked, online
     runs with any prediction), unlike each planner's own figure; NaN where the grid does not cover the start."""
+    from ..risk.collision import collision_mask
+
     assert scene.t_start is not None  # set by Scene.__post_init__
     x = torch.as_tensor(np.asarray(states, dtype=np.float64) if not isinstance(states, Tensor) else states)
-    return _nominal_p_coll(scene.grid, system, risk, float(scene.t_start), dt, x.to(scene.grid.probs.dtype))
+    return _nominal_p_coll(scene.grid, system, risk, float(scene.t_start), dt, x.to(scene.grid.probs.dtype),
+                           ignore=collision_mask(scene, risk))
 
 
 def initial_problem(problem: PlanningProblem, prediction: Prediction) -> PlanningProblem:
@@ -646,6 +653,11 @@ def drive(
             act.u_ref_np = ur[:, 0].detach().cpu().double().numpy()
         return act
 
+    # the cells the planners' collision ignores (the road's edge is the road barrier's): the fallbacks read the same
+    from ..risk.collision import collision_mask
+
+    road_edge = collision_mask(scene, risk)
+
     def brake(grid: Any, x_now: Tensor, t: float) -> tuple[_Active, float]:
         """The least-risk braking manoeuvre from the measurement ``x_now`` at ``t`` in ``grid``."""
         speed = system.speeds(x_now)
@@ -654,7 +666,8 @@ def drive(
         # hidden states (the car's heading bias) are not part of a reference
         start = system.nominal_state(x_now.detach().to(dtype=dtype, device=device).clone())
         refs = make_reference(system, start, cand, par)
-        risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i]) for i in range(cand.shape[0])]
+        risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i], ignore=road_edge)
+                 for i in range(cand.shape[0])]
         risks = [r if math.isfinite(r) else math.inf for r in risks]
         best = int(np.argmin(risks))
         return activate(refs.select(best), t, cand[best], "brake"), float(risks[best])
@@ -827,7 +840,8 @@ def drive(
                 p_prev = math.nan
                 if not ended:
                     stride = int(round(plan_dt / active.reference.dt))
-                    p_prev = _nominal_p_coll(grid_t, system, risk, t, plan_dt, active.reference.x[offset::stride])
+                    p_prev = _nominal_p_coll(grid_t, system, risk, t, plan_dt, active.reference.x[offset::stride],
+                                             ignore=road_edge)
                 rec.previous_p_coll = p_prev
                 if ended or not math.isfinite(p_prev) or p_prev > config.unsafe_p_coll:
                     why = "it has ended" if ended else (
