@@ -15,7 +15,9 @@
    shifted by ``t - t_plan`` (:func:`shift_parameters`; a shift by part of a segment refitted to the previous
    path, :func:`refit_shift`): stage 2 only, ``replan_epochs`` iterations on
    ``replan_samples`` samples. Stage 1 (candidates) runs only when the warm start is invalid: no previous plan, or
-   the measurement lies farther than ``restart_distance`` from the previous reference at ``t``.
+   the measurement lies farther than ``restart_distance`` from the previous reference at ``t``; or to *rescue* a
+   warm replan whose collision probability exceeds ``rescue_p_coll``: a replan from stage 1, the warm start among
+   its candidates, competes with it on the same samples and the lower stage-2 objective is tracked (:func:`_rescue`).
 3. A replan that overruns its wall-time budget (``time_budget``) is, by ``overrun``: tracked from the first
    planning step after it finished (``"delay"``, default: the controller tracks the previous reference meanwhile
    and no replan starts while one runs), discarded as a failure (``"discard"``) or used at once (``"use"``: the
