@@ -164,8 +164,8 @@ def idm_distances(tau: np.ndarray, speed: np.ndarray, moving: np.ndarray, leader
     lead = np.where(has, leader, 0)
     v_obs = np.maximum(speed, 0.0)
     # the free-road speed: the observed one, or changing at the observed acceleration for accel_hold seconds
-    a_obs = np.zeros(r_rows) if accel is None or accel_hold <= 0 else np.nan_to_num(np.asarray(accel, np.float64))
-    hold = float(accel_hold) if accel is not None else 0.0
+    hold = float(accel_hold) if accel is not None and accel_hold > 0 else 0.0
+    a_obs = np.nan_to_num(np.asarray(accel, np.float64)) if hold > 0 else np.zeros(r_rows)
     v_top = np.maximum(v_obs, v_obs + a_obs * hold)  # the fastest a row may get
     with np.errstate(divide="ignore", invalid="ignore"):
         headway = np.where(has & (v_obs > 0), (gap - c.min_gap) / v_obs, c.max_headway)

@@ -411,8 +411,7 @@ class ObservedPrediction(Prediction):
         on_path = np.array([path is not None for _, path, _ in rows], dtype=bool)
         hold = self.config.accel_hold
         # standing vehicles stay, unless observed pulling away (to at least min_speed within the hold)
-        starts = obs.speed[user] + np.maximum(obs.accel[user], 0.0) * hold >= c.min_speed
-        moving = on_path & ((obs.speed[user] >= c.min_speed) | (starts & (hold > 0)))
+        moving = on_path & (obs.speed[user] + np.maximum(obs.accel[user], 0.0) * hold >= c.min_speed)
         return idm_distances(tau[user], obs.speed[user], moving, leader_row, gap, c, accel=obs.accel[user],
                              accel_hold=hold)
 

@@ -658,7 +658,7 @@ def drive(
     # the cells the planners' collision ignores (the road's edge is the road barrier's): the fallbacks read the same
     from ..risk.collision import collision_mask
 
-    road_edge = collision_mask(scene, risk)
+    off_road = collision_mask(scene, risk)
 
     def brake(grid: Any, x_now: Tensor, t: float) -> tuple[_Active, float]:
         """The least-risk braking manoeuvre from the measurement ``x_now`` at ``t`` in ``grid``."""
@@ -668,7 +668,7 @@ def drive(
         # hidden states (the car's heading bias) are not part of a reference
         start = system.nominal_state(x_now.detach().to(dtype=dtype, device=device).clone())
         refs = make_reference(system, start, cand, par)
-        risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i], ignore=road_edge)
+        risks = [_nominal_p_coll(grid, system, risk, t, plan_dt, refs.x_plan[i], ignore=off_road)
                  for i in range(cand.shape[0])]
         risks = [r if math.isfinite(r) else math.inf for r in risks]
         best = int(np.argmin(risks))
@@ -843,7 +843,7 @@ def drive(
                 if not ended:
                     stride = int(round(plan_dt / active.reference.dt))
                     p_prev = _nominal_p_coll(grid_t, system, risk, t, plan_dt, active.reference.x[offset::stride],
-                                             ignore=road_edge)
+                                             ignore=off_road)
                 rec.previous_p_coll = p_prev
                 if ended or not math.isfinite(p_prev) or p_prev > config.unsafe_p_coll:
                     why = "it has ended" if ended else (

@@ -53,7 +53,7 @@ def _panel(ax, scene: Scene, result: Any, snap: dict, *, full_path: bool = True,
         extra = ""
         if rec is not None:
             extra = f", {rec.status}" + (f", fallback {rec.fallback}" if rec.fallback else "") + (
-                ", rescued" if getattr(rec, "rescue", None) == "used" else "")
+                ", rescued" if rec.rescue == "used" else "")
         ax.set_title(f"t = {t - result.times[0]:.1f} s{extra}", fontsize=8)
 
 
@@ -105,7 +105,7 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
         if r.fallback:
             mk = "x" if r.fallback == "brake" else "s"
             ax.plot(xs[k, 0], xs[k, 1], mk, color="tab:red", ms=6, mfc="none", zorder=8)
-        if getattr(r, "rescue", None) == "used":
+        if r.rescue == "used":
             ax.plot(xs[k, 0], xs[k, 1], "D", color="tab:purple", ms=6, mfc="none", zorder=8)
             rescued = True
     ax.plot([], [], "s", color="tab:red", mfc="none", label="fallback: previous reference")
@@ -121,7 +121,7 @@ def plot_run(scene: Scene, result: Any, path: str | Path, *, n_panels: int = 4) 
         idx = np.unique(np.round(np.linspace(0, len(snaps) - 1, n_panels)).astype(int))
         # the first replan that changed course (a rescue used, a fallback) is shown: it replaces the nearest panel
         events = [r.t for r in result.replans if r.status != "initial"
-                  and (r.fallback or getattr(r, "rescue", None) == "used")]
+                  and (r.fallback or r.rescue == "used")]
         if events and len(idx) > 1:
             i_ev = int(np.argmin([abs(sn["t"] - events[0]) for sn in snaps]))
             if i_ev not in idx:
