@@ -17,9 +17,10 @@ $(STAMP): pyproject.toml constraints.txt
 	# byte-compile the package (an editable install does not; pip does for a regular one): where the environment
 	# sets PYTHONDONTWRITEBYTECODE, every command would otherwise compile ~28 000 lines at start-up (~0.2 s)
 	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q src
-	# compile the online controller's numba kernels once (~10 s; nothing without the `fast` extra), so that the first
-	# `drive` does not pause for it
+	# compile the numba kernels once (nothing without the `fast` extra): the online controller's (~10 s), so that the
+	# first `drive` does not pause for it, and the collision cost's (~4 s), so that the first plan does not
 	$(PY) -m density_planner.control.fast
+	$(PY) -m density_planner.cost._jit
 	touch $(STAMP)
 
 install: $(STAMP)
