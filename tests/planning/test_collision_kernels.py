@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from density_planner.cost.composite import CostConfig
-from density_planner.cost.terms import CollisionCost, CostInputs
+from density_planner.cost.terms import CollisionCost, CostInputs, _FusedCollision
 from density_planner.environment import random_scene
 from density_planner.risk import CollisionModel
 from density_planner.systems.car import KinematicCar
@@ -27,16 +27,24 @@ def _cloud(dtype: torch.dtype, batch: int, n: int, t: int, seed: int) -> tuple[t
     return x.to(dtype), (w / w.sum(-2, keepdim=True)).to(dtype)
 
 
-def _value_and_grads(term: CollisionCost, x: torch.Tensor, w: torch.Tensor, slices: torch.Tensor, scale: torch.Tensor):
+def _value_and_grads(term: CollisionCost, x: torch.Tensor, w: torch.Tensor, slices: torch.Tensor, scale: torch.Tensor,
+                     *, kernels: bool = False):
+    """The term's value and its gradients in ``x`` and ``w``; ``kernels``: through the compiled kernels directly
+    (whatever path ``term`` would choose)."""
     xr, wr = x.clone().requires_grad_(True), w.clone().requires_grad_(True)
-    j = term(CostInputs(x=xr, weights=wr, u_ref=torch.zeros(x.shape[-2] - 1, 2, dtype=x.dtype), slices=slices))
+    if kernels:
+        out = term.kernels(xr, wr, slices)
+        assert out is not None  # the compiled path serves these clouds
+        j = _FusedCollision.apply(xr, wr, *out)
+    else:
+        j = term(CostInputs(x=xr, weights=wr, u_ref=torch.zeros(x.shape[-2] - 1, 2, dtype=x.dtype), slices=slices))
     gx, gw = torch.autograd.grad((j * scale).sum(), (xr, wr))
     return j.detach(), gx, gw
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("body", [True, False])
-def test_compiled_collision_cost_matches_the_tensor_path(dtype, body):
+def test_compiled_collision_kernels_match_the_tensor_path(dtype, body):
     """Value (per candidate) and gradients in the states (positions and heading) and in the broadcast weights, on a
     fresh memo (cells filled between the kernels' passes) and on a filled one, for the car's body (four discs,
     clamped to the map) and a point vehicle, on the scene's grid and on a replan window of it (slices offset)."""
@@ -50,28 +58,26 @@ def test_compiled_collision_cost_matches_the_tensor_path(dtype, body):
         scale = torch.tensor([1.0, -2.0, 0.5], dtype=dtype)
         for seed in (0, 1):
             x, w = _cloud(dtype, 3, 40, len(slices), seed)
-            assert fused.kernels(x, w, slices) is not None  # the compiled path serves these clouds
-            a = _value_and_grads(fused, x, w, slices, scale)
+            a = _value_and_grads(fused, x, w, slices, scale, kernels=True)
             b = _value_and_grads(tensor, x, w, slices, scale)
             assert float(b[0].min()) > 0 and float(b[1][..., 2].abs().max()) > (0 if body else -1)
             for u, v in zip(a, b):
                 assert u.shape == v.shape and u.dtype == v.dtype
                 torch.testing.assert_close(u, v, **tol)
-            if not body:
+            if body:  # the term itself takes the compiled path for a body (the point's tensor path is as fast)
+                for u, v in zip(_value_and_grads(fused, x, w, slices, scale), a):
+                    torch.testing.assert_close(u, v, rtol=0, atol=0)
+            else:
                 assert float(a[1][..., 2:].abs().max()) == 0.0
 
 
-def test_compiled_path_declines_a_point_off_the_map():
+def test_compiled_kernels_decline_a_point_off_the_map():
     """A point vehicle's states beyond the map are read by the tensor path (desired positions off the grid): the
-    kernels decline and the value is the tensor path's."""
+    kernels decline."""
     scene = random_scene(0)
     cfg = CostConfig()
-    fused = CollisionCost(scene.grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
-    tensor = CollisionCost(scene.grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales, fused=False)
+    term = CollisionCost(scene.grid, beta=cfg.beta, plateau_scales=cfg.plateau_scales)
     x, w = _cloud(torch.float64, 2, 10, 101, 3)
+    assert term.kernels(x, w, torch.arange(101)) is not None
     x[0, 0, 50, 0] = 1e4  # far off the map
-    slices = torch.arange(101)
-    assert fused.kernels(x, w, slices) is None
-    scale = torch.ones(2, dtype=torch.float64)
-    for u, v in zip(_value_and_grads(fused, x, w, slices, scale), _value_and_grads(tensor, x, w, slices, scale)):
-        torch.testing.assert_close(u, v)
+    assert term.kernels(x, w, torch.arange(101)) is None
