@@ -25,6 +25,14 @@ _kernel = numba.njit(cache=True, nogil=True, error_model="numpy")
 
 
 @_kernel
+def _pose(x, b, t, n, pos_i, pos_j, head_i, unit):
+    """``(px, py, cos, sin)`` of state ``x[b, t, n]`` in its dtype (``head_i < 0``: ``unit = (1, 0)``)."""
+    if head_i >= 0:
+        return x[b, t, n, pos_i], x[b, t, n, pos_j], np.cos(x[b, t, n, head_i]), np.sin(x[b, t, n, head_i])
+    return x[b, t, n, pos_i], x[b, t, n, pos_j], unit[0], unit[1]
+
+
+@_kernel
 def cells(x, pos_i, pos_j, head_i, offsets, unit, origin, cell_size, nx, ny, slices, bounds, clamp, known, lin):
     """Memo cells of every disc centre of states ``x (B, T, N, nx)`` (time before samples: the memo's slices lie
     far apart in memory, each is read in one go): ``lin (B, T, N, m)`` (int64) = ``(k nx + ix) ny + iy`` of the
@@ -42,14 +50,7 @@ def cells(x, pos_i, pos_j, head_i, offsets, unit, origin, cell_size, nx, ny, sli
         for t in range(T):
             k = slices[t]
             for n in range(N):
-                px = x[b, t, n, pos_i]
-                py = x[b, t, n, pos_j]
-                if head_i >= 0:
-                    c = np.cos(x[b, t, n, head_i])
-                    s = np.sin(x[b, t, n, head_i])
-                else:
-                    c = unit[0]
-                    s = unit[1]
+                px, py, c, s = _pose(x, b, t, n, pos_i, pos_j, head_i, unit)
                 for j in range(m):
                     cx = px + offsets[j] * c
                     cy = py + offsets[j] * s
@@ -81,14 +82,7 @@ def accumulate(x, w, lin, table, pos_i, pos_j, head_i, offsets, unit, value, gra
         acc = 0.0
         for t in range(T):
             for n in range(N):
-                px = x[b, t, n, pos_i]
-                py = x[b, t, n, pos_j]
-                if head_i >= 0:
-                    c = np.cos(x[b, t, n, head_i])
-                    s = np.sin(x[b, t, n, head_i])
-                else:
-                    c = unit[0]
-                    s = unit[1]
+                px, py, c, s = _pose(x, b, t, n, pos_i, pos_j, head_i, unit)
                 wt = w[b, t, n]
                 e = 0.0
                 gx = 0.0
