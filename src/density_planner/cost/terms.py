@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from ..environment.grid import OccupancyGrid
 from ..risk.collision import CollisionModel
@@ -500,6 +501,7 @@ class _FusedCollision(torch.autograd.Function):
         return value.clone()
 
     @staticmethod
+    @once_differentiable  # the stored gradients are constants: no second derivatives on this path
     def backward(ctx, grad: Tensor):
         gx, gw = ctx.saved_tensors
         gx_out = gx * grad.reshape(*grad.shape, 1, 1, 1) if ctx.needs_input_grad[0] else None
