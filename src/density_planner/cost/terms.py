@@ -8,6 +8,7 @@ densities ``rho(x_i(t_k), t_k)`` of the paper (a single trajectory has weight 1)
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from collections.abc import Callable, Sequence
@@ -325,8 +326,8 @@ class _WindowMemo(_DesiredPositionMemo):
         return self.parent.root((k + self.k0).clamp(max=self.last))
 
     def __call__(self, xy: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
-        k = torch.as_tensor(k, device=xy.device).long()
-        return self.parent(xy, (k + self.k0).clamp(max=self.last))
+        memo, k = self.root(torch.as_tensor(k, device=xy.device).long())
+        return memo(xy, k)
 
 
 class CollisionCost(CostTerm):
@@ -398,9 +399,9 @@ class CollisionCost(CostTerm):
 
     def kernels(self, x: Tensor, w: Tensor, slices: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
         """The value ``(*batch,)`` and its gradients in ``x`` and in ``w`` (broadcast to ``x.shape[:-1]``: each
-        batch entry's own) from the compiled kernels
-        (:mod:`._jit`; CPU, float32 / float64, with the memo), or ``None`` where a disc centre lies off the grid
-        (a point vehicle beyond the map: the tensor path reads those directly)."""
+        batch entry's own) from the compiled kernels (:mod:`._jit`; CPU, float32 / float64, with the memo), or
+        ``None`` where a disc centre lies off the grid (a point vehicle beyond the map: the tensor path reads those
+        directly)."""
         jit = _jit_kernels()
         assert jit is not None and self._memo is not None
         batch, (n, t, nx_state) = x.shape[:-3], x.shape[-3:]
@@ -476,18 +477,16 @@ class CollisionCost(CostTerm):
 
 #: dtypes of the compiled collision kernels
 _FUSED_DTYPES = (torch.float32, torch.float64)
-_JIT: list = []
 
 
+@functools.cache
 def _jit_kernels():
     """The collision cost's numba kernels (:mod:`._jit`), or ``None`` without numba (the ``fast`` extra)."""
-    if not _JIT:
-        try:
-            from . import _jit
-        except ImportError:  # pragma: no cover - numba is an optional extra
-            _jit = None
-        _JIT.append(_jit)
-    return _JIT[0]
+    try:
+        from . import _jit
+    except ImportError:  # pragma: no cover - numba is an optional extra
+        return None
+    return _jit
 
 
 class _FusedCollision(torch.autograd.Function):
