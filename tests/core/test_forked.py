@@ -145,3 +145,62 @@ def test_importing_the_package_and_its_command_line_does_not_import_torch():
     code = "import sys, density_planner, density_planner.cli, density_planner.prefetch; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+# ------------------------------------------------------------------------------------------------ route seeds
+@needs_fork
+def test_route_seeds_from_the_forked_process_equal_the_ones_computed_here():
+    from dataclasses import replace
+
+    import torch
+
+    from density_planner.api import build_scene, load_run_config, set_up
+    from density_planner.evaluation.environments import shipped_commonroad_dir
+    from density_planner.planners import routes
+
+    rc = load_run_config()
+    scene = build_scene("commonroad", rc, file=shipped_commonroad_dir() / "ZAM_Tutorial-1_1_T-1.xml", quiet=True)
+    setup = set_up(scene, rc, kind="commonroad", planner="density", distribution_seed=0, progress=False)
+    problem, cfg = setup.problem, setup.planner.config.routes
+    here = routes.route_seed_parameters(problem, cfg)
+    assert here is not None and here.params.shape[0] >= 2
+    before = _children()
+    assert routes.start_route_seeds(problem, cfg)
+    assert not routes.start_route_seeds(problem, cfg)  # already being computed
+    there = routes.route_seed_parameters(problem, cfg)
+    assert torch.equal(there.params, here.params) and torch.equal(there.targets, here.targets)
+    assert there.labels == here.labels
+    # asked for other seeds (another configuration or dtype): computed here, the process ended
+    single = replace(cfg, max_routes=1)
+    assert routes.start_route_seeds(problem, cfg)
+    other = routes.route_seed_parameters(problem, single)
+    assert torch.equal(other.params, routes.route_seed_parameters(problem, single).params)
+    assert routes.start_route_seeds(problem, cfg, dtype=torch.float64)
+    assert routes.route_seed_parameters(problem, cfg).params.dtype == torch.float32
+    # seeds nobody takes: cancel_route_seeds ends the process
+    assert routes.start_route_seeds(problem, cfg)
+    routes.cancel_route_seeds(problem)
+    routes.cancel_route_seeds(problem)  # twice: nothing more
+    assert not routes._PENDING
+    assert not [p for p in mp.active_children() if p.is_alive() and p.pid not in before]
+    # the planner's prepare() starts them (a road scene, the CPU) and its stage 1 takes them
+    setup.planner.prepare(problem)
+    assert id(problem) in routes._PENDING
+    assert torch.equal(setup.planner.seed_candidates(problem), here.params)
+    assert not routes._PENDING
+
+
+def test_route_seeds_are_not_forked_where_they_cannot_be_used(monkeypatch):
+    import torch
+
+    from density_planner.planners import routes
+    from density_planner.planners.routes import RouteSeedConfig
+
+    class Problem:  # never read: each refusal comes first
+        pass
+
+    assert not routes.start_route_seeds(Problem(), RouteSeedConfig(enabled=False))
+    assert not routes.start_route_seeds(Problem(), device=torch.device("meta"))
+    monkeypatch.setattr(mp, "get_all_start_methods", lambda: ["spawn"])
+    assert not routes.start_route_seeds(Problem())
+    assert not routes._PENDING

@@ -115,9 +115,14 @@ def _set_up_and_plan(args, run_config, scene, clock, t_scene) -> int:
     # the exact re-check of the plan split over two cores (same figures)
     processes = min(2, default_workers()) if setup.context.device.type == "cpu" else None
     try:
+        if default_workers() > 1:  # e.g. the density planner's route seeds on the second core, meanwhile
+            setup.planner.prepare(setup.problem)
         with using_prediction_processes(processes):
             return _plan_and_write(args, setup, out, outputs, clock, t_scene)
     finally:  # an error, Ctrl-C or no plan: the output process ends here (after its files: nothing to do)
+        from ..planners.routes import cancel_route_seeds
+
+        cancel_route_seeds(setup.problem)
         if outputs is not None:
             outputs.cancel()
 
@@ -257,7 +262,7 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
     try:  # its warm-up yields the second core to the planner's helpers (road distance field, split prediction)
-        os.nice(5)
+        os.nice(19)
     except OSError:
         pass
     parent_end.close()  # the parent's end, inherited: else the pipe never reports the parent's end

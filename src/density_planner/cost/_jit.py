@@ -108,9 +108,9 @@ def accumulate(x, w, lin, table, pos_i, pos_j, head_i, offsets, unit, value, gra
         value[b] = acc
 
 
-def warm_up() -> None:
-    """Compile (or load from the cache) both kernels for float32 and float64 states."""
-    for dtype in (np.float32, np.float64):
+def warm_up(dtypes: tuple = (np.float32, np.float64)) -> None:
+    """Compile (or load from the cache) both kernels for states of each of ``dtypes`` (numpy dtypes)."""
+    for dtype in dtypes:
         x = np.zeros((1, 3, 2, 5), dtype=dtype)
         w = np.ones((1, 3, 2), dtype=dtype)
         off = np.array([-1.0, 1.0], dtype=dtype)

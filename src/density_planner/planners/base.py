@@ -111,6 +111,11 @@ class Planner(ABC):
     def plan(self, problem: PlanningProblem) -> PlanResult:
         """Plan for ``problem``; never raises for solver trouble (status says what happened)."""
 
+    def prepare(self, problem: PlanningProblem) -> None:
+        """Start work of :meth:`plan` for ``problem`` that needs no earlier result, for a caller with an idle core
+        that will plan next (the ``plan`` command); the plan is the same with or without. Default: nothing."""
+        return None
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"
 

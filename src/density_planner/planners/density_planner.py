@@ -39,7 +39,7 @@ from torch import Tensor
 from ..checks import check_choice, check_seed
 from ..control.reference import Reference, make_reference, plan_grid_reference
 from ..cost.composite import CostBreakdown, CostConfig, WeightedCost, build_cost
-from ..cost.terms import CostInputs
+from ..cost.terms import CostInputs, load_collision_kernels
 from ..density.base import DensityPredictor, DensityTrajectory, sample_weights
 from ..density.distributions import rejection_sample
 from ..density.split import predict_split, prediction_processes
@@ -48,7 +48,7 @@ from .base import Planner, PlanResult, PlanStatus
 from .optim import BatchedAdam
 from .problem import PlanningProblem
 from .registry import PlannerContext, register_planner
-from .routes import RouteSeedConfig, route_seed_parameters
+from .routes import RouteSeedConfig, route_seed_parameters, start_route_seeds
 
 __all__ = ["DensityPlannerConfig", "DensityPlanner", "sample_initial_states"]
 
@@ -258,6 +258,18 @@ class DensityPlanner(Planner):
         history.setdefault("total", []).append(float(cost.total.detach().reshape(())))
         for k, v in cost.terms.items():
             history.setdefault(k, []).append(float(v.detach().reshape(())))
+
+    def prepare(self, problem: PlanningProblem) -> None:
+        """:meth:`Planner.prepare`: the route seeds in a forked process on road scenes
+        (:func:`.routes.start_route_seeds`; CPU) and, meanwhile, the compiled collision kernels loaded here where a
+        body's cost will read them (:func:`~density_planner.cost.terms.load_collision_kernels`): on suite
+        scenarios the seeds' 0.5-1.2 s and the kernels' ~0.7 s then overlap. A caller that does not plan ends the
+        seeds' process with :func:`.routes.cancel_route_seeds`."""
+        if self.candidate_seeds is None and getattr(problem.scene, "road", None) is not None:
+            start_route_seeds(problem, self.config.routes, dtype=self.dtype, device=self.device)
+        footprint = problem.system.footprint
+        if self.device.type == "cpu" and problem.risk.body and max(footprint.length, footprint.width) > 0:
+            load_collision_kernels(self.dtype)
 
     def seed_candidates(self, problem: PlanningProblem) -> Tensor | None:
         """Extra stage-1 candidates ``(K, nu, n_segments)`` (see ``candidate_seeds``), or ``None``."""

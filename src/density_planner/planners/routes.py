@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,6 +55,8 @@ __all__ = [
     "cap_profiles",
     "fit_reference_parameters",
     "route_seed_parameters",
+    "start_route_seeds",
+    "cancel_route_seeds",
 ]
 
 log = logging.getLogger(__name__)
@@ -911,6 +914,59 @@ def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
     return occupancy
 
 
+#: route seeds being computed in forked processes (:func:`start_route_seeds`): id(problem) -> (weak reference to
+#: the problem, key, ForkedCall) (problems are mutable dataclasses: not hashable)
+_PENDING: dict[int, tuple[weakref.ref, tuple, Any]] = {}
+
+
+def _take_pending(problem: Any) -> tuple[tuple, Any] | None:
+    """The pending ``(key, call)`` of ``problem`` (removed), or ``None``."""
+    entry = _PENDING.pop(id(problem), None)
+    if entry is None:
+        return None
+    if entry[0]() is not problem:  # another problem at a recycled id: end that one's process
+        entry[2].cancel()
+        return None
+    return entry[1], entry[2]
+
+
+def _seed_key(config: RouteSeedConfig | None, dtype: torch.dtype, device: torch.device | str) -> tuple:
+    return config or RouteSeedConfig(), dtype, str(torch.device(device))
+
+
+def start_route_seeds(problem: Any, config: RouteSeedConfig | None = None, *, dtype: torch.dtype = torch.float32,
+                      device: torch.device | str = "cpu") -> bool:
+    """Start :func:`route_seed_parameters` (same arguments, default lanes and speed limits) in a forked process
+    (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the next
+    :func:`route_seed_parameters` call for the same problem, configuration, dtype and device takes its result (the
+    same seeds: the same computation, on one torch thread). The ``plan`` command starts it once the problem is set
+    up, and loads the cost kernels and builds the cost meanwhile (0.3-0.9 s of route search, risk-aware profiles
+    and fit on suite scenarios). Returns whether a process was started (not on a GPU, without ``fork``, with the
+    seeds disabled, or while one is already computing them); :func:`cancel_route_seeds` ends one not taken."""
+    from ..parallel import ForkedCall
+
+    cfg = config or RouteSeedConfig()
+    if not cfg.enabled or torch.device(device).type != "cpu" or id(problem) in _PENDING:
+        return False
+    call = ForkedCall.start(_computed_seeds, problem, cfg, dtype, device)
+    if call is None:
+        return False
+    _PENDING[id(problem)] = (weakref.ref(problem), _seed_key(cfg, dtype, device), call)
+    return True
+
+
+def cancel_route_seeds(problem: Any) -> None:
+    """End the process :func:`start_route_seeds` started for ``problem`` if its seeds were not taken."""
+    pending = _take_pending(problem)
+    if pending is not None:
+        pending[1].cancel()
+
+
+def _computed_seeds(problem: Any, config: RouteSeedConfig, dtype: torch.dtype, device: str) -> RouteSeeds | None:
+    """Target of :func:`start_route_seeds`'s process."""
+    return route_seed_parameters(problem, config, dtype=dtype, device=device)
+
+
 def route_seed_parameters(
     problem: Any,
     config: RouteSeedConfig | None = None,
@@ -931,6 +987,18 @@ def route_seed_parameters(
     cfg = config or RouteSeedConfig()
     if not cfg.enabled:
         return None
+    pending = _take_pending(problem) if lane_graph is None and v_limits is None else None
+    if pending is not None:
+        key, call = pending
+        if key == _seed_key(cfg, dtype, device):
+            from ..parallel import ForkedCallError
+
+            try:
+                return call.result()
+            except ForkedCallError as exc:  # computed here instead (the same seeds)
+                log.debug("route seeds: %s; computing them here", exc)
+        else:
+            call.cancel()
     graph = lane_graph if lane_graph is not None else scene_lane_graph(problem.scene)
     if graph is None:
         return None
