@@ -261,7 +261,7 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
-    try:  # its warm-up yields the second core to the planner's helpers (road distance field, split prediction)
+    try:  # its warm-up takes only a core the planner's helpers (road distance field, route seeds) leave idle
         os.nice(19)
     except OSError:
         pass
