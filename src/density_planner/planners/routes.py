@@ -939,10 +939,11 @@ def start_route_seeds(problem: Any, config: RouteSeedConfig | None = None, *, dt
     """Start :func:`route_seed_parameters` (same arguments, default lanes and speed limits) in a forked process
     (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the next
     :func:`route_seed_parameters` call for the same problem, configuration, dtype and device takes its result (the
-    same seeds: the same computation, on one torch thread). The ``plan`` command starts it once the problem is set
-    up, and loads the cost kernels and builds the cost meanwhile (0.3-0.9 s of route search, risk-aware profiles
-    and fit on suite scenarios). Returns whether a process was started (not on a GPU, without ``fork``, with the
-    seeds disabled, or while one is already computing them); :func:`cancel_route_seeds` ends one not taken."""
+    seeds computed here on one torch thread, bit for bit: the same computation). The ``plan`` command starts it
+    once the problem is set up (:meth:`~density_planner.planners.density_planner.DensityPlanner.prepare`) and loads
+    the collision kernels meanwhile (0.5-1.2 s of route search, risk-aware profiles and fit on suite scenarios).
+    Returns whether a process was started (not on a GPU, without ``fork``, with the seeds disabled, or while one is
+    already computing them for ``problem``); :func:`cancel_route_seeds` ends one whose seeds nobody takes."""
     from ..parallel import ForkedCall
 
     cfg = config or RouteSeedConfig()
