@@ -455,8 +455,9 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
     """plan.png (with the verdict), plan.gif and costs.png of a plan; returns the names written. ``clock``: an
     object whose ``lap(name)`` is called after each step (the command's timings).
 
-    The GIF and costs.png are drawn in a forked child process while this one draws plan.png (where ``fork``
-    exists; else in turn): the wall time then holds only the slower of the two."""
+    The GIF is drawn in a forked child process while this one draws plan.png (where ``fork`` exists; else in
+    turn), and costs.png by whichever of the two is free first (a shared flag says which took it): the wall time
+    then holds only the slower of the two."""
     import multiprocessing as mp
 
     from .viz.plan import animate_plan, plot_costs, plot_plan
@@ -476,41 +477,61 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
              f"{result.timings.get('total', float('nan')):.1f} s")
     label = "reference" if result.reference is not None else "executed (nominal model)"
     written = []
-    later = []  # figures drawn beside plan.png: (file name, lap name, draw)
+    later = []  # figures drawn beside plan.png: (file name, lap name, draw); the GIF by the child
     if gif:
         later.append(("plan.gif", "gif", lambda: animate_plan(scene, states, out / "plan.gif", samples_x=sx,
                                                                samples_log_rho=slx)))
+    shared = []  # drawn by whichever process is free first
     if result.cost_history:
-        later.append(("costs.png", "costs_png", lambda: plot_costs(result.cost_history, out / "costs.png",
-                                                                    title=f"{result.planner}: cost per iteration")))
-    child = None
-    if later and "fork" in mp.get_all_start_methods():
-        child = mp.get_context("fork").Process(target=_run_quietly, args=([draw for _, _, draw in later],),
-                                               daemon=True)
+        shared.append(("costs.png", "costs_png", lambda: plot_costs(result.cost_history, out / "costs.png",
+                                                                     title=f"{result.planner}: cost per iteration")))
+    child = claim = None
+    if (later or shared) and "fork" in mp.get_all_start_methods():
+        ctx = mp.get_context("fork")
+        claim = ctx.Value("b", 0)  # 1 once a process took the shared figures
+        child = ctx.Process(target=_run_quietly, args=([draw for _, _, draw in later],
+                                                       [draw for _, _, draw in shared], claim), daemon=True)
         child.start()
     plot_plan(scene, states, out / "plan.png", samples_x=sx, samples_log_rho=slx, title=title, label=label,
               verdict=verdict, body=body)
     written.append("plan.png")
     lap("plan_png")
     if child is None:
-        for _, name, draw in later:
+        for _, name, draw in later + shared:
             draw()
             lap(name)
     else:
+        if child.is_alive() and _claimed(claim):  # the child still draws the GIF: the shared figures here
+            for _, name, draw in shared:
+                draw()
+                lap(name)
         child.join()
         lap("child_wait")
         if child.exitcode != 0:
-            names = " and ".join(str(out / name) for name, _, _ in later)
+            names = " and ".join(str(out / name) for name, _, _ in later + shared)
             raise RuntimeError(f"drawing {names} failed (exit code {child.exitcode})"
                                + ("; rerun with --no-gif" if gif else ""))
-    written += [name for name, _, _ in later]
+    written += [name for name, _, _ in later + shared]
     return written
 
 
-def _run_quietly(draws) -> None:
-    """Target of the figure process: one torch thread, then each of ``draws`` in turn."""
+def _claimed(claim) -> bool:
+    """Take the shared figures (``claim``: a shared byte, 0 while nobody has); whether this process got them."""
+    with claim.get_lock():
+        if claim.value:
+            return False
+        claim.value = 1
+        return True
+
+
+def _run_quietly(draws, shared=(), claim=None) -> None:
+    """Target of the figure process: one torch thread, each of ``draws`` in turn, then ``shared`` unless the parent
+    took them (``claim``, :func:`_claimed`)."""
     import torch
 
     torch.set_num_threads(1)
     for draw in draws:
         draw()
+    if shared and (claim is None or _claimed(claim)):
+        for draw in shared:
+            draw()

@@ -1,4 +1,4 @@
-"""The plan's animation: frames, timing and what each frame shows."""
+"""The plan's animation (frames, timing, what each frame shows) and which process draws which figure."""
 
 from __future__ import annotations
 
@@ -41,3 +41,57 @@ def test_animation_frames_and_playback(tmp_path, T, every, n_frames, duration):
     assert (first.max(-1) < 60).any()  # the block (p = 0.9) is dark grey on the white road
     with pytest.raises(ValueError, match="every must be an integer"):
         animate_plan(scene, states, tmp_path / "c.gif", every=0)
+
+
+class _Laps:
+    def __init__(self) -> None:
+        self.names: list[str] = []
+
+    def lap(self, name: str) -> None:
+        self.names.append(name)
+
+
+@pytest.mark.skipif("fork" not in __import__("multiprocessing").get_all_start_methods(), reason="needs fork")
+def test_costs_figure_is_drawn_once_by_whichever_process_is_free_first(tmp_path, monkeypatch):
+    """plan.gif is drawn by a forked child beside plan.png; costs.png by the parent when the child is still busy
+    with the GIF, else by the child; never by both, and always written."""
+    import time
+
+    import torch
+    from helpers import empty_scene
+
+    import density_planner.viz.plan as viz_plan
+    from density_planner.api import write_plan_figures
+    from density_planner.planners.base import PlanResult, PlanStatus
+
+    scene = empty_scene()
+    result = PlanResult("density", PlanStatus.SUCCESS, states=torch.tensor(_straight(101), dtype=torch.float32),
+                        cost_history={"stage1": {"total": [3.0, 2.0, 1.0]}})
+    draw_costs = viz_plan.plot_costs
+    marks = tmp_path / "costs_drawn"  # one line per draw of costs.png, from either process
+
+    def counted_costs(history, path, **kwargs):
+        with open(marks, "a") as fh:
+            fh.write(f"{path}\n")
+        return draw_costs(history, path, **kwargs)
+
+    def gif_until_costs(scene, states, path, **kwargs):  # busy until the parent has drawn costs.png (60 s at most)
+        for _ in range(600):
+            if (path.parent / "costs.png").exists():
+                break
+            time.sleep(0.1)
+        path.write_bytes(b"GIF89a")
+
+    monkeypatch.setattr(viz_plan, "plot_costs", counted_costs)
+    monkeypatch.setattr(viz_plan, "animate_plan", gif_until_costs)
+    for name in ("busy", "idle"):
+        (tmp_path / name).mkdir()
+    laps = _Laps()
+    written = write_plan_figures(tmp_path / "busy", scene, result, None, clock=laps)
+    assert sorted(written) == ["costs.png", "plan.gif", "plan.png"]
+    assert laps.names == ["plan_png", "costs_png", "child_wait"]  # the parent took costs.png
+    # without a GIF the child is free at once: whoever takes costs.png, it is drawn once
+    laps = _Laps()
+    written = write_plan_figures(tmp_path / "idle", scene, result, None, gif=False, clock=laps)
+    assert sorted(written) == ["costs.png", "plan.png"] and (tmp_path / "idle" / "costs.png").stat().st_size > 0
+    assert marks.read_text().splitlines() == [str(tmp_path / name / "costs.png") for name in ("busy", "idle")]
