@@ -488,7 +488,10 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
     child = claim = None
     if (later or shared) and "fork" in mp.get_all_start_methods():
         ctx = mp.get_context("fork")
-        claim = ctx.Value("b", 0)  # 1 once a process took the shared figures
+        try:
+            claim = ctx.Value("b", 0)  # 1 once a process took the shared figures
+        except OSError:  # no shared-memory semaphores here (e.g. no /dev/shm): the child draws them
+            claim = None
         child = ctx.Process(target=_run_quietly, args=([draw for _, _, draw in later],
                                                        [draw for _, _, draw in shared], claim), daemon=True)
         child.start()
@@ -501,7 +504,7 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
             draw()
             lap(name)
     else:
-        if child.is_alive() and _claimed(claim):  # the child still draws the GIF: the shared figures here
+        if claim is not None and child.is_alive() and _claimed(claim):  # the child still draws the GIF: here
             for _, name, draw in shared:
                 draw()
                 lap(name)

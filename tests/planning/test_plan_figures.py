@@ -95,3 +95,14 @@ def test_costs_figure_is_drawn_once_by_whichever_process_is_free_first(tmp_path,
     written = write_plan_figures(tmp_path / "idle", scene, result, None, gif=False, clock=laps)
     assert sorted(written) == ["costs.png", "plan.png"] and (tmp_path / "idle" / "costs.png").stat().st_size > 0
     assert marks.read_text().splitlines() == [str(tmp_path / name / "costs.png") for name in ("busy", "idle")]
+    # no shared-memory semaphore for the flag (e.g. no /dev/shm): the child draws costs.png, once
+    import multiprocessing.context
+
+    def no_semaphores(*args, **kwargs):
+        raise OSError("function not implemented")
+
+    monkeypatch.setattr(multiprocessing.context.BaseContext, "Value", no_semaphores)
+    (tmp_path / "plain").mkdir()
+    laps = _Laps()
+    write_plan_figures(tmp_path / "plain", scene, result, None, gif=False, clock=laps)
+    assert laps.names == ["plan_png", "child_wait"] and marks.read_text().count("plain") == 1
