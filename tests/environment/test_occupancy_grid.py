@@ -192,3 +192,29 @@ def test_drop_caches_forgets_derived_grids_and_recomputes_them_equal():
     again = grid.gradient()
     assert again is not first
     torch.testing.assert_close(again, first)
+
+
+def test_value_range_is_remembered_until_an_in_place_edit(monkeypatch):
+    """The constructor's range check is remembered: validating the scene again reads no cell; a torch edit of the
+    grid in place (its version counter) is seen and checked again."""
+    from density_planner.environment.scene import Scene, validate_scene
+
+    probs = torch.zeros(3, 20, 30)
+    probs[1, 4:8, 5:9] = 0.7
+    grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=0.5)
+    scene = Scene(grid, (1.0, 1.0, 0.0, 1.0), (8.0, 12.0), (0.0, 9.5, 0.0, 14.5), name="ranged")
+    passes = []
+    real = torch.aminmax
+    monkeypatch.setattr(torch, "aminmax", lambda t: passes.append(1) or real(t))
+    assert grid.value_range() == (0.0, pytest.approx(0.7))
+    validate_scene(scene)
+    validate_scene(scene)
+    assert passes == []
+    grid.probs[2, 10, 10] = 0.9  # in place: seen
+    assert grid.value_range() == (0.0, pytest.approx(0.9)) and passes == [1]
+    grid.probs[0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        validate_scene(scene)
+    assert len(passes) == 2
+    grid.drop_caches()  # forgotten with the other derived values: computed again
+    assert np.isnan(grid.value_range()[0]) and len(passes) == 3

@@ -140,10 +140,9 @@ def validate_scene(scene: Scene, *, start_threshold: float = START_OCCUPIED_THRE
     (default :data:`START_OCCUPIED_THRESHOLD` = 0.9), a negative start speed.
     """
     grid = scene.grid
-    # one pass (torch.isfinite on a road scene's 100M-cell grid takes seconds): NaN propagates into min and max,
-    # an infinite value lies outside [0, 1]
-    lo_t, hi_t = torch.aminmax(grid.probs)
-    lo, hi = float(lo_t), float(hi_t)
+    # one pass (torch.isfinite on a road scene's 100M-cell grid takes seconds), remembered while the grid is not
+    # changed in place: NaN propagates into min and max, an infinite value lies outside [0, 1]
+    lo, hi = grid.value_range()
     if math.isnan(lo) or math.isnan(hi):
         raise ValueError(f"scene {scene.name!r}: occupancy grid contains NaN values")
     if lo < 0 or hi > 1:
