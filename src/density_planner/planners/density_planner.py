@@ -267,8 +267,8 @@ class DensityPlanner(Planner):
         seeds' process with :func:`.routes.cancel_route_seeds`."""
         if self.candidate_seeds is None and getattr(problem.scene, "road", None) is not None:
             start_route_seeds(problem, self.config.routes, dtype=self.dtype, device=self.device)
-        footprint = problem.system.footprint
-        if self.device.type == "cpu" and problem.risk.body and max(footprint.length, footprint.width) > 0:
+        # the collision cost's condition for its compiled path: a body on the CPU (the model is cached on the scene)
+        if self.device.type == "cpu" and not problem.collision(self.device).is_point:
             load_collision_kernels(self.dtype)
 
     def seed_candidates(self, problem: PlanningProblem) -> Tensor | None:

@@ -930,8 +930,8 @@ def _take_pending(problem: Any) -> tuple[tuple, Any] | None:
     return entry[1], entry[2]
 
 
-def _seed_key(config: RouteSeedConfig | None, dtype: torch.dtype, device: torch.device | str) -> tuple:
-    return config or RouteSeedConfig(), dtype, str(torch.device(device))
+def _seed_key(config: RouteSeedConfig, dtype: torch.dtype, device: torch.device | str) -> tuple:
+    return config, dtype, str(torch.device(device))
 
 
 def start_route_seeds(problem: Any, config: RouteSeedConfig | None = None, *, dtype: torch.dtype = torch.float32,
