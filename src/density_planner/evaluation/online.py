@@ -86,8 +86,14 @@ class OnlineConfig:
     #: prediction) / 11 (oracle) verdicts and 1 s 13 / 14, the offline plan 14; the half-segment replans left the
     #: road in three turns
     period: float = 0.0
-    #: stage-2 iterations of a warm-started replan
+    #: stage-2 iterations of a warm-started replan (at most: ``replan_patience``)
     replan_epochs: int = 10
+    #: a replan stops once its best objective has not fallen (by ``density_planner.patience_tolerance`` relative
+    #: plus ``backtrack_slack``) for this many iterations (0: all ``replan_epochs``). A warm start that is still
+    #: optimal (a scene as predicted, a measurement on the plan) then costs 3 iterations instead of 10 (issue 17's
+    #: speed target, ``benchmarks/bench_replan.py``: docs/planner.md, "Online driving"); a replan that improves
+    #: goes on
+    replan_patience: int = 2
     #: initial samples of a replan (0: density_planner.n_samples)
     replan_samples: int = 0
     #: Adam learning rate of a replan (0, default: density_planner.lr, 0.01). Until stop 33 five times that (0.05,
@@ -125,8 +131,10 @@ class OnlineConfig:
     #: reference starts at the measurement, and a heading error there turns the whole warm start (3.8 m off the
     #: goal after 7.5 s at 10 m/s and 0.05 rad)
     continue_reference: bool = True
-    #: on road scenes, a replan's horizon ends with the goal's time interval (whole segments), as the offline plan's
-    #: does (false: every replan plans the full horizon from its own time, past the goal's end)
+    #: a replan's horizon ends with the run (whole segments): on road scenes with the goal's time interval, as the
+    #: offline plan's does; on other scenes after ``duration`` (the first plan's horizon by default), so that the
+    #: goal is still to be reached when the first plan reached it and the shifted plan stays a solution (false:
+    #: every replan plans the full horizon from its own time, past the run's end)
     shrink_horizon: bool = True
     #: steering rates of the braking candidates, as fractions of the largest steering rate
     brake_steer: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
@@ -168,6 +176,9 @@ class OnlineConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"online.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.replan_patience, bool) or not isinstance(self.replan_patience, int) \
+                or self.replan_patience < 0:
+            raise ValueError(f"online.replan_patience must be an integer >= 0 (0: off), got {self.replan_patience!r}")
         if isinstance(self.replan_samples, bool) or not isinstance(self.replan_samples, int) or self.replan_samples < 0:
             raise ValueError(f"online.replan_samples must be an integer >= 0, got {self.replan_samples!r}")
         if not self.brake_steer or not all(math.isfinite(s) and -1 <= s <= 1 for s in self.brake_steer):
@@ -440,10 +451,10 @@ def best_objective(result: PlanResult) -> float:
 
 
 def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor | None, *, epochs: int, samples: int,
-                seed: int = 0, lr: float = 0.0, update_clip: float = 0.0,
+                seed: int = 0, lr: float = 0.0, update_clip: float = 0.0, patience: int = 0,
                 extra_seeds: Tensor | None = None) -> tuple[PlanResult, bool]:
-    """A replan of the density planner: stage 2 (``epochs`` iterations, ``samples`` initial samples) from the
-    warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``, with ``extra_seeds (K, nu, S)``
+    """A replan of the density planner: stage 2 (``epochs`` iterations, fewer with ``patience``: see
+    ``DensityPlannerConfig.patience``; ``samples`` initial samples) from the warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``, with ``extra_seeds (K, nu, S)``
     among its candidates (:meth:`DensityPlanner.initialise`; its own generator, so that stage 2 draws the same
     samples as a warm replan with the same ``seed``). Returns the result and whether the warm start was used. The
     reported collision probability is that of the best iterate's sample cloud (no fresh draw: a replan is judged
@@ -452,7 +463,7 @@ def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor 
     fast = copy.copy(planner)
     fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
                           fresh_evaluation_samples=False, lr=float(lr or cfg.lr),
-                          update_clip=float(update_clip or cfg.update_clip))
+                          update_clip=float(update_clip or cfg.update_clip), patience=int(patience))
     fast.progress = False
     if getattr(fast.predictor, "fallback", None) is not None:  # online: refuse rather than minutes of exact Liouville
         predictor: Any = copy.copy(fast.predictor)
@@ -478,7 +489,7 @@ def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor 
     timings["total"] = time.perf_counter() - t0
     return PlanResult(planner.name, PlanStatus.SUCCESS, params=params, reference=ref.select(0),
                       states=ref.x_plan[0], cost=cost, collision=coll, timings=timings,
-                      cost_history={"stage2": hist}, iterations={"stage2": int(epochs)}), used_warm
+                      cost_history={"stage2": hist}, iterations={"stage2": int(hist["iterations"][0])}), used_warm
 
 
 def _rescue(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor, result: PlanResult, rec: Replan,
@@ -492,7 +503,7 @@ def _rescue(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor, res
     seeds = torch.stack([warm.to(result.params.dtype), result.params.detach()])
     rescue, _ = warm_replan(planner, problem, None, epochs=config.replan_epochs, samples=config.replan_samples,
                             seed=seed, lr=config.replan_lr, update_clip=config.replan_update_clip,
-                            extra_seeds=seeds)
+                            patience=config.replan_patience, extra_seeds=seeds)
     rec.rescue_p_coll = float(rescue.collision.max) if rescue.collision is not None else math.nan
     if rescue.ok and best_objective(rescue) < best_objective(result):
         rec.rescue = "used"
@@ -516,7 +527,7 @@ def _replan_parameterization(par: PiecewiseConstantInputs, goal_end: float | Non
                              shrink: bool) -> PiecewiseConstantInputs:
     """The parameterisation of a replan at ``t``: ``par``, or with ``shrink`` and a goal that ends at ``goal_end``
     [s, absolute] within ``par``'s horizon, the whole segments that reach the goal's end (at least one): the plan ends
-    with the goal's time interval, as the offline plan does."""
+    with the goal's time interval, as the offline plan does (scenes without one: the run's end)."""
     if not shrink or goal_end is None:
         return par
     n = max(1, math.ceil((goal_end - t) / par.segment_duration - 1e-9))
@@ -621,7 +632,9 @@ def drive(
                          f"{plan_dt} s")
     period_steps = int(round(steps_per_period))
     length = _run_length(scene, config, horizon)
-    goal_end = scene.road.goal.time_interval[1] if scene.road is not None else None
+    assert scene.t_start is not None  # set by Scene.__post_init__
+    # where the replans' horizons end (``shrink_horizon``): the goal's time interval, else the run's end
+    goal_end = scene.road.goal.time_interval[1] if scene.road is not None else scene.t_start + length
     n_total = max(1, int(math.floor(length / plan_dt + 1e-9)))  # planning steps driven
     dtype = getattr(planner, "dtype", torch.float32)
     device = getattr(planner, "device", torch.device("cpu"))
@@ -798,7 +811,8 @@ def drive(
                         result, rec.warm_start = warm_replan(dp, prob, warm, epochs=config.replan_epochs,
                                                              samples=config.replan_samples, seed=i_replan,
                                                              lr=config.replan_lr,
-                                                             update_clip=config.replan_update_clip)
+                                                             update_clip=config.replan_update_clip,
+                                                             patience=config.replan_patience)
                         if (rec.warm_start and warm is not None and result.ok and result.params is not None
                                 and result.collision is not None
                                 and float(result.collision.max) > config.rescue_p_coll):
