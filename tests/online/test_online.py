@@ -139,6 +139,9 @@ def test_config_validation():
         OnlineConfig(refit_iterations=-1)
     with pytest.raises(ValueError, match="replan_epochs"):
         OnlineConfig(replan_epochs=0)
+    for bad in (-1, True, 1.5):
+        with pytest.raises(ValueError, match="online.replan_patience must be an integer >= 0"):
+            OnlineConfig(replan_patience=bad)
     with pytest.raises(ValueError, match="brake_steer"):
         OnlineConfig(brake_steer=(2.0,))
     for bad in (-0.1, 1.5, math.nan, True):
@@ -199,6 +202,36 @@ class _FailingPlanner(DensityPlanner):
 
     def refine(self, *args, **kwargs):
         raise RuntimeError("injected failure")
+
+
+def test_replan_patience_stops_a_replan_that_makes_no_progress(setup):
+    """With ``patience`` a replan is the prefix of the full replan (the same samples and steps) that ends once its
+    best objective has not fallen by the tolerance for ``patience`` iterations; without, all ``epochs`` run."""
+    car, _, scene, problem, planner, plan = setup
+    prob = _replan_problem(problem, scene, plan.reference.x_plan[10], 1.0)
+    warm = shift_parameters(plan.params.double(), 1.0, 1.0)
+    full, _ = warm_replan(planner, prob, warm, epochs=10, samples=50, seed=4)
+    totals = full.cost_history["stage2"]["total"]
+    assert full.iterations["stage2"] == len(totals) == 10
+    cfg = planner.config
+    for patience in (1, 2, 3):
+        short, _ = warm_replan(planner, prob, warm, epochs=10, samples=50, seed=4, patience=patience)
+        n = short.iterations["stage2"]
+        assert n == len(short.cost_history["stage2"]["total"])
+        assert short.cost_history["stage2"]["total"] == totals[:n]  # a prefix of the full replan
+        # the rule (DensityPlannerConfig.patience): progress is a cost below the last progress's by the relative
+        # tolerance plus the backtracking slack; the replan stops `patience` iterations after the last progress
+        progress_at, progress_cost, stop = 0, totals[0], 10
+        for k in range(1, 10):
+            if totals[k] < progress_cost - cfg.patience_tolerance * abs(progress_cost) - cfg.backtrack_slack:
+                progress_at, progress_cost = k, totals[k]
+            if k - progress_at >= patience:
+                stop = k + 1
+                break
+        assert n == stop
+    # from the full replan's best iterate (nearly converged, the same scene) it stops early
+    stalled, _ = warm_replan(planner, prob, full.params.double(), epochs=10, samples=50, seed=4, patience=2)
+    assert stalled.iterations["stage2"] < 10
 
 
 def test_failed_replans_fall_back_and_are_recorded(setup):
@@ -305,6 +338,21 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert plot_run(scene, res, tmp_path / "run.png").stat().st_size > 10_000
     assert animate_run(scene, res, tmp_path / "run.gif").stat().st_size > 1_000
     assert math.isfinite(res.controller_step_time)
+
+
+def test_replan_horizons_end_with_the_run_on_random_scenes(setup):
+    """A random scene's run lasts ``online.duration``; with ``shrink_horizon`` every replan plans to its end (the
+    first plan's goal time), without it the full horizon."""
+    car, ctrl, scene, problem, planner, plan = setup
+    cfg = OnlineConfig(duration=3.0, period=1.0, replan_epochs=1, replan_samples=20, overrun="use")
+    short = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, keep_snapshots=True)
+    full = drive(scene, planner, ctrl, system=car, config=dataclasses.replace(cfg, shrink_horizon=False),
+                 initial_plan=plan, keep_snapshots=True)
+    assert [round(r.t, 6) for r in short.replans] == [0.0, 1.0, 2.0]
+    assert all(r.warm_start and r.status == "success" for r in short.replans[1:])
+    # planning points: 10 per 1-s segment, plus the start
+    assert [len(s["plan"]) for s in short.snapshots] == [101, 21, 11]
+    assert [len(s["plan"]) for s in full.snapshots] == [101, 101, 101]
 
 
 def test_warm_replans_continue_the_previous_reference(setup):
