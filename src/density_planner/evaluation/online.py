@@ -454,11 +454,11 @@ def warm_replan(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor 
                 seed: int = 0, lr: float = 0.0, update_clip: float = 0.0, patience: int = 0,
                 extra_seeds: Tensor | None = None) -> tuple[PlanResult, bool]:
     """A replan of the density planner: stage 2 (``epochs`` iterations, fewer with ``patience``: see
-    ``DensityPlannerConfig.patience``; ``samples`` initial samples) from the warm-start parameters ``warm (nu, S)``; stage 1 first when ``warm`` is ``None``, with ``extra_seeds (K, nu, S)``
-    among its candidates (:meth:`DensityPlanner.initialise`; its own generator, so that stage 2 draws the same
-    samples as a warm replan with the same ``seed``). Returns the result and whether the warm start was used. The
-    reported collision probability is that of the best iterate's sample cloud (no fresh draw: a replan is judged
-    by the next one)."""
+    ``DensityPlannerConfig.patience``; ``samples`` initial samples) from the warm-start parameters ``warm (nu, S)``;
+    stage 1 first when ``warm`` is ``None``, with ``extra_seeds (K, nu, S)`` among its candidates
+    (:meth:`DensityPlanner.initialise`; its own generator, so that stage 2 draws the same samples as a warm replan
+    with the same ``seed``). Returns the result and whether the warm start was used. The reported collision
+    probability is that of the best iterate's sample cloud (no fresh draw: a replan is judged by the next one)."""
     cfg = planner.config
     fast = copy.copy(planner)
     fast.config = replace(cfg, epochs_density=int(epochs), n_samples=int(samples or cfg.n_samples),
