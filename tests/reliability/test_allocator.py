@@ -72,3 +72,36 @@ def test_glibc_settings_of_the_user_win():
     assert r["tuned"] is False and r["again"] is False
     assert r["mapped"] >= 19.9 and r["heap"] < 1
     assert r["kept"] < 1
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/statm"), reason="Linux /proc only")
+def test_lazy_zeros_touch_only_the_pages_written():
+    """``lazy_zeros``: zeros of the asked shape and dtype, writable, shared with numpy; a 256 MiB block costs
+    resident memory only for the pages written (a few cells far apart), not for the whole block as ``torch.zeros``
+    does; small blocks and other devices are plain ``torch.zeros``."""
+    import torch
+
+    from density_planner.memory import lazy_zeros
+
+    for dtype in (torch.bool, torch.uint8, torch.float32):
+        z = lazy_zeros((4, 512, 1024), dtype)
+        assert z.shape == (4, 512, 1024) and z.dtype == dtype and z.is_contiguous()
+        assert not bool(z.any())
+        z[1, 2, 3] = 1
+        assert int(z.to(torch.int64).sum()) == 1 and z.numpy()[1, 2, 3] == 1
+    small = lazy_zeros((10,), torch.float64)
+    assert small.dtype == torch.float64 and float(small.abs().sum()) == 0.0
+    before = _rss_bytes()
+    big = lazy_zeros((256 * 2**20,), torch.uint8)
+    big[:: 2**24] = 1  # 16 cells, 16 MiB apart
+    grown = _rss_bytes() - before
+    assert grown < 8 * 2**20, grown
+    assert int(big.count_nonzero()) == 16
+    reference = torch.zeros(64 * 2**20, dtype=torch.uint8)
+    assert _rss_bytes() - before - grown >= 32 * 2**20  # the measurement sees a torch.zeros block
+    del big, reference

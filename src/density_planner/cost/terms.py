@@ -20,6 +20,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from ..environment.grid import OccupancyGrid
+from ..memory import lazy_zeros
 from ..risk.collision import CollisionModel
 
 __all__ = ["CostInputs", "CostTerm", "GoalCost", "InputCost", "BoundsCost", "CollisionCost", "desired_positions"]
@@ -250,7 +251,7 @@ class _DesiredPositionMemo:
         if self._table is None or self._table.dtype != dtype or self._table.device != torch.device(device):
             t, nx, ny = self.grid.shape
             self._table = torch.empty(t * nx * ny, 3, dtype=dtype, device=device)
-            self._known = torch.zeros(t * nx * ny, dtype=torch.bool, device=device)
+            self._known = lazy_zeros((t * nx * ny,), torch.bool, device)  # only visited cells' pages touched
         assert self._known is not None
         return self._table, self._known
 

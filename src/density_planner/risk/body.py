@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..environment.grid import OccupancyGrid, read_cells
+from ..memory import lazy_zeros
 from ..systems.base import Footprint
 
 __all__ = ["DiscCover", "dilate", "dilate_sparse", "body_grid", "masked_grid", "disc_kernel_rows", "quantise_up",
@@ -431,7 +432,7 @@ class LazyDilatedGrid(_ReadThroughGrid):
         self._set(origin=source.origin, cell_size=source.cell_size, dt=source.dt, t0=source.t0, _cache={},
                   _source=probs, _value_dtype=probs.dtype, _keep=keep, _rho=float(radius_cells), _tile=tile, _h=h,
                   _max_chunk=max_chunk, _nbx=nbx, _nby=nby, _todo=todo,
-                  _counts=torch.zeros(T, nx, ny, dtype=torch.uint8, device=probs.device), _dense=None)
+                  _counts=lazy_zeros((T, nx, ny), torch.uint8, probs.device), _dense=None)
 
     # the tensor properties read the counts' shape and device without dilating anything
     @property
