@@ -86,7 +86,7 @@ class OnlineConfig:
     #: prediction) / 11 (oracle) verdicts and 1 s 13 / 14, the offline plan 14; the half-segment replans left the
     #: road in three turns
     period: float = 0.0
-    #: stage-2 iterations of a warm-started replan (at most: ``replan_patience``)
+    #: stage-2 iterations of a warm-started replan (at most: fewer with ``replan_patience``)
     replan_epochs: int = 10
     #: a replan stops once its best objective has not fallen (by ``density_planner.patience_tolerance`` relative
     #: plus ``backtrack_slack``) for this many iterations (0: all ``replan_epochs``). A warm start that is still
