@@ -317,6 +317,10 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert all(0.0 <= r.cost_reduction <= 1.0 for r in res.replans[1:])
     summ = res.summary()
     assert summ["replans_improved"] == pytest.approx(np.mean([r.cost_reduction > 0 for r in res.replans[1:]]))
+    # the warm replans' own times leave out those that ran a rescue (stage 1)
+    warm = [r.wall_time for r in res.replans[1:] if r.warm_start and r.rescue is None]
+    assert summ["n_warm_replans"] == len(warm) == summ["n_replans"] - sum(summ["rescues"].values())
+    assert summ["warm_replan_wall_time_median"] == (pytest.approx(float(np.median(warm))) if warm else None)
     # the executed run's risk on the scene's own occupancy: the collision model on its states, max over time
     from density_planner.risk.collision import CollisionModel
 

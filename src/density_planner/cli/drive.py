@@ -118,9 +118,14 @@ def run(args: argparse.Namespace) -> int:
     pred = summary["prediction_time_median"]
     late = summary["n_tracked_late"]
     late_text = f", {late} tracked late (online.overrun = delay)" if late else ""
+    warm = summary["warm_replan_wall_time_median"]
+    n_rescued = sum(summary["rescues"].values())
+    warm_text = (f"; {summary['n_warm_replans']} warm without a rescue: median {warm:.3f} s"
+                 if warm is not None and summary["n_warm_replans"] < summary["n_replans"] else "")
+    rescue_text = f", {n_rescued} rescued" if n_rescued else ""
     print(f"{args.planner} online ({result.prediction} prediction) on {scene.name}: {v.summary()}; "
-          f"{summary['n_replans']} replans (median {math.nan if med is None else med:.3f} s, its prediction "
-          f"{math.nan if pred is None else pred:.3f} s){late_text}, {n_fb} "
+          f"{summary['n_replans']} replans (median {math.nan if med is None else med:.3f} s{warm_text}, its "
+          f"prediction {math.nan if pred is None else pred:.3f} s){rescue_text}{late_text}, {n_fb} "
           f"fallbacks; wrote {', '.join(str(out / w) for w in written)}")
     from . import plan_exit_code
 

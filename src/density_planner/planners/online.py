@@ -70,6 +70,7 @@ class OnlineDensityPlanner(Planner):
             "n_fallbacks": summary["n_fallbacks"],
             "p_coll_mean": float(np.mean(p)) if p else None,
             "replan_wall_time_median": summary["replan_wall_time_median"],
+            "warm_replan_wall_time_median": summary["warm_replan_wall_time_median"],
         }
         timings = {"total": float(sum(r.wall_time for r in res.replans)),
                    "tube_precompute": float(res.replans[0].wall_time)}  # the first plan is offline work
