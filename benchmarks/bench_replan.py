@@ -5,7 +5,7 @@ On random scenes ``0 .. N-1``: a full two-stage plan from the initial distributi
 :func:`~density_planner.evaluation.verdict.judge_plan`), then replans warm-started from the shifted plan at
 ``t = period, 2 period, ...`` from the planned state (oracle occupancy: the scene's own model), as ``drive`` makes
 them (``online.replan_epochs`` at most, ``online.replan_patience``; with ``online.shrink_horizon`` the horizon ends
-with the run, i.e. the first plan's), each timed and judged the same way on its own window. Prints the median and
+with the first plan's), each timed and judged the same way on its own window. Prints the median and
 p95 wall times, the stage-2 iterations and both success rates.
 
 Usage::
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
             state = prev.reference.x_plan[k]
             mean = state.to(torch.float64).clone()
             mean[-1] = problem.initial_distribution.mean[-1]
-            # the run of a random scene lasts the first plan's horizon (drive's online.duration = 0)
+            # a random scene's goal is to be reached at the first plan's end (drive's shrink_horizon)
             par_t = _replan_parameterization(problem.parameterization, problem.parameterization.horizon, t,
                                              online.shrink_horizon)
             sc = oracle.scene_at(t, par_t.horizon, start=car.pose(state))

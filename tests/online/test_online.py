@@ -344,9 +344,10 @@ def test_drive_end_to_end_on_a_random_scene(setup, tmp_path):
     assert math.isfinite(res.controller_step_time)
 
 
-def test_replan_horizons_end_with_the_run_on_random_scenes(setup):
-    """A random scene's run lasts ``online.duration``; with ``shrink_horizon`` every replan plans to its end (the
-    first plan's goal time), without it the full horizon."""
+def test_replan_horizons_end_with_the_first_plan_on_random_scenes(setup):
+    """A random scene's goal is to be reached at the end of the first plan (its goal cost is at its end); with
+    ``shrink_horizon`` every replan plans to that time, however long the run (at least one segment), without it the
+    full horizon from its own time."""
     car, ctrl, scene, problem, planner, plan = setup
     cfg = OnlineConfig(duration=3.0, period=1.0, replan_epochs=1, replan_samples=20, overrun="use")
     short = drive(scene, planner, ctrl, system=car, config=cfg, initial_plan=plan, keep_snapshots=True)
@@ -354,9 +355,13 @@ def test_replan_horizons_end_with_the_run_on_random_scenes(setup):
                  initial_plan=plan, keep_snapshots=True)
     assert [round(r.t, 6) for r in short.replans] == [0.0, 1.0, 2.0]
     assert all(r.warm_start and r.status == "success" for r in short.replans[1:])
-    # planning points: 10 per 1-s segment, plus the start
-    assert [len(s["plan"]) for s in short.snapshots] == [101, 21, 11]
+    # planning points: 10 per 1-s segment, plus the start; the first plan ends at 10 s
+    assert [len(s["plan"]) for s in short.snapshots] == [101, 91, 81]
     assert [len(s["plan"]) for s in full.snapshots] == [101, 101, 101]
+    # past the first plan's end: one segment
+    from density_planner.evaluation.online import _replan_parameterization
+
+    assert _replan_parameterization(problem.parameterization, 10.0, 11.5, True).n_segments == 1
 
 
 def test_warm_replans_continue_the_previous_reference(setup):

@@ -131,10 +131,10 @@ class OnlineConfig:
     #: reference starts at the measurement, and a heading error there turns the whole warm start (3.8 m off the
     #: goal after 7.5 s at 10 m/s and 0.05 rad)
     continue_reference: bool = True
-    #: a replan's horizon ends with the run (whole segments): on road scenes with the goal's time interval, as the
-    #: offline plan's does; on other scenes after ``duration`` (the first plan's horizon by default), so that the
-    #: goal is still to be reached when the first plan reached it and the shifted plan stays a solution (false:
-    #: every replan plans the full horizon from its own time, past the run's end)
+    #: a replan's horizon ends when the goal is to be reached (whole segments, at least one): on road scenes with the
+    #: goal's time interval, as the offline plan's does; on other scenes with the first plan's horizon, whose goal
+    #: cost is at its end, so that the shifted plan stays a solution (false: every replan plans the full horizon
+    #: from its own time and reaches for the goal that much later)
     shrink_horizon: bool = True
     #: steering rates of the braking candidates, as fractions of the largest steering rate
     brake_steer: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
@@ -533,7 +533,7 @@ def _replan_parameterization(par: PiecewiseConstantInputs, goal_end: float | Non
                              shrink: bool) -> PiecewiseConstantInputs:
     """The parameterisation of a replan at ``t``: ``par``, or with ``shrink`` and a goal that ends at ``goal_end``
     [s, absolute] within ``par``'s horizon, the whole segments that reach the goal's end (at least one): the plan ends
-    with the goal's time interval, as the offline plan does (scenes without one: the run's end)."""
+    with the goal's time interval, as the offline plan does (scenes without one: the first plan's end)."""
     if not shrink or goal_end is None:
         return par
     n = max(1, math.ceil((goal_end - t) / par.segment_duration - 1e-9))
@@ -639,8 +639,9 @@ def drive(
     period_steps = int(round(steps_per_period))
     length = _run_length(scene, config, horizon)
     assert scene.t_start is not None  # set by Scene.__post_init__
-    # where the replans' horizons end (``shrink_horizon``): the goal's time interval, else the run's end
-    goal_end = scene.road.goal.time_interval[1] if scene.road is not None else scene.t_start + length
+    # where the replans' horizons end (``shrink_horizon``): the goal's time interval, else the first plan's end (its
+    # goal cost is at its end: the goal is to be reached then, however long the run)
+    goal_end = scene.road.goal.time_interval[1] if scene.road is not None else scene.t_start + horizon
     n_total = max(1, int(math.floor(length / plan_dt + 1e-9)))  # planning steps driven
     dtype = getattr(planner, "dtype", torch.float32)
     device = getattr(planner, "device", torch.device("cpu"))
@@ -780,7 +781,7 @@ def drive(
                         # end, when the horizon shrinks to it: straight at constant speed, nothing left to plan)
                         tail = torch.zeros(system.nu, dtype=torch.float64)
                         hold = (config.shrink_horizon and goal_end is not None
-                                and goal_end <= t + par_t.horizon + 1e-9)
+                                and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9)
                         if not hold:
                             v_end = float(active.reference.x[-1, iv])
                             tail[ia] = max(a_min, -v_end / par.segment_duration)
