@@ -14,6 +14,7 @@ faulted in again (see its docstring; ``DENSITY_PLANNER_TUNE_MALLOC=0`` leaves th
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import sys
 from typing import TYPE_CHECKING, Any
@@ -150,15 +151,12 @@ def lazy_zeros(shape: tuple[int, ...], dtype: torch.dtype, device: Any = "cpu") 
     import torch
 
     device = torch.device(device)
-    itemsize = torch.empty(0, dtype=dtype).element_size()
-    n = 1
-    for d in shape:
-        n *= int(d)
-    if device.type != "cpu" or n * itemsize < _LAZY_ZEROS_MIN:
+    proto = torch.empty(0, dtype=dtype)
+    nbytes = math.prod(int(d) for d in shape) * proto.element_size()
+    if device.type != "cpu" or nbytes < _LAZY_ZEROS_MIN:
         return torch.zeros(shape, dtype=dtype, device=device)
-    block = mmap.mmap(-1, n * itemsize)  # private, anonymous: zero-filled by the kernel page by page
-    array = np.frombuffer(block, dtype=torch.empty(0, dtype=dtype).numpy().dtype).reshape(shape)
-    return torch.from_numpy(array)  # keeps the array, which keeps the mapping
+    block = mmap.mmap(-1, nbytes)  # private, anonymous: zero-filled by the kernel page by page
+    return torch.from_numpy(np.frombuffer(block, dtype=proto.numpy().dtype).reshape(shape))  # keeps the mapping
 
 
 #: blocks from this size on are mapped by :func:`lazy_zeros` [bytes]

@@ -84,7 +84,7 @@ def test_replan_horizon_ends_with_the_goal():
     assert _replan_parameterization(par, 8.0, 7.9, True).n_segments == 1
     assert _replan_parameterization(par, 8.0, 9.0, True).n_segments == 1  # one segment at least
     assert _replan_parameterization(par, 20.0, 1.0, True) is par  # the goal after the horizon
-    assert _replan_parameterization(par, None, 1.0, True) is par  # no goal interval (random scenes)
+    assert _replan_parameterization(par, None, 1.0, True) is par  # no goal time given
     assert _replan_parameterization(par, 8.0, 3.5, False) is par
     short = _replan_parameterization(par, 8.0, 3.5, True)
     assert (short.segment_duration, short.dt, short.plan_dt) == (par.segment_duration, par.dt, par.plan_dt)

@@ -780,8 +780,7 @@ def drive(
                     if iv is not None and ia is not None:  # past the old horizon: straight, braking (the goal's
                         # end, when the horizon shrinks to it: straight at constant speed, nothing left to plan)
                         tail = torch.zeros(system.nu, dtype=torch.float64)
-                        hold = (config.shrink_horizon and goal_end is not None
-                                and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9)
+                        hold = config.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9
                         if not hold:
                             v_end = float(active.reference.x[-1, iv])
                             tail[ia] = max(a_min, -v_end / par.segment_duration)
