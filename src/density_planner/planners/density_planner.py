@@ -20,7 +20,7 @@ report.
 
 Both stages use Adam with the update clipped to ``+-update_clip`` and the parameters projected onto the input
 bounds after every step. Defaults are the paper's constants (``docs/spec.md`` §10) except ``S`` (200 instead of 500)
-and the stage-2 iterations (60 instead of 100), both measured on the CommonRoad suite, and the choices documented on
+and the stage-2 iterations (40 instead of 100), both measured on the CommonRoad suite, and the choices documented on
 :class:`DensityPlannerConfig`; ``--config paper`` (the preset ``data/presets/paper.toml``) restores the paper's.
 """
 
@@ -65,9 +65,10 @@ class DensityPlannerConfig:
     init_std: float = 0.5
     #: cost evaluations in stage 1 (one fewer Adam updates)
     epochs_init: int = 100
-    #: cost evaluations in stage 2 (the paper's 100, kept by ``--config paper``; 60 by default: measured on the
-    #: CommonRoad suite, the same plans pass and stage 2 takes 40 % less time, docs/history.md, stop 30)
-    epochs_density: int = 60
+    #: cost evaluations in stage 2 (the paper's 100, kept by ``--config paper``; 40 by default: measured on the
+    #: CommonRoad suite, the same plans pass as with 100 (stop 30: 60) and 60 (stop 45: 40, with
+    #: ``routes.epochs_init`` 30), docs/history.md; 30 lost one of 67)
+    epochs_density: int = 40
     #: S, initial samples of stage 2's iterations (the paper's 500, kept by ``--config paper``; 200 by default:
     #: measured on the CommonRoad suite, the same plans pass and stage 2 takes 45 % less time, docs/history.md,
     #: stop 30). The plan is reported on its own draw of ``evaluation_samples``
