@@ -89,10 +89,10 @@ class RouteSeedConfig:
     #: suite with ``epochs_init``: the same plans pass as with 100 random candidates and 100 epochs, stage 1 in 30 %
     #: less time (docs/history.md, stop 30)
     random_candidates: int = 25
-    #: stage-1 epochs where route seeds exist (``density_planner.epochs_init`` where a scene has none): 30, measured
-    #: on the CommonRoad suite with ``density_planner.epochs_density`` 40 (the same plans pass as with 50 and 60;
-    #: 20 and 30 lost one of 67; docs/history.md, stop 45)
-    epochs_init: int = 30
+    #: stage-1 epochs where route seeds exist (``density_planner.epochs_init`` where a scene has none). 30 passed the
+    #: same plans on the CommonRoad suite but lost 4 of 52 online drives, whose rescues run stage 1
+    #: (docs/history.md, stop 45)
+    epochs_init: int = 50
     #: Levenberg-Marquardt iterations of the fit through the reference roll-out (:func:`fit_reference_parameters`)
     fit_iterations: int = 3
     #: weight of the squared speed error against the squared position error in the fit [m^2 / (m/s)^2]
