@@ -67,7 +67,7 @@ class DensityPlannerConfig:
     epochs_init: int = 100
     #: cost evaluations in stage 2 (the paper's 100, kept by ``--config paper``; 40 by default: measured on the
     #: CommonRoad suite, the same plans pass as with 100 (stop 30: 60) and 60 (stop 45: 40), and as many online
-    #: drives; 30 lost one of 67 plans; docs/history.md)
+    #: drives; 30 with 20 route-seeded stage-1 epochs lost one of 67 plans; docs/history.md)
     epochs_density: int = 40
     #: S, initial samples of stage 2's iterations (the paper's 500, kept by ``--config paper``; 200 by default:
     #: measured on the CommonRoad suite, the same plans pass and stage 2 takes 45 % less time, docs/history.md,
