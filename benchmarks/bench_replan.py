@@ -78,9 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             warm = shift_parameters(prev.params.double(), t - t_prev, problem.parameterization.segment_duration,
                                     tail)[:, :par_t.n_segments]
             t1 = time.perf_counter()
-            res, used = warm_replan(planner, prob, warm, epochs=online.replan_epochs, samples=samples, seed=i,
-                                    lr=online.replan_lr, update_clip=online.replan_update_clip,
-                                    patience=online.replan_patience)
+            res, used = warm_replan(planner, prob, warm, seed=i, **online.replan_settings())  # as drive does
             re_t.append(time.perf_counter() - t1)
             re_it.append(res.iterations.get("stage2", 0) if res.iterations else 0)
             re_warm.append(used)

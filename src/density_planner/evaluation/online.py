@@ -169,24 +169,26 @@ class OnlineConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"online.{name} must be a finite number >= 0, got {v!r}")
-        if isinstance(self.refit_iterations, bool) or not isinstance(self.refit_iterations, int) \
-                or self.refit_iterations < 0:
-            raise ValueError(f"online.refit_iterations must be an integer >= 0, got {self.refit_iterations!r}")
+        for name in ("refit_iterations", "replan_patience", "replan_samples"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"online.{name} must be an integer >= 0, got {v!r}")
         for name in ("replan_epochs",):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"online.{name} must be a positive integer, got {v!r}")
-        if isinstance(self.replan_patience, bool) or not isinstance(self.replan_patience, int) \
-                or self.replan_patience < 0:
-            raise ValueError(f"online.replan_patience must be an integer >= 0 (0: off), got {self.replan_patience!r}")
-        if isinstance(self.replan_samples, bool) or not isinstance(self.replan_samples, int) or self.replan_samples < 0:
-            raise ValueError(f"online.replan_samples must be an integer >= 0, got {self.replan_samples!r}")
         if not self.brake_steer or not all(math.isfinite(s) and -1 <= s <= 1 for s in self.brake_steer):
             raise ValueError(f"online.brake_steer must be fractions in [-1, 1], got {self.brake_steer!r}")
         if self.overrun not in OVERRUN_MODES:
             raise ValueError(f"online.overrun must be one of {', '.join(map(repr, OVERRUN_MODES))}, got "
                              f"{self.overrun!r}")
         check_seed("online.seed", self.seed)
+
+    def replan_settings(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`warm_replan` this section sets (steps, samples, step size, patience):
+        one place for ``drive``'s replans, their rescues and ``benchmarks/bench_replan.py``."""
+        return {"epochs": self.replan_epochs, "samples": self.replan_samples, "lr": self.replan_lr,
+                "update_clip": self.replan_update_clip, "patience": self.replan_patience}
 
     def replan_period(self, segment_duration: float) -> float:
         """The replanning period [s]: ``period``, or one input segment of ``segment_duration`` [s] when 0."""
@@ -507,9 +509,7 @@ def _rescue(planner: DensityPlanner, problem: PlanningProblem, warm: Tensor, res
     another lane; stage 1 can."""
     assert result.params is not None  # checked by the caller
     seeds = torch.stack([warm.to(result.params.dtype), result.params.detach()])
-    rescue, _ = warm_replan(planner, problem, None, epochs=config.replan_epochs, samples=config.replan_samples,
-                            seed=seed, lr=config.replan_lr, update_clip=config.replan_update_clip,
-                            patience=config.replan_patience, extra_seeds=seeds)
+    rescue, _ = warm_replan(planner, problem, None, seed=seed, extra_seeds=seeds, **config.replan_settings())
     rec.rescue_p_coll = float(rescue.collision.max) if rescue.collision is not None else math.nan
     if rescue.ok and best_objective(rescue) < best_objective(result):
         rec.rescue = "used"
@@ -814,11 +814,8 @@ def drive(
                                            iterations=config.refit_iterations)
                     if warm_capable:
                         dp = cast("DensityPlanner", planner)  # it has initialise, refine and evaluate
-                        result, rec.warm_start = warm_replan(dp, prob, warm, epochs=config.replan_epochs,
-                                                             samples=config.replan_samples, seed=i_replan,
-                                                             lr=config.replan_lr,
-                                                             update_clip=config.replan_update_clip,
-                                                             patience=config.replan_patience)
+                        result, rec.warm_start = warm_replan(dp, prob, warm, seed=i_replan,
+                                                             **config.replan_settings())
                         if (rec.warm_start and warm is not None and result.ok and result.params is not None
                                 and result.collision is not None
                                 and float(result.collision.max) > config.rescue_p_coll):
