@@ -23,27 +23,34 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m density_planner.cost._jit
 	touch $(STAMP)
 
-install: $(STAMP)
+# the collision cost's kernels compiled ahead of time (~5 s; numba's pycc and a C compiler, else it says so and the
+# just-in-time kernels above serve): a command then loads them in ~1 ms instead of importing numba (~0.5 s)
+KERNELS := $(VENV)/.collision-kernels
+$(KERNELS): $(STAMP) src/density_planner/cost/_jit.py src/density_planner/cost/_aot.py
+	$(PY) -m density_planner.cost._aot
+	touch $(KERNELS)
+
+install: $(STAMP) $(KERNELS)
 
 # the demo plans a recorded road scene that ships with the package (CommonRoad, BSD-licensed), default settings
 DEMO_SCENARIO ?= src/density_planner/data/commonroad/USA_Lanker-1_1_T-1.xml
 
-demo: $(STAMP)
+demo: $(STAMP) $(KERNELS)
 	$(CLI) plan --env commonroad --file $(DEMO_SCENARIO) --out $(OUT)/demo
 	@echo "Pictures: $(OUT)/demo/plan.png, $(OUT)/demo/plan.gif, $(OUT)/demo/costs.png (plan.json holds the numbers, solution.xml the CommonRoad solution)"
 
-test: $(STAMP)
+test: $(STAMP) $(KERNELS)
 	$(PY) -m pytest -q
 
-test-all: $(STAMP)
+test-all: $(STAMP) $(KERNELS)
 	$(PY) -m pytest -q -m ""
 
-bench: $(STAMP)
+bench: $(STAMP) $(KERNELS)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
-lint: $(STAMP)
+lint: $(STAMP) $(KERNELS)
 	$(PY) -m ruff check src tests benchmarks
 	$(PY) -m mypy
 
 clean:
-	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache
+	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache src/density_planner/cost/_collision_aot_*

@@ -81,3 +81,53 @@ def test_compiled_kernels_decline_a_point_off_the_map():
     assert term.kernels(x, w, torch.arange(101)) is not None
     x[0, 0, 50, 0] = 1e4  # far off the map
     assert term.kernels(x, w, torch.arange(101)) is None
+
+
+def test_kernels_compiled_ahead_of_time_equal_the_just_in_time_ones(tmp_path, monkeypatch):
+    """The extension module of :mod:`density_planner.cost._aot` (the installed one, else one built here) returns what
+    numba's just-in-time kernels return, bit for bit, for float32 and float64 states; a module is only loaded for
+    the exact kernel source it was compiled from."""
+    import importlib
+    import sys
+
+    import numpy as np
+
+    from density_planner.cost import _aot, _jit
+
+    compiled = _aot.load()
+    if compiled is None:
+        try:
+            _aot.build(tmp_path)
+        except Exception as exc:  # noqa: BLE001 - no C compiler or no numba.pycc here
+            pytest.skip(f"cannot compile ahead of time here: {exc}")
+        monkeypatch.syspath_prepend(str(tmp_path))
+        compiled = _aot.CompiledKernels(importlib.import_module(_aot.module_name()))
+    rng = np.random.default_rng(0)
+    for dtype in (np.float32, np.float64):
+        b, t, n, m, nx, ny, slices = 3, 7, 11, 4, 40, 30, 5
+        x = np.ascontiguousarray(rng.uniform(-1.0, 5.0, (b, t, n, 5)).astype(dtype))
+        w = rng.uniform(0.0, 1.0, (b, t, n)).astype(dtype)
+        off = np.array([-1.5, -0.5, 0.5, 1.5], dtype=dtype)
+        unit = np.array([1.0, 0.0], dtype=dtype)
+        origin = np.array([-0.2, -0.3], dtype=dtype)
+        k = rng.integers(0, slices, t).astype(np.int64)
+        bounds = np.array([0.0, 3.8, 0.0, 2.8], dtype=dtype)
+        known = rng.uniform(size=slices * nx * ny) < 0.5
+        table = rng.uniform(-1.0, 4.0, (slices * nx * ny, 3)).astype(dtype)
+        outs = []
+        for kernels in (compiled, _jit):
+            lin = np.empty((b, t, n, m), dtype=np.int64)
+            flags = kernels.cells(x, 0, 1, 2, off, unit, origin, dtype(0.1), nx, ny, k, bounds, True, known, lin)
+            value, gx, gw = np.empty(b), np.zeros_like(x), np.empty_like(w)
+            kernels.accumulate(x, w, lin, table, 0, 1, 2, off, unit, value, gx, gw)
+            outs.append((flags, lin, value, gx, gw))
+        assert outs[0][0] == outs[1][0] and outs[0][0][0] > 0
+        for u, v in zip(outs[0][1:], outs[1][1:]):
+            np.testing.assert_array_equal(u, v)
+    # another kernel source: another module name, and nothing compiled for it
+    source = tmp_path / "_jit.py"
+    source.write_text(_aot._SOURCE.read_text() + "\n# changed\n")
+    name = _aot.module_name()
+    monkeypatch.setattr(_aot, "_SOURCE", source)
+    assert _aot.module_name() != name and _aot.load() is None
+    assert "numba" not in sys.modules or compiled is not None

@@ -11,7 +11,9 @@ is the sum over the discs, the heading's ``sum_j s_j (-dJ/dc_x sin(theta) + dJ/d
 ``s_j`` along the heading) and the weight's ``sum_j P_j ||d_j||^2``; the backward pass only scales them.
 
 Compiled on the first call of a fresh environment (a few seconds; ``cache=True`` keeps the machine code beside this
-file, ``make install`` compiles it once, :func:`warm_up`).
+file, ``make install`` compiles it once, :func:`warm_up`). ``make install`` also compiles these functions ahead of
+time (:mod:`._aot`), which is what the collision cost loads where it exists; both are compiled without ``fastmath``
+so that they return the same bits (tested).
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ def cells(x, pos_i, pos_j, head_i, offsets, unit, origin, cell_size, nx, ny, sli
     return missing, inside_all
 
 
-@numba.njit(cache=True, fastmath=True, nogil=True, error_model="numpy")  # sums in any order
+@_kernel
 def accumulate(x, w, lin, table, pos_i, pos_j, head_i, offsets, unit, value, grad_x, grad_w):
     """``value (B,)`` (float64) = ``sum_{t,n} w[b, t, n] sum_j P_j ||c_j - c_des,j||^2`` with ``(c_des, P)`` =
     ``table[lin]`` (:func:`cells`, every cell known), for states ``x (B, T, N, nx)`` and weights ``w (B, T, N)``;

@@ -482,7 +482,14 @@ _FUSED_DTYPES = (torch.float32, torch.float64)
 
 @functools.cache
 def _jit_kernels():
-    """The collision cost's numba kernels (:mod:`._jit`), or ``None`` without numba (the ``fast`` extra)."""
+    """The collision cost's compiled kernels: those compiled ahead of time (:mod:`._aot`, built by ``make install``)
+    where they exist for this source, else numba's just-in-time ones (:mod:`._jit`), else ``None`` (numba, the
+    ``fast`` extra, is not installed)."""
+    from . import _aot
+
+    compiled = _aot.load()
+    if compiled is not None:
+        return compiled
     try:
         from . import _jit
     except ImportError:  # pragma: no cover - numba is an optional extra
@@ -491,9 +498,9 @@ def _jit_kernels():
 
 
 def load_collision_kernels(dtype: torch.dtype = torch.float32) -> bool:
-    """Load :class:`CollisionCost`'s compiled kernels for states of ``dtype`` now (numba's import and the cached
-    machine code: ~0.4-0.5 s in a fresh process, which the first evaluation of a body's collision cost pays
-    otherwise); returns whether they are available (numba installed, float32 / float64)."""
+    """Load :class:`CollisionCost`'s compiled kernels for states of ``dtype`` now (~1 ms where :mod:`._aot` built
+    them; else numba's import and its cached machine code, ~0.4-0.5 s in a fresh process, which the first evaluation
+    of a body's collision cost pays otherwise); returns whether they are available (float32 / float64)."""
     jit = _jit_kernels()
     if jit is None or dtype not in _FUSED_DTYPES:
         return False
