@@ -298,3 +298,22 @@ def test_upsample_active_equals_the_whole_interpolation(factor, shape):
         torch.testing.assert_close(got, base + whole, atol=2e-6, rtol=0)  # float rounding of the weights (1/3)
         assert bool((got[6] == base[6]).all()) and bool((got[whole == 0] == base[whole == 0]).all())
     assert bool((upsample_active(torch.zeros(3, ncx, ncy), factor, torch.zeros(3, *shape)) == 0).all())
+
+
+def test_non_finite_inputs_of_the_rasteriser_are_refused(monkeypatch):
+    """Its grid's values are finite by construction (no check of the cells follows): a NaN in the static map or in
+    a present user's footprint parameters is refused, naming it."""
+    import torch
+
+    from density_planner.environment import footprints
+
+    static = torch.zeros(SHAPE[1:])
+    static[5, 5] = float("nan")
+    with pytest.raises(ValueError, match="static occupancy map holds NaN"):
+        rasterise_road_users(users([0.0], [0.0], [0.0], [0.0]), origin=ORIGIN, cell_size=H, shape=SHAPE,
+                             config=EXACT, static=static)
+    real = footprints.footprint_stds
+    monkeypatch.setattr(footprints, "footprint_stds",
+                        lambda tracks, cfg: tuple(np.where(tracks.x > 5.0, np.nan, s) for s in real(tracks, cfg)))
+    with pytest.raises(ValueError, match="road user 1: a non-finite footprint parameter"):
+        raster(users([0.0, 10.0], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0]))

@@ -218,3 +218,24 @@ def test_value_range_is_remembered_until_an_in_place_edit(monkeypatch):
     assert len(passes) == 2
     grid.drop_caches()  # forgotten with the other derived values: computed again
     assert np.isnan(grid.value_range()[0]) and len(passes) == 3
+
+
+def test_a_range_vouched_for_skips_the_pass_over_the_cells(monkeypatch):
+    """``in_range=True`` (the importers' rasteriser, windows and copies of a checked grid): no pass over the cells at
+    construction or validation, ``value_range`` gives the bounds [0, 1]; an in-place edit is checked again exactly."""
+    from density_planner.environment.scene import Scene, validate_scene
+
+    probs = torch.zeros(3, 20, 30)
+    probs[1, 4:8, 5:9] = 0.7
+    passes = []
+    real = torch.aminmax
+    monkeypatch.setattr(torch, "aminmax", lambda t: passes.append(1) or real(t))
+    grid = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=0.5, in_range=True)
+    scene = Scene(grid, (1.0, 1.0, 0.0, 1.0), (8.0, 12.0), (0.0, 9.5, 0.0, 14.5), name="vouched")
+    validate_scene(scene)
+    assert grid.value_range() == (0.0, 1.0) and passes == []
+    window = OccupancyGrid(probs, origin=(0.0, 0.0), cell_size=0.5).window(1, 2)  # the parent's check only
+    assert passes == [1] and window.value_range() == (0.0, 1.0) and len(passes) == 1
+    grid.probs[0, 0, 0] = 2.0  # in place: checked exactly again
+    with pytest.raises(ValueError, match=r"outside \[0, 1\] \(found 0 to 2;"):
+        validate_scene(scene)

@@ -1041,7 +1041,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
                                  config=cfg.footprint, static=torch.from_numpy(static))
     if any(polys_per_slice):
         _rasterise_polygons(probs, polys_per_slice, origin, cell, shapely)
-    grid = OccupancyGrid(probs, origin, cell, cfg.dt, t_start)
+    grid = OccupancyGrid(probs, origin, cell, cfg.dt, t_start, in_range=True)  # the rasteriser's values
     box = (area[0] + 0.1, area[1] - 0.1, area[2] + 0.1, area[3] - 0.1)
 
     # -- start / goal of the planners

@@ -397,18 +397,24 @@ def rasterise_road_users(
     static: Tensor | None = None,
 ) -> Tensor:
     """``(T, NX, NY)`` float32 ``clamp(static + sum of footprints, 0, 1)`` on the grid described by the
-    arguments.
+    arguments: finite values in [0, 1] (its :class:`~.grid.OccupancyGrid` needs no check of them, ``in_range``).
 
     Args:
         tracks: road users resampled to the grid's slices (``T`` columns).
         origin: world position of cell (0, 0) [m]; cell_size: [m]; shape: ``(T, NX, NY)``.
         static: optional ``(NX, NY)`` or ``(T, NX, NY)`` static occupancy added before clamping.
+
+    Raises:
+        ValueError: a non-finite value in ``static`` or in a present user's footprint (its size, uncertainty or
+            weight).
     """
     cfg = config or FootprintConfig()
     T, NX, NY = (int(s) for s in shape)
     if np.shape(tracks.x)[1] != T:
         raise ValueError(f"tracks have {np.shape(tracks.x)[1]} slices but the grid has {T}")
     n_idx, k_idx = np.nonzero(tracks.present)
+    if static is not None and not bool(torch.isfinite(static).all()):
+        raise ValueError("the static occupancy map holds NaN or infinite values")
     # the static map in every slice (one pass over the grid: fresh memory, whose first touch is most of a large
     # map's cost), the footprints added where they are
     if static is not None:
@@ -432,6 +438,11 @@ def rasterise_road_users(
         if cfg.model == "shape":
             hl, hw = shape_half_sizes(tracks, cfg)
             pairs["hl"], pairs["hw"] = hl[n_idx], hw[n_idx]
+        for key, val in pairs.items():  # present users have finite poses; their footprints must be finite too
+            if not np.isfinite(val).all():
+                user = tracks.ids[n_idx[~np.isfinite(val)][0]]
+                raise ValueError(f"road user {user}: a non-finite footprint parameter ({key!r}); check its size, "
+                                 "speed and the footprint configuration")
         factor = int(round(cfg.coarse_cell / cell_size)) if cfg.coarse_cell > 0 else 1
         smallest = np.minimum(np.minimum(pairs["sf"], pairs["sb"]), pairs["sw"])
         coarse = (smallest >= cfg.coarse_min_std) if factor >= 2 else np.zeros(smallest.shape, dtype=bool)

@@ -549,7 +549,7 @@ def load_ind_scene(data_dir: str | Path, recording: int, config: IndSceneConfig 
         config=cfg.footprint,
         static=static,
     )
-    grid = OccupancyGrid(probs, origin, cfg.cell_size, cfg.dt, cfg.start_time)
+    grid = OccupancyGrid(probs, origin, cfg.cell_size, cfg.dt, cfg.start_time, in_range=True)
     box = (area[0] + 0.1, area[1] - 0.1, area[2] + 0.1, area[3] - 0.1)
     start, goal = sample_start_goal(grid, box, seed=cfg.seed, config=cfg.start_goal)
     n_present = present.any(axis=1)

@@ -451,7 +451,8 @@ class ObservedPrediction(Prediction):
                         polys[k].append(poly)
             if any(polys):
                 _rasterise_polygons(probs, polys, grid.origin, grid.cell_size, shapely)
-        return OccupancyGrid(probs.to(grid.probs.device), grid.origin, grid.cell_size, grid.dt, float(t))
+        return OccupancyGrid(probs.to(grid.probs.device), grid.origin, grid.cell_size, grid.dt, float(t),
+                             in_range=True)  # the rasteriser's values
 
 
 def _scene_footprint(scene: Scene) -> FootprintConfig:
