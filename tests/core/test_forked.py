@@ -86,6 +86,40 @@ def scenario_file(tmp_path: Path) -> Path:
 
 
 @needs_fork
+def test_road_sdf_started_while_the_scene_is_built_is_the_one_read_later(scenario_file):
+    """``requesting_road_sdf``: the importer starts the field once it knows the road and the grid (before the road
+    users); the first read takes it over, equal to the field computed here; a build that fails ends its process."""
+    from density_planner.api import build_scene, load_run_config
+    from density_planner.environment import road_sdf
+    from density_planner.environment.road_sdf import requesting_road_sdf, road_sdf_for_scene
+
+    rc = load_run_config()
+    before = _children()
+    with requesting_road_sdf(cell_size=0.5):
+        scene = build_scene("commonroad", rc, file=scenario_file)
+        assert len(road_sdf._EARLY) == 1 and road_sdf._EARLY[0][0]() is scene.road.drivable
+    there = road_sdf_for_scene(scene, cell_size=0.5)
+    assert road_sdf._EARLY == [] and not road_sdf._PENDING.get(scene.road)
+    here = road_sdf_for_scene(build_scene("commonroad", rc, file=scenario_file), cell_size=0.5)
+    assert bool((there.values == here.values).all()) and there.origin == here.origin
+    assert there.cell_size == here.cell_size
+    # another field read first (other cell size): computed here; the one started waits for its own read, and
+    # cancel_road_sdf ends it
+    with requesting_road_sdf(cell_size=0.5):
+        other = build_scene("commonroad", rc, file=scenario_file)
+    assert road_sdf_for_scene(other, cell_size=0.4).values.shape != here.values.shape
+    assert road_sdf._EARLY == [] and list(road_sdf._PENDING.get(other.road)) == [(0.5, 4_000_000, 10.0)]
+    road_sdf.cancel_road_sdf(other)
+    assert not road_sdf._PENDING.get(other.road)
+    # an error inside the block: nothing is left running
+    with pytest.raises(RuntimeError, match="stop"), requesting_road_sdf(cell_size=0.5):
+        build_scene("commonroad", rc, file=scenario_file)
+        raise RuntimeError("stop")
+    assert road_sdf._EARLY == []
+    assert not [p for p in _children() if p not in before]
+
+
+@needs_fork
 def test_prefetched_read_equals_a_direct_read_and_is_taken_once(scenario_file):
     from density_planner import prefetch
     from density_planner.environment.commonroad import read_commonroad

@@ -80,16 +80,21 @@ def run(args: argparse.Namespace) -> int:
     if args.distribution_seed is not None:
         check_seed("--distribution-seed", args.distribution_seed)
     run_config = apply_system_args(args, load_config(RunConfig, args.config, args.overrides))
-    clock = _Clock()
-    scene = scene_from_args(args, run_config, both_cores=True)
-    t_scene = clock.lap("scene")
+    from contextlib import nullcontext
+
+    from ..cost.road import requesting_road_terms, start_road_terms
     from ..environment.road_sdf import cancel_road_sdf
     from ..parallel import default_workers
 
-    if default_workers() > 1 and args.device == "cpu":  # the road's distance field, meanwhile
-        from ..cost.road import start_road_terms
-
-        start_road_terms(scene, run_config.density_planner.cost)
+    clock = _Clock()
+    # the road's distance field on the second core from when the importer knows the road (or after the build)
+    beside = default_workers() > 1 and args.device == "cpu"
+    cost = run_config.density_planner.cost
+    with requesting_road_terms(cost) if beside else nullcontext():
+        scene = scene_from_args(args, run_config, both_cores=True)
+    t_scene = clock.lap("scene")
+    if beside:
+        start_road_terms(scene, cost)
     try:
         return _set_up_and_plan(args, run_config, scene, clock, t_scene)
     finally:

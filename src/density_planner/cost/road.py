@@ -55,6 +55,7 @@ lattice's error (:meth:`RoadBarrierCost._possibly_active`), which on multi-lane 
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,7 +64,7 @@ import torch
 from torch import Tensor
 
 from ..checks import check_positive
-from ..environment.road_sdf import RoadSDF, road_sdf_for_scene, start_road_sdf
+from ..environment.road_sdf import RoadSDF, requesting_road_sdf, road_sdf_for_scene, start_road_sdf
 from .goal_region import GoalRegionCost
 from .terms import CostInputs, CostTerm
 
@@ -315,3 +316,15 @@ def start_road_terms(scene: Any, config: Any) -> bool:
     if getattr(scene, "road", None) is None or not (rc.barrier and rc.weight > 0):
         return False
     return start_road_sdf(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+
+
+def requesting_road_terms(config: Any) -> AbstractContextManager:
+    """A ``with`` block in which a road scene being built starts computing, in a forked process, the distance field
+    that :func:`with_road_terms` will read for ``config`` (a :class:`~density_planner.cost.composite.CostConfig`)
+    as soon as its importer knows the drivable area and the grid
+    (:func:`~density_planner.environment.road_sdf.requesting_road_sdf`); a plain block where ``config`` has no road
+    barrier. For a caller with an idle core (the ``plan`` command)."""
+    rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
+    if not (rc.barrier and rc.weight > 0):
+        return nullcontext()
+    return requesting_road_sdf(cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)

@@ -74,6 +74,7 @@ from .footprints import (
 from .grid import OccupancyGrid, lattice_size
 from .lanes import remember_lane_graph
 from .road import GoalRegion, ObstacleTrack, RoadScene
+from .road_sdf import map_ready
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene
 
@@ -957,6 +958,7 @@ def load_commonroad_scene(path: str | Path, config: CommonRoadSceneConfig | None
         area = (area[0], round(area[0] + (nx - 1) * cell, 9), area[2], round(area[2] + (ny - 1) * cell, 9))
     origin = (area[0], area[2])
     times = t_start + cfg.dt * np.arange(n_slices)
+    map_ready(drivable, origin, cell, nx, ny)  # the road's distance field meanwhile, where a caller asks for it
 
     # -- obstacles
     known = {int(o.obstacle_id) for o in scenario.obstacles}

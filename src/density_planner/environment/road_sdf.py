@@ -20,6 +20,8 @@ from __future__ import annotations
 import logging
 import math
 import weakref
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf", "cancel_road_sdf"]
+__all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf", "cancel_road_sdf", "requesting_road_sdf", "map_ready"]
 
 log = logging.getLogger(__name__)
 
@@ -178,6 +180,17 @@ def _lattice_values(drivable: Any, bounds: tuple[float, float, float, float], ce
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _PENDING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # road -> {key: ForkedCall}
+#: the field :func:`requesting_road_sdf` asks of the road scenes built meanwhile: ``(cell_size, max_cells, margin)``
+_REQUEST: tuple[float, int, float] | None = None
+#: fields :func:`map_ready` started before their scene existed: ``(weak reference to the drivable area, key,
+#: bounds, ForkedCall)``; moved to ``_PENDING`` by the first look at the scene (:func:`_adopt_early`)
+_EARLY: list[tuple[weakref.ref, tuple, tuple[float, float, float, float], Any]] = []
+
+
+def _grid_bounds(origin: tuple[float, float], h: float, nx: int, ny: int, margin: float
+                 ) -> tuple[float, float, float, float]:
+    x0, y0 = float(origin[0]), float(origin[1])
+    return (x0 - margin, x0 + (nx - 1) * h + margin, y0 - margin, y0 + (ny - 1) * h + margin)
 
 
 def _scene_key_bounds(scene: Any, cell_size: float, max_cells: int, margin: float
@@ -188,10 +201,71 @@ def _scene_key_bounds(scene: Any, cell_size: float, max_cells: int, margin: floa
         return None
     grid = scene.grid
     _, nx, ny = grid.shape
-    x0, y0 = grid.origin
-    h = grid.cell_size
-    bounds = (x0 - margin, x0 + (nx - 1) * h + margin, y0 - margin, y0 + (ny - 1) * h + margin)
+    bounds = _grid_bounds(grid.origin, float(grid.cell_size), nx, ny, float(margin))
     return drivable, (float(cell_size), int(max_cells), float(margin)), bounds
+
+
+@contextmanager
+def requesting_road_sdf(*, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0
+                        ) -> Iterator[None]:
+    """While a road scene is built inside this block, its distance field (:func:`road_sdf_for_scene`'s, same
+    arguments) is computed in a forked process from the moment its importer knows the drivable area and the grid's
+    extent (:func:`map_ready`), i.e. while the road users are rasterised: for a caller with an idle core that will
+    read the field (the ``plan`` command, whose scene build then overlaps the field's 0.4-0.9 s; started after the
+    build, :func:`start_road_sdf`, the planner waited for it). The first look at the scene
+    (:func:`road_sdf_for_scene`, :func:`start_road_sdf`, :func:`cancel_road_sdf`) takes the process over; a block
+    left by an error ends it."""
+    global _REQUEST
+    before = _REQUEST
+    _REQUEST = (float(cell_size), int(max_cells), float(margin))
+    try:
+        yield
+    except BaseException:
+        for _, _, _, call in _EARLY:
+            call.cancel()
+        _EARLY.clear()
+        raise
+    finally:
+        _REQUEST = before
+
+
+def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: int, ny: int) -> bool:
+    """Called by a road scene's importer once its drivable area and its grid's geometry (centre of cell (0, 0),
+    cell size, cells per axis) are fixed: starts the field :func:`requesting_road_sdf` asks for, if it does;
+    returns whether a process was started."""
+    if _REQUEST is None or drivable is None or drivable.is_empty:
+        return False
+    from ..parallel import ForkedCall
+
+    sdf_cell, max_cells, margin = _REQUEST
+    bounds = _grid_bounds(origin, float(cell_size), int(nx), int(ny), margin)
+    call = ForkedCall.start(_float32_lattice, drivable, bounds, sdf_cell, max_cells)
+    if call is None:
+        return False
+    _EARLY.append((weakref.ref(drivable), _REQUEST, bounds, call))
+    return True
+
+
+def _adopt_early(scene: Any) -> None:
+    """Move the processes :func:`map_ready` started for ``scene``'s drivable area to ``_PENDING`` (if they compute
+    its field over its grid; else they end), and end those whose area no longer exists."""
+    road = getattr(scene, "road", None)
+    drivable = getattr(road, "drivable", None)
+    keep = []
+    for ref, key, bounds, call in _EARLY:
+        area = ref()
+        if area is None:
+            call.cancel()
+        elif area is not drivable:
+            keep.append((ref, key, bounds, call))
+        else:
+            found = _scene_key_bounds(scene, *key)
+            if (found is not None and found[2] == bounds and key not in _PENDING.get(road, {})
+                    and key not in _CACHE.get(road, {})):
+                _PENDING.setdefault(road, {})[key] = call
+            else:
+                call.cancel()
+    _EARLY[:] = keep
 
 
 def road_sdf_for_scene(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0
@@ -203,6 +277,8 @@ def road_sdf_for_scene(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4
     if found is None:
         return None
     drivable, key, bounds = found
+    if _EARLY:
+        _adopt_early(scene)
     per_road = _CACHE.setdefault(scene.road, {})
     if key not in per_road:
         pending = _PENDING.get(scene.road, {}).pop(key, None)
@@ -229,6 +305,8 @@ def start_road_sdf(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000
     if found is None:
         return False
     drivable, key, bounds = found
+    if _EARLY:
+        _adopt_early(scene)
     if key in _CACHE.get(scene.road, {}) or key in _PENDING.get(scene.road, {}):
         return False
     call = ForkedCall.start(_float32_lattice, drivable, bounds, cell_size, max_cells)
@@ -244,6 +322,8 @@ def cancel_road_sdf(scene: Any) -> None:
     road = getattr(scene, "road", None)
     if road is None:
         return
+    if _EARLY:
+        _adopt_early(scene)
     for call in _PENDING.pop(road, {}).values():
         call.cancel()
 

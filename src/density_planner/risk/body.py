@@ -472,8 +472,10 @@ class LazyDilatedGrid(_ReadThroughGrid):
         ids = ((k * self._nbx + torch.div(i, tile, rounding_mode="floor")) * self._nby
                + torch.div(j, tile, rounding_mode="floor")).reshape(-1)
         need = self._todo.index_select(0, ids)
-        if bool(need.any()):
-            self._dilate(torch.unique(ids.masked_select(need)))
+        if bool(need.any()):  # the tiles to do, each once, in order: a mask over the tiles (torch.unique sorts)
+            hit = torch.zeros_like(self._todo)
+            hit[ids.masked_select(need)] = True
+            self._dilate(hit.nonzero().squeeze(1))
         return dequantise(read_cells(self._counts, k, i, j), _LEVELS, self._source.dtype)
 
     def _dilate(self, ids: Tensor) -> None:
