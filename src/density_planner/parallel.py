@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "ForkedCallError", "end_child"]
+__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "ForkedCallError", "PendingCalls", "end_child"]
 
 
 @dataclass
@@ -98,6 +98,87 @@ class ForkedCall:
     def cancel(self) -> None:
         """End the child now (nothing happens once :meth:`result` was taken)."""
         end_child(self._proc, self._conn)
+
+
+class PendingCalls:
+    """:class:`ForkedCall` s started ahead for an owner object (a planning problem, a road scene, a drivable area),
+    each under a key (what its value depends on): the later call that needs the value for the same owner and key
+    takes it (:meth:`take`) instead of computing it. The one bookkeeping of the command line's helpers (the route
+    seeds, the road's distance field). Owners are held weakly and by identity (mutable dataclasses are not
+    hashable): a call whose owner is gone, or an entry found under the recycled id of another object, is ended."""
+
+    def __init__(self) -> None:
+        self._entries: dict[int, tuple[Any, dict[Any, ForkedCall]]] = {}
+
+    def _calls(self, owner: Any, *, create: bool = False) -> dict[Any, ForkedCall] | None:
+        import weakref
+
+        entry = self._entries.get(id(owner))
+        if entry is not None and entry[0]() is not owner:  # another object at a recycled id
+            self._drop(id(owner))
+            entry = None
+        if entry is None:
+            if not create:
+                return None
+            key = id(owner)
+            entry = (weakref.ref(owner, lambda _ref: self._drop(key)), {})
+            self._entries[key] = entry
+        return entry[1]
+
+    def _drop(self, key: int) -> None:
+        entry = self._entries.pop(key, None)
+        if entry is not None:
+            for call in entry[1].values():
+                call.cancel()
+
+    def __len__(self) -> int:
+        """Calls not taken, over all owners."""
+        return sum(len(calls) for _, calls in self._entries.values())
+
+    def keys(self, owner: Any) -> list:
+        """The keys of ``owner``'s calls not taken yet."""
+        calls = self._calls(owner)
+        return [] if calls is None else list(calls)
+
+    def add(self, owner: Any, key: Any, call: ForkedCall) -> None:
+        """File ``call`` under ``owner`` and ``key`` (one that was there already is ended)."""
+        calls = self._calls(owner, create=True)
+        assert calls is not None
+        old = calls.pop(key, None)
+        if old is not None:
+            old.cancel()
+        calls[key] = call
+
+    def start(self, owner: Any, key: Any, fn: Callable[..., Any], *args: Any) -> bool:
+        """:meth:`ForkedCall.start` ``fn(*args)`` under ``owner`` and ``key``; returns whether it started (not
+        without ``fork``, nor while a call is pending under that key)."""
+        if key in self.keys(owner):
+            return False
+        call = ForkedCall.start(fn, *args)
+        if call is None:
+            return False
+        self.add(owner, key, call)
+        return True
+
+    def take(self, owner: Any, key: Any) -> ForkedCall | None:
+        """``owner``'s call under ``key`` (removed; the caller takes its :meth:`ForkedCall.result`), or ``None``."""
+        calls = self._calls(owner)
+        if calls is None:
+            return None
+        call = calls.pop(key, None)
+        if not calls:
+            self._entries.pop(id(owner), None)
+        return call
+
+    def cancel(self, owner: Any) -> None:
+        """End every call of ``owner`` not taken."""
+        if self._calls(owner) is not None:
+            self._drop(id(owner))
+
+    def cancel_all(self) -> None:
+        """End every call not taken."""
+        for key in list(self._entries):
+            self._drop(key)
 
 
 def end_child(proc, conn) -> None:

@@ -48,6 +48,40 @@ def test_forked_call_without_fork(monkeypatch):
 
 
 @needs_fork
+def test_pending_calls_are_filed_by_owner_and_key_and_end_with_their_owner():
+    """One call per (owner, key); taken once; ended by ``cancel``, by the owner's end, and at a recycled id."""
+    import gc
+    import weakref
+
+    from density_planner.parallel import PendingCalls
+
+    class Owner:  # unhashable, like the planning problems
+        __hash__ = None
+
+    pending = PendingCalls()
+    a, b = Owner(), Owner()
+    before = _children()
+    assert pending.start(a, "x", sum, [1, 2]) and not pending.start(a, "x", sum, [5])  # one per key
+    assert pending.start(a, "y", sum, [3]) and pending.start(b, "x", sum, [4])
+    assert sorted(pending.keys(a)) == ["x", "y"] and pending.keys(b) == ["x"] and pending.take(b, "y") is None
+    assert pending.take(a, "x").result() == 3 and pending.keys(a) == ["y"]
+    pending.cancel(a)
+    assert pending.keys(a) == [] and pending.take(a, "y") is None
+    call = pending._calls(b)["x"]
+    del b
+    gc.collect()  # the owner's end ends its call
+    assert call._conn.closed and not pending._entries
+    c, d = Owner(), Owner()
+    assert pending.start(c, "x", sum, [1]) and pending.start(d, "x", sum, [2]) and len(pending) == 2
+    calls = pending._entries[id(c)][1]
+    stale = calls["x"]
+    pending._entries[id(c)] = (weakref.ref(d), calls)  # as if the entry were another object's, now at c's id
+    assert pending.keys(c) == [] and stale._conn.closed and len(pending) == 1
+    pending.cancel_all()
+    assert len(pending) == 0 and not [p for p in _children() if p not in before]
+
+
+@needs_fork
 def test_road_sdf_from_the_forked_process_equals_the_one_computed_here():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "planning"))
     import shapely
@@ -97,9 +131,9 @@ def test_road_sdf_started_while_the_scene_is_built_is_the_one_read_later(scenari
     before = _children()
     with requesting_road_sdf(cell_size=0.5):
         scene = build_scene("commonroad", rc, file=scenario_file)
-        assert len(road_sdf._EARLY) == 1 and road_sdf._EARLY[0][0]() is scene.road.drivable
+        assert len(road_sdf._PENDING.keys(scene.road.drivable)) == 1  # started before the scene existed
     there = road_sdf_for_scene(scene, cell_size=0.5)
-    assert road_sdf._EARLY == [] and not road_sdf._PENDING.get(scene.road)
+    assert road_sdf._PENDING.keys(scene.road.drivable) == []
     here = road_sdf_for_scene(build_scene("commonroad", rc, file=scenario_file), cell_size=0.5)
     assert bool((there.values == here.values).all()) and there.origin == here.origin
     assert there.cell_size == here.cell_size
@@ -108,14 +142,14 @@ def test_road_sdf_started_while_the_scene_is_built_is_the_one_read_later(scenari
     with requesting_road_sdf(cell_size=0.5):
         other = build_scene("commonroad", rc, file=scenario_file)
     assert road_sdf_for_scene(other, cell_size=0.4).values.shape != here.values.shape
-    assert road_sdf._EARLY == [] and list(road_sdf._PENDING.get(other.road)) == [(0.5, 4_000_000, 10.0)]
+    assert [key for key, _ in road_sdf._PENDING.keys(other.road.drivable)] == [(0.5, 4_000_000, 10.0)]
     road_sdf.cancel_road_sdf(other)
-    assert not road_sdf._PENDING.get(other.road)
+    assert road_sdf._PENDING.keys(other.road.drivable) == []
     # an error inside the block: nothing is left running
     with pytest.raises(RuntimeError, match="stop"), requesting_road_sdf(cell_size=0.5):
         build_scene("commonroad", rc, file=scenario_file)
         raise RuntimeError("stop")
-    assert road_sdf._EARLY == []
+    assert road_sdf._STARTED == []
     assert not [p for p in _children() if p not in before]
 
 
@@ -215,13 +249,13 @@ def test_route_seeds_from_the_forked_process_equal_the_ones_computed_here():
     assert routes.start_route_seeds(problem, cfg)
     routes.cancel_route_seeds(problem)
     routes.cancel_route_seeds(problem)  # twice: nothing more
-    assert not routes._PENDING
+    assert not routes._PENDING.keys(problem)
     assert not [p for p in mp.active_children() if p.is_alive() and p.pid not in before]
     # the planner's prepare() starts them (a road scene, the CPU) and its stage 1 takes them
     setup.planner.prepare(problem)
-    assert id(problem) in routes._PENDING
+    assert routes._PENDING.keys(problem)
     assert torch.equal(setup.planner.seed_candidates(problem), here.params)
-    assert not routes._PENDING
+    assert not routes._PENDING.keys(problem)
 
 
 def test_route_seeds_are_not_forked_where_they_cannot_be_used(monkeypatch):

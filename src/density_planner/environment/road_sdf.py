@@ -29,6 +29,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..parallel import PendingCalls
+
 __all__ = ["RoadSDF", "road_sdf_for_scene", "start_road_sdf", "cancel_road_sdf", "requesting_road_sdf", "map_ready"]
 
 log = logging.getLogger(__name__)
@@ -178,13 +180,14 @@ def _lattice_values(drivable: Any, bounds: tuple[float, float, float, float], ce
     return sdf, (xmin, ymin), h
 
 
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_PENDING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # road -> {key: ForkedCall}
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # road -> {key: RoadSDF}
+#: fields being computed in forked processes, per drivable area (the one object every scene of a road shares),
+#: under ``(key, bounds)`` (:func:`_scene_key_bounds`)
+_PENDING = PendingCalls()
 #: the field :func:`requesting_road_sdf` asks of the road scenes built meanwhile: ``(cell_size, max_cells, margin)``
 _REQUEST: tuple[float, int, float] | None = None
-#: fields :func:`map_ready` started before their scene existed: ``(weak reference to the drivable area, key,
-#: bounds, ForkedCall)``; moved to ``_PENDING`` by the first look at the scene (:func:`_adopt_early`)
-_EARLY: list[tuple[weakref.ref, tuple, tuple[float, float, float, float], Any]] = []
+#: the drivable areas whose fields :func:`map_ready` started inside the current :func:`requesting_road_sdf` block
+_STARTED: list[weakref.ref] = []
 
 
 def _grid_bounds(origin: tuple[float, float], h: float, nx: int, ny: int, margin: float
@@ -212,21 +215,22 @@ def requesting_road_sdf(*, cell_size: float = 0.2, max_cells: int = 4_000_000, m
     arguments) is computed in a forked process from the moment its importer knows the drivable area and the grid's
     extent (:func:`map_ready`), i.e. while the road users are rasterised: for a caller with an idle core that will
     read the field (the ``plan`` command, whose scene build then overlaps the field's 0.4-0.9 s; started after the
-    build, :func:`start_road_sdf`, the planner waited for it). The first look at the scene
-    (:func:`road_sdf_for_scene`, :func:`start_road_sdf`, :func:`cancel_road_sdf`) takes the process over; a block
-    left by an error ends it."""
+    build, :func:`start_road_sdf`, the planner waited for it). :func:`road_sdf_for_scene` takes it, as one
+    :func:`start_road_sdf` started; :func:`cancel_road_sdf` ends it; a block left by an error ends it too."""
     global _REQUEST
-    before = _REQUEST
+    before, started = _REQUEST, len(_STARTED)
     _REQUEST = (float(cell_size), int(max_cells), float(margin))
     try:
         yield
     except BaseException:
-        for _, _, _, call in _EARLY:
-            call.cancel()
-        _EARLY.clear()
+        for ref in _STARTED[started:]:
+            area = ref()
+            if area is not None:
+                _PENDING.cancel(area)
         raise
     finally:
         _REQUEST = before
+        del _STARTED[started:]
 
 
 def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: int, ny: int) -> bool:
@@ -235,53 +239,26 @@ def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: 
     returns whether a process was started."""
     if _REQUEST is None or drivable is None or drivable.is_empty:
         return False
-    from ..parallel import ForkedCall
-
     sdf_cell, max_cells, margin = _REQUEST
     bounds = _grid_bounds(origin, float(cell_size), int(nx), int(ny), margin)
-    call = ForkedCall.start(_float32_lattice, drivable, bounds, sdf_cell, max_cells)
-    if call is None:
+    if not _PENDING.start(drivable, (_REQUEST, bounds), _float32_lattice, drivable, bounds, sdf_cell, max_cells):
         return False
-    _EARLY.append((weakref.ref(drivable), _REQUEST, bounds, call))
+    _STARTED.append(weakref.ref(drivable))
     return True
-
-
-def _adopt_early(scene: Any) -> None:
-    """Move the processes :func:`map_ready` started for ``scene``'s drivable area to ``_PENDING`` (if they compute
-    its field over its grid; else they end), and end those whose area no longer exists."""
-    road = getattr(scene, "road", None)
-    drivable = getattr(road, "drivable", None)
-    keep = []
-    for ref, key, bounds, call in _EARLY:
-        area = ref()
-        if area is None:
-            call.cancel()
-        elif area is not drivable:
-            keep.append((ref, key, bounds, call))
-        else:
-            found = _scene_key_bounds(scene, *key)
-            if (found is not None and found[2] == bounds and key not in _PENDING.get(road, {})
-                    and key not in _CACHE.get(road, {})):
-                _PENDING.setdefault(road, {})[key] = call
-            else:
-                call.cancel()
-    _EARLY[:] = keep
 
 
 def road_sdf_for_scene(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0
                        ) -> RoadSDF | None:
     """The :class:`RoadSDF` of ``scene.road.drivable`` over the occupancy grid's extent grown by ``margin`` [m],
-    computed once per road scene (cached; taken from :func:`start_road_sdf`'s process where one computes it);
-    ``None`` for scenes without a road (random, inD)."""
+    computed once per road scene (cached; taken from the process of :func:`start_road_sdf` or
+    :func:`requesting_road_sdf` where one computes it); ``None`` for scenes without a road (random, inD)."""
     found = _scene_key_bounds(scene, cell_size, max_cells, margin)
     if found is None:
         return None
     drivable, key, bounds = found
-    if _EARLY:
-        _adopt_early(scene)
     per_road = _CACHE.setdefault(scene.road, {})
     if key not in per_road:
-        pending = _PENDING.get(scene.road, {}).pop(key, None)
+        pending = _PENDING.take(drivable, (key, bounds))
         sdf = None
         if pending is not None:
             try:
@@ -296,36 +273,24 @@ def road_sdf_for_scene(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4
 def start_road_sdf(scene: Any, *, cell_size: float = 0.2, max_cells: int = 4_000_000, margin: float = 10.0) -> bool:
     """Start computing :func:`road_sdf_for_scene`'s field (same arguments) in a forked process
     (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the first
-    :func:`road_sdf_for_scene` then takes it from there (the ``plan`` command: while the planner finds its route
-    seeds; 0.3-0.6 s of its wall time otherwise, scipy's import included). Returns whether a process was started
-    (not without a road, without ``fork``, or when the field is cached or already being computed)."""
-    from ..parallel import ForkedCall
-
+    :func:`road_sdf_for_scene` then takes it from there (0.3-0.9 s otherwise, scipy's import included). Returns
+    whether a process was started (not without a road, without ``fork``, or when the field is cached or already
+    being computed)."""
     found = _scene_key_bounds(scene, cell_size, max_cells, margin)
     if found is None:
         return False
     drivable, key, bounds = found
-    if _EARLY:
-        _adopt_early(scene)
-    if key in _CACHE.get(scene.road, {}) or key in _PENDING.get(scene.road, {}):
+    if key in _CACHE.get(scene.road, {}):
         return False
-    call = ForkedCall.start(_float32_lattice, drivable, bounds, cell_size, max_cells)
-    if call is None:
-        return False
-    _PENDING.setdefault(scene.road, {})[key] = call
-    return True
+    return _PENDING.start(drivable, (key, bounds), _float32_lattice, drivable, bounds, cell_size, max_cells)
 
 
 def cancel_road_sdf(scene: Any) -> None:
-    """End the processes :func:`start_road_sdf` started for ``scene`` whose fields were not taken (a planner that
-    did not read them, an error): nothing is left running."""
-    road = getattr(scene, "road", None)
-    if road is None:
-        return
-    if _EARLY:
-        _adopt_early(scene)
-    for call in _PENDING.pop(road, {}).values():
-        call.cancel()
+    """End the processes :func:`start_road_sdf` or :func:`requesting_road_sdf` started for ``scene``'s road whose
+    fields were not taken (a planner that did not read them, an error): nothing is left running."""
+    drivable = getattr(getattr(scene, "road", None), "drivable", None)
+    if drivable is not None:
+        _PENDING.cancel(drivable)
 
 
 def _float32_lattice(drivable: Any, bounds: tuple[float, float, float, float], cell_size: float, max_cells: int

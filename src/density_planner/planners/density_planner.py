@@ -263,9 +263,9 @@ class DensityPlanner(Planner):
     def prepare(self, problem: PlanningProblem) -> None:
         """:meth:`Planner.prepare`: the route seeds in a forked process on road scenes
         (:func:`.routes.start_route_seeds`; CPU) and, meanwhile, the compiled collision kernels loaded here where a
-        body's cost will read them (:func:`~density_planner.cost.terms.load_collision_kernels`): on suite
-        scenarios the seeds' 0.5-1.2 s and the kernels' ~0.7 s then overlap. A caller that does not plan ends the
-        seeds' process with :func:`.routes.cancel_route_seeds`."""
+        body's cost will read them (:func:`~density_planner.cost.terms.load_collision_kernels`: ~1 ms where they
+        were compiled ahead of time, else numba's ~0.5 s, which then overlaps the seeds' 0.3-4 s). A caller that
+        does not plan ends the seeds' process with :func:`.routes.cancel_route_seeds`."""
         if self.candidate_seeds is None and getattr(problem.scene, "road", None) is not None:
             start_route_seeds(problem, self.config.routes, dtype=self.dtype, device=self.device)
         # the collision cost's condition for its compiled path: a body on the CPU (the model is cached on the scene)

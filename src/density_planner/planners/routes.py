@@ -30,7 +30,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -42,6 +41,7 @@ from torch import Tensor
 from ..checks import check_positive
 from ..control.reference import PiecewiseConstantInputs, plan_grid_reference
 from ..environment.lanes import LaneGraph, scene_lane_graph
+from ..parallel import ForkedCallError, PendingCalls
 from ..systems.base import System
 
 __all__ = [
@@ -916,20 +916,9 @@ def _body_occupancy(problem: Any, dtype: torch.dtype, device: torch.device | str
     return occupancy
 
 
-#: route seeds being computed in forked processes (:func:`start_route_seeds`): id(problem) -> (weak reference to
-#: the problem, key, ForkedCall) (problems are mutable dataclasses: not hashable)
-_PENDING: dict[int, tuple[weakref.ref, tuple, Any]] = {}
-
-
-def _take_pending(problem: Any) -> tuple[tuple, Any] | None:
-    """The pending ``(key, call)`` of ``problem`` (removed), or ``None``."""
-    entry = _PENDING.pop(id(problem), None)
-    if entry is None:
-        return None
-    if entry[0]() is not problem:  # another problem at a recycled id: end that one's process
-        entry[2].cancel()
-        return None
-    return entry[1], entry[2]
+#: route seeds being computed in forked processes (:func:`start_route_seeds`): per problem, under their settings
+#: (:func:`_seed_key`)
+_PENDING = PendingCalls()
 
 
 def _seed_key(config: RouteSeedConfig, dtype: torch.dtype, device: torch.device | str) -> tuple:
@@ -946,23 +935,15 @@ def start_route_seeds(problem: Any, config: RouteSeedConfig | None = None, *, dt
     the collision kernels meanwhile (0.5-1.2 s of route search, risk-aware profiles and fit on suite scenarios).
     Returns whether a process was started (not on a GPU, without ``fork``, with the seeds disabled, or while one is
     already computing them for ``problem``); :func:`cancel_route_seeds` ends one whose seeds nobody takes."""
-    from ..parallel import ForkedCall
-
     cfg = config or RouteSeedConfig()
-    if not cfg.enabled or torch.device(device).type != "cpu" or id(problem) in _PENDING:
+    if not cfg.enabled or torch.device(device).type != "cpu" or _PENDING.keys(problem):
         return False
-    call = ForkedCall.start(_computed_seeds, problem, cfg, dtype, device)
-    if call is None:
-        return False
-    _PENDING[id(problem)] = (weakref.ref(problem), _seed_key(cfg, dtype, device), call)
-    return True
+    return _PENDING.start(problem, _seed_key(cfg, dtype, device), _computed_seeds, problem, cfg, dtype, device)
 
 
 def cancel_route_seeds(problem: Any) -> None:
     """End the process :func:`start_route_seeds` started for ``problem`` if its seeds were not taken."""
-    pending = _take_pending(problem)
-    if pending is not None:
-        pending[1].cancel()
+    _PENDING.cancel(problem)
 
 
 def _computed_seeds(problem: Any, config: RouteSeedConfig, dtype: torch.dtype, device: str) -> RouteSeeds | None:
@@ -990,18 +971,14 @@ def route_seed_parameters(
     cfg = config or RouteSeedConfig()
     if not cfg.enabled:
         return None
-    pending = _take_pending(problem) if lane_graph is None and v_limits is None else None
-    if pending is not None:
-        key, call = pending
-        if key == _seed_key(cfg, dtype, device):
-            from ..parallel import ForkedCallError
-
+    if lane_graph is None and v_limits is None and _PENDING.keys(problem):
+        call = _PENDING.take(problem, _seed_key(cfg, dtype, device))
+        _PENDING.cancel(problem)  # seeds started with other settings: nobody takes them
+        if call is not None:
             try:
                 return call.result()
             except ForkedCallError as exc:  # computed here instead (the same seeds)
                 log.debug("route seeds: %s; computing them here", exc)
-        else:
-            call.cancel()
     graph = lane_graph if lane_graph is not None else scene_lane_graph(problem.scene)
     if graph is None:
         return None
