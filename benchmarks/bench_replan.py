@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.config import load_config, update
     from density_planner.environment.prediction import OraclePrediction
     from density_planner.environment.random_scene import random_scene
-    from density_planner.evaluation.online import _replan_parameterization, recentred, shift_parameters, warm_replan
+    from density_planner.evaluation.online import _replan_parameterization, recentred, shifted_plan, warm_replan
     from density_planner.evaluation.verdict import judge_plan
     from density_planner.planners.context import build_context
     from density_planner.planners.density_planner import DensityPlanner
@@ -73,10 +73,11 @@ def main(argv: list[str] | None = None) -> int:
                                              online.shrink_horizon)
             sc = oracle.scene_at(t, par_t.horizon, start=car.pose(state))
             prob = PlanningProblem(sc, recentred(problem.initial_distribution, mean), car, par_t, problem.risk)
-            v_end = float(prev.reference.x[-1, 3])
-            tail = torch.tensor([0.0, max(float(car.input_bounds[0][1]), -v_end)], dtype=torch.float64)
-            warm = shift_parameters(prev.params.double(), t - t_prev, problem.parameterization.segment_duration,
-                                    tail)[:, :par_t.n_segments]
+            goal_end = problem.parameterization.horizon  # as drive's warm start: its tail holds the speed once
+            hold = online.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9  # the
+            # horizon ends with the goal's time, else it brakes
+            warm = shifted_plan(car, prev.params, prev.reference, t - t_prev,
+                                problem.parameterization.segment_duration, par_t.n_segments, hold=hold)
             t1 = time.perf_counter()
             res, used = warm_replan(planner, prob, warm, seed=i, **online.replan_settings())  # as drive does
             re_t.append(time.perf_counter() - t1)

@@ -21,6 +21,7 @@ from density_planner.evaluation.online import (
     recentred,
     refit_shift,
     shift_parameters,
+    shifted_plan,
     warm_replan,
 )
 from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig
@@ -43,6 +44,29 @@ def test_shift_by_half_a_segment_averages_over_time():
     out = shift_parameters(p, 0.5, 1.0, torch.tensor([10.0], dtype=torch.float64))
     # new segment j covers [0.5 + j, 1.5 + j]: half of old j and half of old j + 1 (the tail past 3 s)
     torch.testing.assert_close(out, torch.tensor([[1.0, 3.0, 7.0]], dtype=torch.float64))
+
+
+def test_a_shifted_plan_goes_on_straight_and_brakes_or_holds_its_speed():
+    """``shifted_plan`` (drive's warm start, bench_replan's too): the old inputs shifted; past the old horizon no
+    turn and the braking that stops the reference's end speed within a segment, at most the hardest braking; with
+    ``hold`` no acceleration either; cut to the replan's segments."""
+    from density_planner.control.reference import PiecewiseConstantInputs, make_reference
+
+    car = KinematicCar()
+    par = PiecewiseConstantInputs(n_segments=6)
+    params = torch.tensor([[0.1, -0.2, 0.0, 0.3, 0.1, -0.1], [1.0, 0.5, 0.0, -0.5, 0.2, 0.4]], dtype=torch.float64)
+    a_min = float(car.input_bounds[0][1])
+    for v0, clamped in ((0.0, False), (9.0, True)):  # the end speed stops within a segment, or at most a_min
+        start = torch.tensor([0.0, 0.0, 0.0, v0, 0.0], dtype=torch.float64)
+        ref = make_reference(car, start, params.unsqueeze(0), par).select(0)
+        v_end = float(ref.x[-1, 3])
+        assert (-v_end < a_min) == clamped
+        warm = shifted_plan(car, params, ref, 2.0, 1.0, 5)
+        assert warm.shape == (2, 5)
+        torch.testing.assert_close(warm[:, :4], params[:, 2:])
+        torch.testing.assert_close(warm[:, 4], torch.tensor([0.0, max(a_min, -v_end)], dtype=torch.float64))
+        held = shifted_plan(car, params, ref, 2.0, 1.0, 6, hold=True)
+        torch.testing.assert_close(held[:, 4:], torch.zeros(2, 2, dtype=torch.float64))
 
 
 def test_refit_brings_a_half_segment_shift_back_onto_the_old_path():

@@ -66,8 +66,8 @@ from .verdict import Verdict, VerdictConfig, judge
 if TYPE_CHECKING:
     from ..planners.density_planner import DensityPlanner
 
-__all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "initial_problem", "shift_parameters", "refit_shift",
-           "braking_parameters", "warm_replan", "recentred"]
+__all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "initial_problem", "shift_parameters", "shifted_plan",
+           "refit_shift", "braking_parameters", "warm_replan", "recentred"]
 
 log = logging.getLogger(__name__)
 
@@ -353,6 +353,25 @@ def shift_parameters(params: Tensor, shift: float, segment_duration: float, tail
     past = ((starts + d - torch.maximum(starts, edges[-1:])).clamp_min(0.0) / d).to(params)  # (n_new,)
     tail = params[:, -1] if tail is None else tail.to(params)
     return params @ w.T + tail[:, None] * past[None, :]
+
+
+def shifted_plan(system: System, params: Tensor, reference: Reference, shift: float, segment_duration: float,
+                 n_segments: int, *, hold: bool = False) -> Tensor:
+    """A replan's warm start: the plan ``params (nu, S)`` (whose reference is ``reference``) seen ``shift`` seconds
+    later (:func:`shift_parameters`), cut to the replan's ``n_segments``. Past the old horizon the car goes straight
+    and brakes to a stop within a segment (its hardest braking at most; ``hold``: at constant speed, e.g. when the
+    horizon ends with the goal's time and nothing is left to plan); other systems hold their last input.
+    ``drive``'s replans and ``benchmarks/bench_replan.py`` use it."""
+    iv, ia = system.speed_index, system.acceleration_input
+    tail = None
+    if iv is not None and ia is not None:
+        tail = torch.zeros(system.nu, dtype=torch.float64)
+        if not hold:
+            a_min = float(system.input_bounds[0][ia])
+            tail[ia] = max(a_min, -float(reference.x[-1, iv]) / segment_duration)
+    warm = shift_parameters(params.detach().to(torch.float64), shift, segment_duration, tail)[:, :n_segments]
+    assert warm.shape[-1] == n_segments, "the horizon never grows from one replan to the next"
+    return warm
 
 
 def refit_shift(system: System, parameterization: PiecewiseConstantInputs, start: Tensor, params: Tensor,
@@ -646,9 +665,8 @@ def drive(
     dtype = getattr(planner, "dtype", torch.float32)
     device = getattr(planner, "device", torch.device("cpu"))
     law0 = problem0.initial_distribution
-    iv, ia = system.speed_index, system.acceleration_input
+    iv = system.speed_index
     hidden = list(system.hidden_states)
-    a_min = float(system.input_bounds[0][ia]) if ia is not None else 0.0
     speed_range = getattr(getattr(planner, "predictor", None), "speed_range", None)
     v_floor = float(speed_range[0]) if speed_range is not None else -math.inf
     fast = None
@@ -776,20 +794,12 @@ def drive(
                 gap = float(torch.linalg.vector_norm(system.positions(active.x_ref[offset])
                                                      - system.positions(x_hat).to(dtype)))
                 if gap <= config.restart_distance:
-                    tail = None
-                    if iv is not None and ia is not None:  # past the old horizon: straight, braking (the goal's
-                        # end, when the horizon shrinks to it: straight at constant speed, nothing left to plan)
-                        tail = torch.zeros(system.nu, dtype=torch.float64)
-                        hold = config.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9
-                        if not hold:
-                            v_end = float(active.reference.x[-1, iv])
-                            tail[ia] = max(a_min, -v_end / par.segment_duration)
-                    # the horizon never grows from one replan to the next (it shrinks towards the goal's end), so
-                    # the shifted plan has at least the segments this one needs
+                    # past the old horizon: straight, braking; at the goal's end, when the horizon shrinks to it,
+                    # straight at constant speed (nothing left to plan)
+                    hold = config.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9
                     shift = t - active.t0
-                    warm = shift_parameters(active.params.detach().to(torch.float64), shift,
-                                            par.segment_duration, tail)[:, :par_t.n_segments]
-                    assert warm.shape[-1] == par_t.n_segments
+                    warm = shifted_plan(system, active.params, active.reference, shift, par.segment_duration,
+                                        par_t.n_segments, hold=hold)
                     if config.continue_reference:  # the reference goes on from where it is, not from the measurement
                         origin = active.x_ref[offset].detach().to(torch.float64).clone()
                     whole = abs(shift / par.segment_duration - round(shift / par.segment_duration)) < 1e-6
