@@ -227,15 +227,22 @@ def test_route_seeds_from_the_forked_process_equal_the_ones_computed_here():
     from density_planner.planners import routes
 
     rc = load_run_config()
-    scene = build_scene("commonroad", rc, file=shipped_commonroad_dir() / "ZAM_Tutorial-1_1_T-1.xml", quiet=True)
+    scene = build_scene("commonroad", rc, file=shipped_commonroad_dir() / "USA_Lanker-1_1_T-1.xml", quiet=True)
     setup = set_up(scene, rc, kind="commonroad", planner="density", distribution_seed=0, progress=False)
     problem, cfg = setup.problem, setup.planner.config.routes
     here = routes.route_seed_parameters(problem, cfg)
-    assert here is not None and here.params.shape[0] >= 2
+    assert here is not None and len(here.routes) >= 3
     before = _children()
     assert routes.start_route_seeds(problem, cfg)
     assert not routes.start_route_seeds(problem, cfg)  # already being computed
-    there = routes.route_seed_parameters(problem, cfg)
+    made_here = []
+    real = routes._route_candidates
+    routes._route_candidates = lambda plan, r: made_here.append(r) or real(plan, r)
+    try:  # the routes split between the two processes: every second one made there, the seeds the same bits
+        there = routes.route_seed_parameters(problem, cfg)
+    finally:
+        routes._route_candidates = real
+    assert made_here == list(range(len(here.routes)))[::2]
     assert torch.equal(there.params, here.params) and torch.equal(there.targets, here.targets)
     assert there.labels == here.labels
     # asked for other seeds (another configuration or dtype): computed here, the process ended

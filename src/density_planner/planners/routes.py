@@ -927,28 +927,66 @@ def _seed_key(config: RouteSeedConfig, dtype: torch.dtype, device: torch.device 
 
 def start_route_seeds(problem: Any, config: RouteSeedConfig | None = None, *, dtype: torch.dtype = torch.float32,
                       device: torch.device | str = "cpu") -> bool:
-    """Start :func:`route_seed_parameters` (same arguments, default lanes and speed limits) in a forked process
-    (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the next
-    :func:`route_seed_parameters` call for the same problem, configuration, dtype and device takes its result (the
-    seeds computed here on one torch thread, bit for bit: the same computation). The ``plan`` command starts it
-    once the problem is set up (:meth:`~density_planner.planners.density_planner.DensityPlanner.prepare`) and loads
-    the collision kernels meanwhile (0.5-1.2 s of route search, risk-aware profiles and fit on suite scenarios).
-    Returns whether a process was started (not on a GPU, without ``fork``, with the seeds disabled, or while one is
-    already computing them for ``problem``); :func:`cancel_route_seeds` ends one whose seeds nobody takes."""
+    """Start part of :func:`route_seed_parameters` (same arguments, default lanes and speed limits) in a forked
+    process (:class:`~density_planner.parallel.ForkedCall`), for a caller with an idle core: the candidates of every
+    second route (the route search done in both processes). The next :func:`route_seed_parameters` call for the
+    same problem, configuration, dtype and device computes the other routes' candidates meanwhile, takes those, and
+    fits them all: the seeds computed in one process on one torch thread, bit for bit (each route's candidates are
+    the same computation wherever they are made). The ``plan`` command starts it once the problem is set up
+    (:meth:`~density_planner.planners.density_planner.DensityPlanner.prepare`): route search, risk-aware profiles
+    and fit take 0.3-4 s on suite scenarios, which stage 1 waits for. Returns whether a process was started (not on
+    a GPU, without ``fork``, with the seeds disabled, or while one is already computing them for ``problem``);
+    :func:`cancel_route_seeds` ends one whose candidates nobody takes."""
     cfg = config or RouteSeedConfig()
     if not cfg.enabled or torch.device(device).type != "cpu" or _PENDING.keys(problem):
         return False
-    return _PENDING.start(problem, _seed_key(cfg, dtype, device), _computed_seeds, problem, cfg, dtype, device)
+    return _PENDING.start(problem, _seed_key(cfg, dtype, device), _forked_candidates, problem, cfg, dtype, device)
 
 
 def cancel_route_seeds(problem: Any) -> None:
-    """End the process :func:`start_route_seeds` started for ``problem`` if its seeds were not taken."""
+    """End the process :func:`start_route_seeds` started for ``problem`` if its candidates were not taken."""
     _PENDING.cancel(problem)
 
 
-def _computed_seeds(problem: Any, config: RouteSeedConfig, dtype: torch.dtype, device: str) -> RouteSeeds | None:
-    """Target of :func:`start_route_seeds`'s process."""
-    return route_seed_parameters(problem, config, dtype=dtype, device=device)
+#: the routes whose candidates :func:`start_route_seeds`'s process makes: every second one, from the second
+_FORKED_ROUTES = slice(1, None, 2)
+
+
+def _forked_candidates(problem: Any, config: RouteSeedConfig, dtype: torch.dtype, device: str
+                       ) -> dict[int, _Candidates]:
+    """Target of :func:`start_route_seeds`'s process: the candidates of the routes ``_FORKED_ROUTES``."""
+    plan = _seed_plan(problem, config, None, None, dtype, device)
+    if plan is None:
+        return {}
+    return {r: _route_candidates(plan, r) for r in range(len(plan.routes))[_FORKED_ROUTES]}
+
+
+@dataclass
+class _SeedPlan:
+    """What every route's candidates need (:func:`_seed_plan`)."""
+
+    problem: Any
+    config: RouteSeedConfig
+    routes: list[Route]
+    start: Tensor
+    tau: np.ndarray
+    sv: float
+    v_limits: tuple[float, float]
+    a_max: float
+    a_brake: float
+    turn_max: float | None
+    end_room: float
+    shapes: Any
+    goal_time: tuple[float, float]
+    goal_speed: Any
+    occupancy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None
+    dtype: torch.dtype
+    device: torch.device | str
+    t0: float
+
+
+#: one route's candidates: ``(s (P, T), v (P, T), xy (P, T, 2), heading (P, T), labels)``
+_Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 
 def route_seed_parameters(
@@ -971,14 +1009,34 @@ def route_seed_parameters(
     cfg = config or RouteSeedConfig()
     if not cfg.enabled:
         return None
+    call = None
     if lane_graph is None and v_limits is None and _PENDING.keys(problem):
         call = _PENDING.take(problem, _seed_key(cfg, dtype, device))
-        _PENDING.cancel(problem)  # seeds started with other settings: nobody takes them
+        _PENDING.cancel(problem)  # candidates started with other settings: nobody takes them
+    plan = _seed_plan(problem, cfg, lane_graph, v_limits, dtype, device)
+    if plan is None:
         if call is not None:
-            try:
-                return call.result()
-            except ForkedCallError as exc:  # computed here instead (the same seeds)
-                log.debug("route seeds: %s; computing them here", exc)
+            call.cancel()
+        return None
+    routes = range(len(plan.routes))
+    theirs: dict[int, _Candidates] = {}
+    if call is not None:  # the other routes' candidates are being made by start_route_seeds's process
+        mine = {r: _route_candidates(plan, r) for r in routes if r not in routes[_FORKED_ROUTES]}
+        try:
+            theirs = call.result()
+        except ForkedCallError as exc:  # made here instead (the same candidates)
+            log.debug("route seeds: %s; computing them here", exc)
+    else:
+        mine = {}
+    parts = [mine.get(r) or theirs.get(r) or _route_candidates(plan, r) for r in routes]
+    return _fitted_seeds(plan, parts)
+
+
+def _seed_plan(problem: Any, cfg: RouteSeedConfig, lane_graph: LaneGraph | None,
+               v_limits: tuple[float, float] | None, dtype: torch.dtype, device: torch.device | str
+               ) -> _SeedPlan | None:
+    """The routes and what every route's candidates need, or ``None`` (no lanes, no route, a system without
+    heading, speed and acceleration)."""
     graph = lane_graph if lane_graph is not None else scene_lane_graph(problem.scene)
     if graph is None:
         return None
@@ -1014,62 +1072,72 @@ def route_seed_parameters(
         goal_time = (float(np.clip(rel[0], 0.0, horizon)), float(np.clip(rel[1], 0.0, horizon)))
         if rel[0] > horizon or rel[1] < 0:
             goal_time = (horizon, horizon)
-    import shapely
-
     occupancy = _body_occupancy(problem, dtype, device) if cfg.risk_aware else None
     # where the lanes end (the map's edge, a dead end) the vehicle's front stops 0.5 m short of the path's end
     end_room = 0.5 * float(system.footprint.length) + 0.5
     it = system.turn_rate_input
     turn_max = None if it is None else 0.9 * min(abs(float(system.input_bounds[0][it])),
                                                  abs(float(system.input_bounds[1][it])))
-    all_s, all_v, all_xy, all_h, labels = [], [], [], [], []
-    for r, route in enumerate(routes):
-        cum = _arc(route.path)
-        goal_arc = None
-        if shapes is not None:
-            s_grid = np.arange(0.0, cum[-1] + 1e-9, 0.5)
-            pts = path_points(route.path, s_grid)
-            inside = np.asarray(shapely.intersects_xy(shapes, pts[:, 0], pts[:, 1]), dtype=bool)
-            if inside.any():
-                goal_arc = (float(s_grid[inside].min()), float(s_grid[inside].max()))
-            else:
-                d = np.asarray(shapely.distance(shapes, shapely.points(pts)), dtype=np.float64)
-                s_near = float(s_grid[int(np.argmin(d))])
-                goal_arc = (s_near, s_near)
-        limit, with_end = (path_speed_limit(route.path, v_limits[1], lateral_acceleration=cfg.lateral_acceleration,
-                                            deceleration=a_max, turn_rate=turn_max, s_end=end)
-                           for end in (None, cum[-1] - end_room))
-        stop = (cum[-1] - end_room, with_end)
-        def capped(v: np.ndarray, limit=limit, stop=stop) -> tuple[np.ndarray, np.ndarray]:
-            return cap_profiles(v, tau, limit, acceleration=a_max, deceleration=a_brake, v_lo=v_limits[0], stop=stop)
+    return _SeedPlan(problem, cfg, routes, start, tau, sv, v_limits, a_max, a_brake, turn_max, end_room, shapes,
+                     goal_time, goal_speed, occupancy, dtype, device, t0)
 
-        s, v, lab = speed_profiles(0.0, sv, tau, goal_arc, goal_time, v_limits=v_limits,
-                                   acceleration=cfg.acceleration, max_acceleration=a_max, cap=capped)
-        if occupancy is not None:
-            s_r, v_r, _ = risk_aware_profiles(
-                occupancy, route.path, sv, tau, goal_arc, goal_time, v_limits=v_limits,
-                rates=(cfg.acceleration, (a_max, a_brake)), n_speeds=cfg.profile_speeds,
-                switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
-                effort_weight=cfg.effort_weight, goal_speed=goal_speed, speed_limit=limit, stop=stop)
-            s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
-            lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
-        xy = path_points(route.path, s)  # (P, T, 2)
-        ahead = path_points(route.path, s + 0.5)
-        h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
-        all_s.append(s)
-        all_v.append(v)
-        all_xy.append(xy)
-        all_h.append(h)
-        labels += [f"route {r}: {x}" for x in lab]
-    xy = np.concatenate(all_xy)[: cfg.max_candidates]
-    v = np.concatenate(all_v)[: cfg.max_candidates]
-    h = np.concatenate(all_h)[: cfg.max_candidates]
-    labels = labels[: cfg.max_candidates]
+
+def _route_candidates(plan: _SeedPlan, r: int) -> _Candidates:
+    """Route ``r``'s candidates: its speed profiles (and the risk-aware ones) as positions, speeds and headings."""
+    import shapely
+
+    cfg, route, tau, v_limits = plan.config, plan.routes[r], plan.tau, plan.v_limits
+    cum = _arc(route.path)
+    goal_arc = None
+    if plan.shapes is not None:
+        s_grid = np.arange(0.0, cum[-1] + 1e-9, 0.5)
+        pts = path_points(route.path, s_grid)
+        inside = np.asarray(shapely.intersects_xy(plan.shapes, pts[:, 0], pts[:, 1]), dtype=bool)
+        if inside.any():
+            goal_arc = (float(s_grid[inside].min()), float(s_grid[inside].max()))
+        else:
+            d = np.asarray(shapely.distance(plan.shapes, shapely.points(pts)), dtype=np.float64)
+            s_near = float(s_grid[int(np.argmin(d))])
+            goal_arc = (s_near, s_near)
+    limit, with_end = (path_speed_limit(route.path, v_limits[1], lateral_acceleration=cfg.lateral_acceleration,
+                                        deceleration=plan.a_max, turn_rate=plan.turn_max, s_end=end)
+                       for end in (None, cum[-1] - plan.end_room))
+    stop = (cum[-1] - plan.end_room, with_end)
+
+    def capped(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return cap_profiles(v, tau, limit, acceleration=plan.a_max, deceleration=plan.a_brake, v_lo=v_limits[0],
+                            stop=stop)
+
+    s, v, lab = speed_profiles(0.0, plan.sv, tau, goal_arc, plan.goal_time, v_limits=v_limits,
+                               acceleration=cfg.acceleration, max_acceleration=plan.a_max, cap=capped)
+    if plan.occupancy is not None:
+        s_r, v_r, _ = risk_aware_profiles(
+            plan.occupancy, route.path, plan.sv, tau, goal_arc, plan.goal_time, v_limits=v_limits,
+            rates=(cfg.acceleration, (plan.a_max, plan.a_brake)), n_speeds=cfg.profile_speeds,
+            switch_times=cfg.profile_switch_times, n_keep=cfg.risk_aware, risk_weight=cfg.risk_weight,
+            effort_weight=cfg.effort_weight, goal_speed=plan.goal_speed, speed_limit=limit, stop=stop)
+        s, v = np.concatenate([s_r, s]), np.concatenate([v_r, v])
+        lab = [f"risk-aware {i}" for i in range(s_r.shape[0])] + lab
+    xy = path_points(route.path, s)  # (P, T, 2)
+    ahead = path_points(route.path, s + 0.5)
+    h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
+    return s, v, xy, h, [f"route {r}: {x}" for x in lab]
+
+
+def _fitted_seeds(plan: _SeedPlan, parts: list[_Candidates]) -> RouteSeeds:
+    """Every route's candidates, in route order and at most ``max_candidates``, fitted as reference parameters."""
+    cfg, dtype, device = plan.config, plan.dtype, plan.device
+    xy = np.concatenate([p[2] for p in parts])[: cfg.max_candidates]
+    v = np.concatenate([p[1] for p in parts])[: cfg.max_candidates]
+    h = np.concatenate([p[3] for p in parts])[: cfg.max_candidates]
+    labels = [x for p in parts for x in p[4]][: cfg.max_candidates]
     targets, speeds = torch.tensor(xy, dtype=dtype, device=device), torch.tensor(v, dtype=dtype, device=device)
-    params, rms = fit_reference_parameters(system, start.to(dtype=dtype, device=device), par, targets, speeds,
+    system = plan.problem.system
+    params, rms = fit_reference_parameters(system, plan.start.to(dtype=dtype, device=device),
+                                           plan.problem.parameterization, targets, speeds,
                                            torch.tensor(h, dtype=dtype, device=device),
                                            iterations=cfg.fit_iterations, speed_weight=cfg.fit_speed_weight)
-    seeds = RouteSeeds(params, targets, speeds, labels, rms, routes, time.perf_counter() - t0)
-    log.info("route seeds: %d routes, %d candidates, fit rms median %.2f m, %.2f s", len(routes),
+    seeds = RouteSeeds(params, targets, speeds, labels, rms, plan.routes, time.perf_counter() - plan.t0)
+    log.info("route seeds: %d routes, %d candidates, fit rms median %.2f m, %.2f s", len(plan.routes),
              params.shape[0], float(rms.median()), seeds.seconds)
     return seeds
