@@ -140,15 +140,6 @@ class PendingCalls:
         calls = self._calls(owner)
         return [] if calls is None else list(calls)
 
-    def add(self, owner: Any, key: Any, call: ForkedCall) -> None:
-        """File ``call`` under ``owner`` and ``key`` (one that was there already is ended)."""
-        calls = self._calls(owner, create=True)
-        assert calls is not None
-        old = calls.pop(key, None)
-        if old is not None:
-            old.cancel()
-        calls[key] = call
-
     def start(self, owner: Any, key: Any, fn: Callable[..., Any], *args: Any) -> bool:
         """:meth:`ForkedCall.start` ``fn(*args)`` under ``owner`` and ``key``; returns whether it started (not
         without ``fork``, nor while a call is pending under that key)."""
@@ -157,7 +148,9 @@ class PendingCalls:
         call = ForkedCall.start(fn, *args)
         if call is None:
             return False
-        self.add(owner, key, call)
+        calls = self._calls(owner, create=True)
+        assert calls is not None
+        calls[key] = call
         return True
 
     def take(self, owner: Any, key: Any) -> ForkedCall | None:
@@ -174,11 +167,6 @@ class PendingCalls:
         """End every call of ``owner`` not taken."""
         if self._calls(owner) is not None:
             self._drop(id(owner))
-
-    def cancel_all(self) -> None:
-        """End every call not taken."""
-        for key in list(self._entries):
-            self._drop(key)
 
 
 def end_child(proc, conn) -> None:

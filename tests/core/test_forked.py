@@ -77,7 +77,7 @@ def test_pending_calls_are_filed_by_owner_and_key_and_end_with_their_owner():
     stale = calls["x"]
     pending._entries[id(c)] = (weakref.ref(d), calls)  # as if the entry were another object's, now at c's id
     assert pending.keys(c) == [] and stale._conn.closed and len(pending) == 1
-    pending.cancel_all()
+    pending.cancel(d)
     assert len(pending) == 0 and not [p for p in _children() if p not in before]
 
 

@@ -294,8 +294,9 @@ def with_road_terms(
         weights["goal"] = rc.goal_weight
     if rc.collision_weight is not None and "collision" in weights:
         weights["collision"] = rc.collision_weight
-    if rc.barrier and getattr(road, "drivable", None) is not None and rc.weight > 0:
-        sdf = road_sdf_for_scene(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+    field = _barrier_field(config)
+    if field is not None and getattr(road, "drivable", None) is not None:
+        sdf = road_sdf_for_scene(scene, **field)
         if sdf is not None:
             if device is not None:
                 sdf = sdf.to(device)
@@ -312,10 +313,10 @@ def start_road_terms(scene: Any, config: Any) -> bool:
     ``scene`` and ``config`` (a :class:`~density_planner.cost.composite.CostConfig`):
     :func:`~density_planner.environment.road_sdf.start_road_sdf`. For a caller with an idle core (the ``plan``
     command); returns whether a process was started."""
-    rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
-    if getattr(scene, "road", None) is None or not (rc.barrier and rc.weight > 0):
+    field = _barrier_field(config)
+    if getattr(scene, "road", None) is None or field is None:
         return False
-    return start_road_sdf(scene, cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+    return start_road_sdf(scene, **field)
 
 
 def requesting_road_terms(config: Any) -> AbstractContextManager:
@@ -324,7 +325,14 @@ def requesting_road_terms(config: Any) -> AbstractContextManager:
     as soon as its importer knows the drivable area and the grid
     (:func:`~density_planner.environment.road_sdf.requesting_road_sdf`); a plain block where ``config`` has no road
     barrier. For a caller with an idle core (the ``plan`` command)."""
+    field = _barrier_field(config)
+    return nullcontext() if field is None else requesting_road_sdf(**field)
+
+
+def _barrier_field(config: Any) -> dict[str, Any] | None:
+    """The distance field's arguments (cell size, lattice budget) of ``config``'s road barrier, ``None`` without
+    one: the one place that says which field :func:`with_road_terms` reads and the helpers compute ahead."""
     rc: RoadCostConfig = getattr(config, "road", None) or RoadCostConfig()
     if not (rc.barrier and rc.weight > 0):
-        return nullcontext()
-    return requesting_road_sdf(cell_size=rc.sdf_cell_size, max_cells=rc.sdf_max_cells)
+        return None
+    return {"cell_size": rc.sdf_cell_size, "max_cells": rc.sdf_max_cells}

@@ -196,6 +196,12 @@ def _grid_bounds(origin: tuple[float, float], h: float, nx: int, ny: int, margin
     return (x0 - margin, x0 + (nx - 1) * h + margin, y0 - margin, y0 + (ny - 1) * h + margin)
 
 
+def _field_key(cell_size: float, max_cells: int, margin: float) -> tuple[float, int, float]:
+    """The settings a field depends on beside its bounds: the key of ``_CACHE`` and, with the bounds, of
+    ``_PENDING`` (the same tuple whoever starts or reads the field)."""
+    return float(cell_size), int(max_cells), float(margin)
+
+
 def _scene_key_bounds(scene: Any, cell_size: float, max_cells: int, margin: float
                       ) -> tuple[Any, tuple, tuple[float, float, float, float]] | None:
     """``(drivable, cache key, bounds)`` of :func:`road_sdf_for_scene`'s field; ``None`` without a road."""
@@ -205,7 +211,7 @@ def _scene_key_bounds(scene: Any, cell_size: float, max_cells: int, margin: floa
     grid = scene.grid
     _, nx, ny = grid.shape
     bounds = _grid_bounds(grid.origin, float(grid.cell_size), nx, ny, float(margin))
-    return drivable, (float(cell_size), int(max_cells), float(margin)), bounds
+    return drivable, _field_key(cell_size, max_cells, margin), bounds
 
 
 @contextmanager
@@ -219,7 +225,7 @@ def requesting_road_sdf(*, cell_size: float = 0.2, max_cells: int = 4_000_000, m
     :func:`start_road_sdf` started; :func:`cancel_road_sdf` ends it; a block left by an error ends it too."""
     global _REQUEST
     before, started = _REQUEST, len(_STARTED)
-    _REQUEST = (float(cell_size), int(max_cells), float(margin))
+    _REQUEST = _field_key(cell_size, max_cells, margin)
     try:
         yield
     except BaseException:

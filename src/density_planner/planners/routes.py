@@ -985,8 +985,8 @@ class _SeedPlan:
     t0: float
 
 
-#: one route's candidates: ``(s (P, T), v (P, T), xy (P, T, 2), heading (P, T), labels)``
-_Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]
+#: one route's candidates: ``(xy (P, T, 2), v (P, T), heading (P, T), labels)``
+_Candidates = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 
 def route_seed_parameters(
@@ -1019,17 +1019,15 @@ def route_seed_parameters(
             call.cancel()
         return None
     routes = range(len(plan.routes))
-    theirs: dict[int, _Candidates] = {}
-    if call is not None:  # the other routes' candidates are being made by start_route_seeds's process
-        mine = {r: _route_candidates(plan, r) for r in routes if r not in routes[_FORKED_ROUTES]}
+    # the routes start_route_seeds's process makes meanwhile, if it runs
+    forked = routes[_FORKED_ROUTES] if call is not None else range(0)
+    made = {r: _route_candidates(plan, r) for r in routes if r not in forked}
+    if call is not None:
         try:
-            theirs = call.result()
+            made.update(call.result())
         except ForkedCallError as exc:  # made here instead (the same candidates)
             log.debug("route seeds: %s; computing them here", exc)
-    else:
-        mine = {}
-    parts = [mine.get(r) or theirs.get(r) or _route_candidates(plan, r) for r in routes]
-    return _fitted_seeds(plan, parts)
+    return _fitted_seeds(plan, [made[r] if r in made else _route_candidates(plan, r) for r in routes])
 
 
 def _seed_plan(problem: Any, cfg: RouteSeedConfig, lane_graph: LaneGraph | None,
@@ -1121,16 +1119,14 @@ def _route_candidates(plan: _SeedPlan, r: int) -> _Candidates:
     xy = path_points(route.path, s)  # (P, T, 2)
     ahead = path_points(route.path, s + 0.5)
     h = np.arctan2(ahead[..., 1] - xy[..., 1], ahead[..., 0] - xy[..., 0])
-    return s, v, xy, h, [f"route {r}: {x}" for x in lab]
+    return xy, v, h, [f"route {r}: {x}" for x in lab]
 
 
 def _fitted_seeds(plan: _SeedPlan, parts: list[_Candidates]) -> RouteSeeds:
     """Every route's candidates, in route order and at most ``max_candidates``, fitted as reference parameters."""
     cfg, dtype, device = plan.config, plan.dtype, plan.device
-    xy = np.concatenate([p[2] for p in parts])[: cfg.max_candidates]
-    v = np.concatenate([p[1] for p in parts])[: cfg.max_candidates]
-    h = np.concatenate([p[3] for p in parts])[: cfg.max_candidates]
-    labels = [x for p in parts for x in p[4]][: cfg.max_candidates]
+    xy, v, h = (np.concatenate([p[i] for p in parts])[: cfg.max_candidates] for i in range(3))
+    labels = [x for p in parts for x in p[3]][: cfg.max_candidates]
     targets, speeds = torch.tensor(xy, dtype=dtype, device=device), torch.tensor(v, dtype=dtype, device=device)
     system = plan.problem.system
     params, rms = fit_reference_parameters(system, plan.start.to(dtype=dtype, device=device),
