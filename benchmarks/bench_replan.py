@@ -35,7 +35,13 @@ def main(argv: list[str] | None = None) -> int:
     from density_planner.config import load_config, update
     from density_planner.environment.prediction import OraclePrediction
     from density_planner.environment.random_scene import random_scene
-    from density_planner.evaluation.online import _replan_parameterization, recentred, shifted_plan, warm_replan
+    from density_planner.evaluation.online import (
+        _replan_parameterization,
+        holds_speed,
+        recentred,
+        shifted_plan,
+        warm_replan,
+    )
     from density_planner.evaluation.verdict import judge_plan
     from density_planner.planners.context import build_context
     from density_planner.planners.density_planner import DensityPlanner
@@ -73,9 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                                              online.shrink_horizon)
             sc = oracle.scene_at(t, par_t.horizon, start=car.pose(state))
             prob = PlanningProblem(sc, recentred(problem.initial_distribution, mean), car, par_t, problem.risk)
-            goal_end = problem.parameterization.horizon  # as drive's warm start: its tail holds the speed once
-            hold = online.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9  # the
-            # horizon ends with the goal's time, else it brakes
+            # drive's warm start (a random scene's goal time is the first plan's end)
+            hold = holds_speed(online, t, problem.parameterization.horizon, par_t.horizon)
             warm = shifted_plan(car, prev.params, prev.reference, t - t_prev,
                                 problem.parameterization.segment_duration, par_t.n_segments, hold=hold)
             t1 = time.perf_counter()

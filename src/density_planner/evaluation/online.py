@@ -67,7 +67,7 @@ if TYPE_CHECKING:
     from ..planners.density_planner import DensityPlanner
 
 __all__ = ["OnlineConfig", "Replan", "DriveResult", "drive", "initial_problem", "shift_parameters", "shifted_plan",
-           "refit_shift", "braking_parameters", "warm_replan", "recentred"]
+           "holds_speed", "refit_shift", "braking_parameters", "warm_replan", "recentred"]
 
 log = logging.getLogger(__name__)
 
@@ -372,6 +372,13 @@ def shifted_plan(system: System, params: Tensor, reference: Reference, shift: fl
     warm = shift_parameters(params.detach().to(torch.float64), shift, segment_duration, tail)[:, :n_segments]
     assert warm.shape[-1] == n_segments, "the horizon never grows from one replan to the next"
     return warm
+
+
+def holds_speed(config: OnlineConfig, t: float, goal_end: float, horizon: float) -> bool:
+    """Whether a replan at ``t`` [s] with ``horizon`` [s] ends with the goal's time ``goal_end``
+    (``config.shrink_horizon``): its :func:`shifted_plan` then holds the speed past the old horizon (nothing is
+    left to plan there) instead of braking."""
+    return bool(config.shrink_horizon) and t < goal_end - 1e-9 and goal_end <= t + horizon + 1e-9
 
 
 def refit_shift(system: System, parameterization: PiecewiseConstantInputs, start: Tensor, params: Tensor,
@@ -796,10 +803,9 @@ def drive(
                 if gap <= config.restart_distance:
                     # past the old horizon: straight, braking; at the goal's end, when the horizon shrinks to it,
                     # straight at constant speed (nothing left to plan)
-                    hold = config.shrink_horizon and t < goal_end - 1e-9 and goal_end <= t + par_t.horizon + 1e-9
                     shift = t - active.t0
                     warm = shifted_plan(system, active.params, active.reference, shift, par.segment_duration,
-                                        par_t.n_segments, hold=hold)
+                                        par_t.n_segments, hold=holds_speed(config, t, goal_end, par_t.horizon))
                     if config.continue_reference:  # the reference goes on from where it is, not from the measurement
                         origin = active.x_ref[offset].detach().to(torch.float64).clone()
                     whole = abs(shift / par.segment_duration - round(shift / par.segment_duration)) < 1e-6
