@@ -106,3 +106,35 @@ def test_costs_figure_is_drawn_once_by_whichever_process_is_free_first(tmp_path,
     laps = _Laps()
     write_plan_figures(tmp_path / "plain", scene, result, None, gif=False, clock=laps)
     assert laps.names == ["plan_png", "child_wait"] and marks.read_text().count("plain") == 1
+
+
+@pytest.mark.parametrize("aspect", [0.34, 0.7, 1.0, 1.8, 2.5, 3.0])
+@pytest.mark.parametrize("n_snap, lines, colorbar", [(6, 1, True), (4, 3, True), (1, 2, False), (7, 1, True)])
+def test_plan_layout_keeps_panels_and_their_labels_apart_inside_the_figure(aspect, n_snap, lines, colorbar):
+    """plot_plan's fixed layout: every panel with the margins its tick labels, axis labels and title need lies
+    inside the figure below the header, no two of them overlap, the overview's box has the region's aspect (equal
+    axes fill it) and the snapshots are square."""
+    from density_planner.viz.plan import _PlanLayout as L
+
+    lay = L.of(aspect, n_snap, header_lines=lines, colorbar=colorbar)
+    w, h = lay.size
+
+    def inches(r, left=0.0, bottom=0.0, right=0.0, top=0.0):
+        return (r[0] * w - left, r[1] * h - bottom, r[0] * w + r[2] * w + right, r[1] * h + r[3] * h + top)
+
+    over = inches(lay.overview, L.OVER_LEFT - 0.05, L.OVER_BOTTOM - 0.05)
+    boxes = [over] + [inches(r, L.SNAP_LEFT - 0.05, L.SNAP_BOTTOM - 0.05, 0.0, L.SNAP_TOP - 0.05)
+                      for r in lay.snapshots]
+    assert (lay.colorbar is not None) == colorbar and len(lay.snapshots) == n_snap
+    if colorbar:
+        boxes.append(inches(lay.colorbar, 0.0, 0.0, L.BAR_LABELS - 0.05))
+    header = 0.5 + 0.15 * lines
+    for x0, y0, x1, y1 in boxes:
+        assert 0.0 <= x0 < x1 <= w + 1e-9 and 0.0 <= y0 < y1 <= h - header + 1e-9
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)
+    assert lay.overview[2] * w / (lay.overview[3] * h) == pytest.approx(aspect)
+    assert max(lay.overview[2] * w, lay.overview[3] * h) >= 3.5  # the main panel stays large
+    for r in lay.snapshots:
+        assert r[2] * w == pytest.approx(r[3] * h) and r[2] * w >= 1.5

@@ -388,7 +388,7 @@ class DensityPlanner(Planner):
         ref = make_reference(problem.system, start, params.unsqueeze(0), problem.parameterization)
         if states_only:
             return ref, predictor.predict_states(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
-        if processes > 1:
+        if processes > 1 or not torch.is_grad_enabled():  # without gradient: in inference mode (predict_split)
             return ref, predict_split(predictor, x0.unsqueeze(0), log_rho0.unsqueeze(0), ref, processes=processes)
         return ref, predictor.predict(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
 

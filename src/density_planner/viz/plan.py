@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
-from matplotlib.ticker import NullLocator
+from matplotlib.ticker import FuncFormatter, NullLocator
 
 from ..environment.scene import Scene
 from ..io.atomic import _atomic
@@ -18,6 +19,9 @@ from .occupancy import _decorate, _extent, show_occupancy
 from .style import DENSITY_CMAP, agg_canvas, frame_map, plt, save_figure
 
 __all__ = ["plot_plan", "animate_plan", "plot_costs", "plot_plans"]
+
+#: tick labels of log axes as plain numbers
+_PLAIN_NUMBER = FuncFormatter(lambda value, _pos: f"{value:g}")
 
 #: background outside the map (no occupancy data there)
 _OUTSIDE_MAP = "#d9e2ec"
@@ -156,12 +160,87 @@ def _mark_failures(ax, states: np.ndarray, verdict, plan_dt: float) -> None:
                 label=f"{label} (t = {t:.1f} s)")
 
 
+Rect = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class _PlanLayout:
+    """Where :func:`plot_plan`'s panels go: the figure's size [in] and each panel's rectangle ``(left, bottom,
+    width, height)`` in figure fractions, from fixed margins for the tick labels, axis labels and titles.
+    matplotlib's constrained layout engine found the same kind of arrangement at ~0.15 s of the figure's ~0.5 s.
+
+    The overview shows the region of interest with equal axes (``aspect``: its width over its height): its box has
+    that aspect, with the colour bar beside it. Wide regions (aspect > 2.2) put it on top, over two rows of
+    snapshots; others on the left, beside them. Overview and snapshots share the width in proportion to
+    ``clip(1.9 aspect, 1.9, 3.6) : 1`` per snapshot column, and a side that cannot use its share (a panel limited by
+    the height) leaves the rest to the other. Snapshot panels are square."""
+
+    size: tuple[float, float]
+    overview: Rect
+    colorbar: Rect | None
+    snapshots: list[Rect]
+
+    #: [in] left of the overview (tick labels, axis label), below it, right of the figure
+    OVER_LEFT, OVER_BOTTOM, RIGHT = 0.7, 0.55, 0.1
+    #: [in] gap between the overview and its colour bar, the bar's width, and its tick labels and label
+    BAR_GAP, BAR_WIDTH, BAR_LABELS = 0.08, 0.12, 0.55
+    #: [in] left of a snapshot (tick labels), right of it, above it (title) and below it (tick labels)
+    SNAP_LEFT, SNAP_RIGHT, SNAP_TOP, SNAP_BOTTOM = 0.38, 0.06, 0.3, 0.25
+
+    @classmethod
+    def of(cls, aspect: float, n_snap: int, *, header_lines: int = 1, colorbar: bool = True) -> _PlanLayout:
+        header = 0.5 + 0.15 * header_lines  # the title, then the verdict's lines
+        bar = cls.BAR_GAP + cls.BAR_WIDTH + cls.BAR_LABELS if colorbar else 0.0
+        ncol = max((n_snap + 1) // 2, 1)
+        snap_pad_w, snap_pad_h = cls.SNAP_LEFT + cls.SNAP_RIGHT, cls.SNAP_TOP + cls.SNAP_BOTTOM
+        extra = 2.5 * max(ncol - 3, 0)  # [in] wider for more than three columns of snapshots
+        if aspect > 2.2:  # wide: the overview on top, two rows of snapshots of 3.2 in below it
+            over_h = 11.0 / aspect + 0.9
+            width, height = 13.0 + extra, header + over_h + 6.4
+            box_w = min(width - cls.OVER_LEFT - bar - cls.RIGHT, (over_h - cls.OVER_BOTTOM - 0.05) * aspect)
+            box_h = box_w / aspect
+            free = width - cls.OVER_LEFT - bar - cls.RIGHT - box_w
+            box = (cls.OVER_LEFT + 0.5 * free, 6.4 + cls.OVER_BOTTOM + 0.5 * (over_h - cls.OVER_BOTTOM - 0.05 - box_h),
+                   box_w, box_h)
+            cells = [(cls.RIGHT + c * (width - 2 * cls.RIGHT) / ncol, 3.2 * (1 - r), (width - 2 * cls.RIGHT) / ncol,
+                      3.2) for r in range(2) for c in range(ncol)]
+        else:  # the overview on the left, two rows of snapshots beside it
+            width, height = 13.0 + max(0.0, aspect - 1.0) * 3.0 + extra, 7.5 + 0.15 * header_lines
+            content = height - header
+            row_h = content / 2.0
+            side_max = row_h - snap_pad_h  # the snapshots' side where the height limits them
+            usable = width - cls.RIGHT
+            ratio = float(np.clip(1.9 * aspect, 1.9, 3.6))
+            over_cell = max(usable * ratio / (ratio + ncol), usable - ncol * (side_max + snap_pad_w))
+            box_h_max = content - cls.OVER_BOTTOM - 0.1
+            box_w = min(over_cell - cls.OVER_LEFT - bar, box_h_max * aspect)
+            box_h = box_w / aspect
+            box = (cls.OVER_LEFT, cls.OVER_BOTTOM + 0.5 * (box_h_max - box_h), box_w, box_h)
+            x_snap = cls.OVER_LEFT + box_w + bar
+            cell_w = (width - cls.RIGHT - x_snap) / ncol
+            cells = [(x_snap + c * cell_w, row_h * (1 - r), cell_w, row_h) for r in range(2) for c in range(ncol)]
+        snaps = []
+        for cx, cy, cw, ch in cells[:n_snap]:  # a square panel in each cell, centred below its title
+            side = max(min(cw - snap_pad_w, ch - snap_pad_h), 0.5)
+            snaps.append((cx + cls.SNAP_LEFT + 0.5 * (cw - snap_pad_w - side), cy + ch - cls.SNAP_TOP - side, side,
+                          side))
+
+        def frac(r: Rect) -> Rect:
+            return (r[0] / width, r[1] / height, r[2] / width, r[3] / height)
+
+        bar_rect = None
+        if colorbar:
+            bar_rect = frac((box[0] + box[2] + cls.BAR_GAP, box[1] + 0.25 * box[3], cls.BAR_WIDTH, 0.5 * box[3]))
+        return cls((width, height), frac(box), bar_rect, [frac(r) for r in snaps])
+
+
 def warm_up(scene: Scene | None = None) -> None:
     """Load what the first figure of a process would (fonts, layout and text machinery: ~0.2-0.3 s) by laying out
     and rendering a small figure, e.g. in a process that waits for a plan to draw. With ``scene``, also draw and
-    save (to a temporary file, deleted) :func:`plot_plan`'s figure of a vehicle standing at the scene's start with
-    a small sample cloud: what the first plan figure of a scene pays once more (its occupancy crops, the road users'
-    paths, the colour bar, the PNG writer; ~0.1-0.2 s) is then paid before the plan arrives."""
+    save (to temporary files, deleted) :func:`plot_plan`'s figure of a vehicle standing at the scene's start with
+    a small sample cloud, and a :func:`plot_costs` figure: what the first plan figure of a scene pays once more (its
+    occupancy crops, the road users' paths, the colour bar, the PNG writer; ~0.1-0.2 s) and the first cost figure
+    (log axes, legends; ~0.1 s) are then paid before the plan arrives."""
     fig, ax = plt.subplots(figsize=(2.0, 1.5), dpi=30, layout="constrained")
     ax.plot([0.0, 1.0], [0.0, 1.0], "o-")
     ax.set_title("t = 0.0 s", fontsize=8)
@@ -178,6 +257,8 @@ def warm_up(scene: Scene | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="density-planner-warm-up-") as tmp:
         plot_plan(scene, states, Path(tmp) / "plan.png", samples_x=cloud, samples_log_rho=np.zeros(cloud.shape[:2]),
                   title="warm-up", body=None)
+        series = {"total": [10.0, 1.0, 0.1], "goal": [1.0, 0.01, 1e-4]}
+        plot_costs({"stage1": series, "stage2": series}, Path(tmp) / "costs.png", title="warm-up")
 
 
 def plot_plan(
@@ -217,32 +298,16 @@ def plot_plan(
         snapshot_times = list(np.round(np.linspace(0.0, (T - 1) * plan_dt, 6) / plan_dt) * plan_dt)
     snapshot_times = list(snapshot_times)
     n_snap = len(snapshot_times)
-    ncol = max((n_snap + 1) // 2, 1)
     has_cloud = samples_x is not None and samples_log_rho is not None
     roi = _region_of_interest(scene, states, samples_x if has_cloud else None)
     x0, x1, y0, y1 = roi
     aspect = (x1 - x0) / max(y1 - y0, 1e-9)
-    wide = aspect > 2.2
-    over_h = 11.0 / aspect + 0.9  # wide: the overview's row fits its aspect over the figure's width
-    fig = plt.figure(figsize=(13.0, 0.6 + over_h + 6.4) if wide else (13.0 + max(0.0, aspect - 1.0) * 3.0, 7.8),
-                     layout="constrained")
-    outer = fig.add_gridspec(2, 1, height_ratios=[0.6, over_h + 6.4] if wide else [0.06, 1])
-    header = fig.add_subplot(outer[0])  # the verdict, coloured, over the whole width
-    header.axis("off")
     text, colour = _verdict_line(verdict, width=170)
-    header.text(0.0, 0.5, text, color=colour, fontsize=8.5, va="center", ha="left", transform=header.transAxes)
-    if wide:  # wide: overview on top, snapshots in two rows below
-        gs = outer[1].subgridspec(3, ncol, height_ratios=[over_h, 3.2, 3.2])
-        ax = fig.add_subplot(gs[0, :])
-
-        def snapshot_cell(j: int):
-            return gs[1 + j // ncol, j % ncol]
-    else:  # tall or square: overview on the left, snapshots in two rows on the right
-        gs = outer[1].subgridspec(2, 1 + ncol, width_ratios=[float(np.clip(1.7 * aspect, 1.7, 3.6))] + [1] * ncol)
-        ax = fig.add_subplot(gs[:, 0])
-
-        def snapshot_cell(j: int):
-            return gs[j // ncol, 1 + j % ncol]
+    layout = _PlanLayout.of(aspect, n_snap, header_lines=text.count("\n") + 1, colorbar=has_cloud)
+    fig = plt.figure(figsize=layout.size)
+    fig.text(0.1 / layout.size[0], 1.0 - 0.4 / layout.size[1], text, color=colour, fontsize=8.5, va="top",
+             ha="left")  # the verdict, coloured, over the whole width
+    ax = fig.add_axes(layout.overview)
     # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
     t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
     k0 = int(grid.slice_index(t0, clamp=True))
@@ -265,9 +330,11 @@ def plot_plan(
     frame_map(ax, x0, x1, y0, y1)
     ax.set_facecolor(_OUTSIDE_MAP)
     ax.legend(loc=_emptiest_corner(states[:, :2], roi), fontsize=7, framealpha=0.8)
-    fig.suptitle(title or f"{scene.name}: plan", fontsize=10)
-    if sc is not None:
-        fig.colorbar(sc, ax=ax, label=r"$\rho/\max\rho$ (per time)", shrink=0.5, aspect=25, pad=0.01)
+    fig.suptitle(title or f"{scene.name}: plan", fontsize=10, y=1.0 - 0.1 / layout.size[1], va="top")
+    if sc is not None and layout.colorbar is not None:
+        bar = fig.colorbar(sc, cax=fig.add_axes(layout.colorbar))
+        bar.set_label(r"$\rho/\max\rho$ (per time)", fontsize=8)
+        bar.ax.tick_params(labelsize=7)
 
     # snapshots: one window size for all, following the vehicle (and its sample cloud)
     ks = [min(int(round(ts / plan_dt)), T - 1) for ts in snapshot_times]
@@ -278,7 +345,7 @@ def plot_plan(
             half = max(half, float(dev.max()) + 4.0)
     half = min(half, 0.5 * max(x1 - x0, y1 - y0))
     for j, (ts, k) in enumerate(zip(snapshot_times, ks)):
-        a = fig.add_subplot(snapshot_cell(j))
+        a = fig.add_axes(layout.snapshots[j])
         k_time = int(round(ts / plan_dt))
         cx, cy = states[k, 0], states[k, 1]
         (i0, i1, j0, j1), extent, st = _crop(grid, (cx - half, cx + half, cy - half, cy + half), 300)
@@ -407,7 +474,14 @@ def animate_plan(
     aspect = w / max(h, 1e-9)
     size = (6.4, float(np.clip(6.4 / aspect, 2.4, 6.4)) + 0.9) if aspect >= 1 else (
         float(np.clip(5.6 * aspect, 2.6, 5.6)) + 1.2, 5.6)
-    fig, ax = plt.subplots(figsize=size, dpi=90, layout="constrained")
+    fig = plt.figure(figsize=size, dpi=90)
+    # fixed margins [in] for the tick labels, axis labels and titles (no layout engine: ~0.05 s less), the box of
+    # the window's aspect centred in the rest
+    left, right, bottom, top = 0.6, 0.1, 0.45, 0.25
+    box_w = min(size[0] - left - right, (size[1] - bottom - top) * aspect)
+    box_h = box_w / aspect
+    ax = fig.add_axes(((left + 0.5 * (size[0] - left - right - box_w)) / size[0],
+                       (bottom + 0.5 * (size[1] - bottom - top - box_h)) / size[1], box_w / size[0], box_h / size[1]))
     ax.set_facecolor(_OUTSIDE_MAP)
     # colour-mapped once for all frames (what imshow's Greys on [0, 1] would give: with nearest-cell display the
     # map commutes with the resampling): a frame then only resamples its RGBA bytes (2x faster per frame)
@@ -440,7 +514,6 @@ def animate_plan(
         a.set_animated(True)
     canvas = agg_canvas(fig)
     canvas.draw()
-    fig.set_layout_engine(None)
     background = canvas.copy_from_bbox(fig.bbox)
     palette = _gif_palette_image()
     frames = []
@@ -496,6 +569,7 @@ def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: 
         ax.set_yscale("log")
         # no minor ticks on the log axis: over many decades they are ~70 tick texts per axis, each laid out per draw
         ax.yaxis.set_minor_locator(NullLocator())
+        ax.yaxis.set_major_formatter(_PLAIN_NUMBER)  # "0.01", "100", "1e-05": no mathtext to lay out (~0.03 s)
         ax.set_xlabel("iteration")
         ax.set_title(stage, fontsize=9)
         ax.legend(fontsize=7)
