@@ -56,13 +56,14 @@ class ForkedCall:
     (sent back pickled through a pipe). For work that needs no gradient and no GPU and that this process will need
     later, e.g. a scene's road distance field while the planner builds its route seeds. :meth:`start` returns
     ``None`` where ``fork`` does not exist (the caller then computes ``fn`` itself). The child ignores Ctrl-C (the
-    parent ends it: :meth:`cancel`, or :meth:`result`) and runs with ``threads`` torch threads if torch is loaded."""
+    parent ends it: :meth:`cancel`, or :meth:`result`) and runs with ``threads`` torch threads if torch is loaded, at
+    ``nice`` more niceness (a call with time to spare yields its core to this process's threads)."""
 
     def __init__(self, proc, conn) -> None:
         self._proc, self._conn = proc, conn
 
     @classmethod
-    def start(cls, fn: Callable[..., Any], *args: Any, threads: int = 1) -> ForkedCall | None:
+    def start(cls, fn: Callable[..., Any], *args: Any, threads: int = 1, nice: int = 0) -> ForkedCall | None:
         import multiprocessing as mp
         import sys
 
@@ -72,7 +73,7 @@ class ForkedCall:
         here, there = ctx.Pipe(duplex=False)
         for stream in (sys.stdout, sys.stderr):  # the child would print what is still buffered here once more
             stream.flush()
-        proc = ctx.Process(target=_forked_call, args=(there, fn, args, threads), daemon=True)
+        proc = ctx.Process(target=_forked_call, args=(there, fn, args, threads, nice), daemon=True)
         proc.start()
         there.close()
         return cls(proc, here)
@@ -140,12 +141,12 @@ class PendingCalls:
         calls = self._calls(owner)
         return [] if calls is None else list(calls)
 
-    def start(self, owner: Any, key: Any, fn: Callable[..., Any], *args: Any) -> bool:
-        """:meth:`ForkedCall.start` ``fn(*args)`` under ``owner`` and ``key``; returns whether it started (not
-        without ``fork``, nor while a call is pending under that key)."""
+    def start(self, owner: Any, key: Any, fn: Callable[..., Any], *args: Any, nice: int = 0) -> bool:
+        """:meth:`ForkedCall.start` ``fn(*args)`` (at ``nice``) under ``owner`` and ``key``; returns whether it
+        started (not without ``fork``, nor while a call is pending under that key)."""
         if key in self.keys(owner):
             return False
-        call = ForkedCall.start(fn, *args)
+        call = ForkedCall.start(fn, *args, nice=nice)
         if call is None:
             return False
         calls = self._calls(owner, create=True)
@@ -181,13 +182,19 @@ def end_child(proc, conn) -> None:
     proc.join()
 
 
-def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int) -> None:
+def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int, nice: int = 0) -> None:
     """Target of :class:`ForkedCall`: compute, answer ``("ok", value)`` or ``("error", text)``."""
+    import os
     import pickle
     import signal
     import sys
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:  # pragma: no cover - not permitted here: the same work at the same priority
+            pass
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(threads)
     try:  # plain pickling (torch's multiprocessing reductions would share memory that dies with this process)

@@ -107,6 +107,35 @@ def test_lanelets_are_free_and_far_off_cells_occupied(commonroad_dir, name):
     assert far.any() and static[far].min() == 1.0
 
 
+@pytest.mark.parametrize("block", [1, 3, 16])
+def test_lattice_in_is_intersects_xy_of_every_point(commonroad_dir, block):
+    """lattice_in (the static map's point test by blocks) answers exactly as shapely.intersects_xy point by point:
+    on a shipped road network (drivable area buffered as the off-road mask does) and on shapes with holes, a
+    multipolygon, a line, points on edges and lattices whose size is no multiple of the block."""
+    from density_planner.environment.commonroad import lattice_in
+
+    def direct(geom, origin, h, size):
+        gx, gy = np.meshgrid(origin[0] + h * np.arange(size[0]), origin[1] + h * np.arange(size[1]), indexing="ij")
+        return shapely.intersects_xy(geom, gx, gy)
+
+    scenario, _ = read_commonroad(commonroad_dir / NGSIM[1])
+    road, _ = drivable_area(scenario, CommonRoadSceneConfig())
+    x0, y0, x1, y1 = road.bounds
+    ring = shapely.Polygon([(0, 0), (10, 0), (10, 10), (0, 10)], holes=[[(3, 3), (7, 3), (7, 7), (3, 7)]])
+    shapes = [
+        (road.buffer(0.35, quad_segs=2), (x0 - 3.0, y0 - 3.0), 0.5,
+         (int((x1 - x0) / 0.5) + 13, int((y1 - y0) / 0.5) + 7)),
+        (ring, (-1.0, -1.0), 0.25, (53, 47)),  # edges on lattice points (x = 0, 3, 7, 10)
+        (shapely.MultiPolygon([ring, shapely.box(20, 0, 20.6, 30)]), (-2.0, -3.0), 0.2, (121, 171)),
+        (shapely.LineString([(0, 0), (5, 5)]), (-1.0, -1.0), 0.5, (17, 18)),
+    ]
+    for geom, origin, h, size in shapes:
+        got = lattice_in(geom, origin, h, size, block=block)
+        want = direct(geom, origin, h, size)
+        assert got.shape == tuple(size) and got.dtype == bool
+        assert np.array_equal(got, want) and want.any() and not want.all()
+
+
 def test_the_scenes_offroad_mask_is_the_one_its_static_map_used(commonroad_dir):
     """The import computes the off-road cells once: offroad_mask (what collision reads) is that array, equal to a
     fresh offroad_cells of the same geometry, and the grid holds 1 there."""

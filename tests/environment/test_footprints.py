@@ -117,23 +117,37 @@ def test_coarse_lattice_matches_exact_evaluation():
 
 
 def test_raster_threads_give_the_same_grid_to_the_bit():
-    """Two threads for the coarse lattice's upsampling (the ``plan`` command's setting) give the same grid to the bit
-    and leave torch's thread count as it was; the setting refuses non-integers and negatives."""
+    """Two threads for the rasteriser (the ``plan`` command's setting: static map, footprints with overlaps, coarse
+    lattice, clamp) give the grid of one thread to the bit, for both footprint models, and leave torch's thread
+    count as it was; the setting refuses non-integers and negatives."""
     import torch
 
     from density_planner.environment.footprints import raster_threads, set_raster_threads
 
-    tr = users([1.23, -7.0, 12.0], [0.37, 5.0, -9.0], [0.3, 2.0, -1.0], [6.0, 0.0, 12.0])
+    rng = np.random.default_rng(3)
+    n = 40
+    tr = users(rng.uniform(-25, 25, n), rng.uniform(-25, 25, n), rng.uniform(-3, 3, n), rng.uniform(0, 15, n))
+    tr.cls[::3] = 1  # pedestrians and cyclists among the vehicles: footprints on the fine grid too
+    static = torch.zeros(SHAPE[1:])
+    static[:40] = 1.0
+    static[200:260, 100:500] = 0.7
     threads = torch.get_num_threads()
-    one = raster(tr, FootprintConfig())
-    try:
-        set_raster_threads(2)
-        assert raster_threads() == 2
-        two = raster(tr, FootprintConfig())
-        assert torch.get_num_threads() == threads
-    finally:
-        set_raster_threads(0)
-    assert np.array_equal(one, two) and one.max() > 0.5
+    for cfg in (FootprintConfig(), EXACT, FootprintConfig(model="shape")):
+        def grid(cfg=cfg):
+            return rasterise_road_users(tr, origin=ORIGIN, cell_size=H, shape=SHAPE, config=cfg,
+                                        static=static)
+
+        try:
+            torch.set_num_threads(1)
+            one = grid()
+            set_raster_threads(2)
+            assert raster_threads() == 2
+            two = grid()
+            assert torch.get_num_threads() == 1
+        finally:
+            set_raster_threads(0)
+            torch.set_num_threads(threads)
+        assert torch.equal(one, two) and float(one.max()) == 1.0 and 0.0 < float(one[:, 300:].mean()) < 0.5
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="raster threads"):
             set_raster_threads(bad)

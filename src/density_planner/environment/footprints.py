@@ -359,11 +359,13 @@ _RASTER_THREADS = 0
 
 
 def set_raster_threads(threads: int) -> None:
-    """Threads for the bilinear upsampling of the road users' coarse lattice (:func:`rasterise_road_users`), an
-    execution setting like :func:`~density_planner.density.split.set_prediction_processes`: 0 (default) keeps
-    torch's current number. The ``plan`` and ``drive`` commands set 2 on a machine with two or more cores while
-    they build their one scene (its result is the same to the bit: every output cell is computed alone), so the
-    ~0.3-0.9 s of writing a 1-GiB grid is shared by both cores; benchmark workers keep one thread each."""
+    """Threads for :func:`rasterise_road_users` (the static map copied into every slice, the footprints, the
+    bilinear upsampling of the road users' coarse lattice, the clamp), an execution setting like
+    :func:`~density_planner.density.split.set_prediction_processes`: 0 (default) keeps torch's current number. The
+    ``plan`` and ``drive`` commands set 2 on a machine with two or more cores while they build their one scene (its
+    result is the same to the bit: every output cell is computed alone, tested), so the ~0.3-0.9 s of writing a
+    1-GiB grid is shared by both cores (the road's distance field, computed meanwhile in another process, yields
+    its core: :func:`~density_planner.environment.road_sdf.map_ready`); benchmark workers keep one thread each."""
     global _RASTER_THREADS
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
         raise ValueError(f"raster threads must be an integer >= 0, got {threads!r}")
@@ -417,10 +419,11 @@ def rasterise_road_users(
         raise ValueError("the static occupancy map holds NaN or infinite values")
     # the static map in every slice (one pass over the grid: fresh memory, whose first touch is most of a large
     # map's cost), the footprints added where they are
-    if static is not None:
-        out = static.to(torch.float32).expand(T, NX, NY).clone()
-    else:
-        out = torch.zeros((T, NX, NY), dtype=torch.float32)
+    with _raster_threads():
+        if static is not None:
+            out = static.to(torch.float32).expand(T, NX, NY).clone()
+        else:
+            out = torch.zeros((T, NX, NY), dtype=torch.float32)
     if n_idx.size:
         s_front, s_back, s_w = footprint_stds(tracks, cfg)
         pairs = {
@@ -451,18 +454,30 @@ def rasterise_road_users(
             # bilinearly
             ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
             low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
-            _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
-            before = torch.get_num_threads()
-            if _RASTER_THREADS:
-                torch.set_num_threads(_RASTER_THREADS)
-            try:
+            with _raster_threads():
+                _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
+            with _raster_threads():
                 upsample_active(low, factor, out)
-            finally:
-                if _RASTER_THREADS:
-                    torch.set_num_threads(before)
             del low
-        _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
-    return out.clamp_(0.0, 1.0)
+        with _raster_threads():
+            _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
+    with _raster_threads():
+        return out.clamp_(0.0, 1.0)
+
+
+@contextmanager
+def _raster_threads() -> Iterator[None]:
+    """torch's thread count set to :func:`raster_threads` (where set) for a block of :func:`rasterise_road_users`
+    whose every output cell is computed alone: elementwise passes, and ``index_add_`` into the flat grid, which adds
+    in index order on any number of threads (the same bits; tested)."""
+    before = torch.get_num_threads()
+    if _RASTER_THREADS:
+        torch.set_num_threads(_RASTER_THREADS)
+    try:
+        yield
+    finally:
+        if _RASTER_THREADS:
+            torch.set_num_threads(before)
 
 
 #: side of the tiles of coarse cells :func:`upsample_active` upsamples one at a time [coarse cells]

@@ -239,6 +239,11 @@ def requesting_road_sdf(*, cell_size: float = 0.2, max_cells: int = 4_000_000, m
         del _STARTED[started:]
 
 
+#: niceness of the field's process started during a scene's build (:func:`map_ready`): it finishes well before the
+#: planner reads it, and yields the second core to the build's own threads (``raster_threads``) meanwhile
+_BUILD_NICE = 10
+
+
 def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: int, ny: int) -> bool:
     """Called by a road scene's importer once its drivable area and its grid's geometry (centre of cell (0, 0),
     cell size, cells per axis) are fixed: starts the field :func:`requesting_road_sdf` asks for, if it does;
@@ -247,7 +252,8 @@ def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: 
         return False
     sdf_cell, max_cells, margin = _REQUEST
     bounds = _grid_bounds(origin, float(cell_size), int(nx), int(ny), margin)
-    if not _PENDING.start(drivable, (_REQUEST, bounds), _float32_lattice, drivable, bounds, sdf_cell, max_cells):
+    if not _PENDING.start(drivable, (_REQUEST, bounds), _float32_lattice, drivable, bounds, sdf_cell, max_cells,
+                          nice=_BUILD_NICE):
         return False
     _STARTED.append(weakref.ref(drivable))
     return True
