@@ -108,15 +108,17 @@ def test_lanelets_are_free_and_far_off_cells_occupied(commonroad_dir, name):
 
 
 @pytest.mark.parametrize("block", [1, 3, 16])
-def test_lattice_in_is_intersects_xy_of_every_point(commonroad_dir, block):
-    """lattice_in (the static map's point test by blocks) answers exactly as shapely.intersects_xy point by point:
-    on a shipped road network (drivable area buffered as the off-road mask does) and on shapes with holes, a
-    multipolygon, a line, points on edges and lattices whose size is no multiple of the block."""
-    from density_planner.environment.commonroad import lattice_in
+@pytest.mark.parametrize("strict", [False, True])
+def test_lattice_in_is_the_point_test_of_every_point(commonroad_dir, block, strict):
+    """lattice_in (the static map's and the distance field's point test by blocks) answers exactly as
+    shapely.intersects_xy (closed geometry) or, strict, contains_xy (interior) point by point: on a shipped road
+    network (drivable area buffered as the off-road mask does) and on shapes with holes, a multipolygon, a line,
+    points on edges and lattices whose size is no multiple of the block."""
+    from density_planner.environment.road import lattice_in
 
     def direct(geom, origin, h, size):
         gx, gy = np.meshgrid(origin[0] + h * np.arange(size[0]), origin[1] + h * np.arange(size[1]), indexing="ij")
-        return shapely.intersects_xy(geom, gx, gy)
+        return (shapely.contains_xy if strict else shapely.intersects_xy)(geom, gx, gy)
 
     scenario, _ = read_commonroad(commonroad_dir / NGSIM[1])
     road, _ = drivable_area(scenario, CommonRoadSceneConfig())
@@ -130,10 +132,11 @@ def test_lattice_in_is_intersects_xy_of_every_point(commonroad_dir, block):
         (shapely.LineString([(0, 0), (5, 5)]), (-1.0, -1.0), 0.5, (17, 18)),
     ]
     for geom, origin, h, size in shapes:
-        got = lattice_in(geom, origin, h, size, block=block)
+        got = lattice_in(geom, origin, h, size, strict=strict, block=block)
         want = direct(geom, origin, h, size)
         assert got.shape == tuple(size) and got.dtype == bool
-        assert np.array_equal(got, want) and want.any() and not want.all()
+        assert np.array_equal(got, want) and not want.all()
+        assert want.any() or (strict and geom.area == 0)  # a line has no interior
 
 
 def test_the_scenes_offroad_mask_is_the_one_its_static_map_used(commonroad_dir):

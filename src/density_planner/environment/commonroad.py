@@ -73,7 +73,7 @@ from .footprints import (
 )
 from .grid import OccupancyGrid, lattice_size
 from .lanes import remember_lane_graph
-from .road import GoalRegion, ObstacleTrack, RoadScene
+from .road import GoalRegion, ObstacleTrack, RoadScene, lattice_in
 from .road_sdf import map_ready
 from .sampling import StartGoalConfig, sample_start_goal
 from .scene import Scene
@@ -85,7 +85,6 @@ __all__ = [
     "obstacle_class_id",
     "static_map",
     "offroad_cells",
-    "lattice_in",
     "offroad_mask",
     "drivable_area",
     "reach_distance",
@@ -534,35 +533,6 @@ def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, 
     margin = cell_size * math.sqrt(0.5) if margin is None else float(margin)
     road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
     return ~lattice_in(road, origin, cell_size, size)
-
-
-def lattice_in(geom: Any, origin: tuple[float, float], cell_size: float, size: tuple[int, int], *,
-               block: int = 16) -> np.ndarray:
-    """``(NX, NY)`` bool: whether each lattice point ``origin + cell_size * (i, j)`` lies in the closed geometry
-    ``geom`` (``shapely.intersects_xy`` of every point, the same answer). Only the points of the blocks of
-    ``block x block`` points near the boundary are tested one by one: a block whose box (its points' bounding box,
-    a quarter cell wider) lies inside ``geom`` is inside, one whose box misses it is outside. On a road map's
-    million-point lattice that is ~5 times fewer point tests."""
-    _, shapely = _require()
-    nx, ny = (int(v) for v in size)
-    shapely.prepare(geom)
-    starts_i, starts_j = np.arange(0, nx, block), np.arange(0, ny, block)
-    pad = 0.25 * cell_size
-    bx0 = origin[0] + cell_size * starts_i - pad
-    bx1 = origin[0] + cell_size * (np.minimum(starts_i + block, nx) - 1) + pad
-    by0 = origin[1] + cell_size * starts_j - pad
-    by1 = origin[1] + cell_size * (np.minimum(starts_j + block, ny) - 1) + pad
-    boxes = shapely.box(bx0[:, None], by0[None, :], bx1[:, None], by1[None, :])  # (blocks_x, blocks_y)
-    inside = np.asarray(shapely.contains(geom, boxes), dtype=bool)
-    mixed = np.asarray(shapely.intersects(geom, boxes), dtype=bool) & ~inside
-
-    def per_point(per_block: np.ndarray) -> np.ndarray:
-        return np.repeat(np.repeat(per_block, block, axis=0), block, axis=1)[:nx, :ny]
-
-    out = per_point(inside)
-    ii, jj = np.nonzero(per_point(mixed))
-    out[ii, jj] = shapely.intersects_xy(geom, origin[0] + cell_size * ii, origin[1] + cell_size * jj)
-    return out
 
 
 #: off-road masks per road scene and grid geometry (:func:`offroad_mask`; as ``road_sdf``'s cache)

@@ -364,8 +364,8 @@ def set_raster_threads(threads: int) -> None:
     :func:`~density_planner.density.split.set_prediction_processes`: 0 (default) keeps torch's current number. The
     ``plan`` and ``drive`` commands set 2 on a machine with two or more cores while they build their one scene (its
     result is the same to the bit: every output cell is computed alone, tested), so the ~0.3-0.9 s of writing a
-    1-GiB grid is shared by both cores (the road's distance field, computed meanwhile in another process, yields
-    its core: :func:`~density_planner.environment.road_sdf.map_ready`); benchmark workers keep one thread each."""
+    1-GiB grid is shared by both cores (with the road's distance field where it is computed meanwhile: the
+    ``plan`` command's); benchmark workers keep one thread each."""
     global _RASTER_THREADS
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 0:
         raise ValueError(f"raster threads must be an integer >= 0, got {threads!r}")

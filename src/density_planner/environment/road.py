@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["GoalRegion", "ObstacleTrack", "RoadScene", "BodyOnRoad", "angle_in_interval", "vehicle_footprints"]
+__all__ = ["GoalRegion", "ObstacleTrack", "RoadScene", "BodyOnRoad", "angle_in_interval", "vehicle_footprints",
+           "lattice_in"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -32,6 +33,37 @@ def _shapely() -> Any:
     import shapely  # a core dependency; imported lazily to keep `import density_planner` light
 
     return shapely
+
+
+def lattice_in(geom: Any, origin: tuple[float, float], cell_size: float, size: tuple[int, int], *,
+               strict: bool = False, block: int = 16) -> np.ndarray:
+    """``(NX, NY)`` bool: whether each lattice point ``origin + cell_size * (i, j)`` lies in the closed geometry
+    ``geom`` (``shapely.intersects_xy`` of every point, the same answer), or with ``strict`` in its interior
+    (``shapely.contains_xy``). Only the points of the blocks of ``block x block`` points near the boundary are
+    tested one by one: a block whose box (its points' bounding box, a quarter cell wider) lies inside ``geom``
+    (``contains``; ``contains_properly`` with ``strict``) is inside, one whose box misses it is outside. On a road
+    map's million-point lattice that is ~5 times fewer point tests."""
+    shapely = _shapely()
+    nx, ny = (int(v) for v in size)
+    shapely.prepare(geom)
+    starts_i, starts_j = np.arange(0, nx, block), np.arange(0, ny, block)
+    pad = 0.25 * cell_size
+    bx0 = origin[0] + cell_size * starts_i - pad
+    bx1 = origin[0] + cell_size * (np.minimum(starts_i + block, nx) - 1) + pad
+    by0 = origin[1] + cell_size * starts_j - pad
+    by1 = origin[1] + cell_size * (np.minimum(starts_j + block, ny) - 1) + pad
+    boxes = shapely.box(bx0[:, None], by0[None, :], bx1[:, None], by1[None, :])  # (blocks_x, blocks_y)
+    inside = np.asarray((shapely.contains_properly if strict else shapely.contains)(geom, boxes), dtype=bool)
+    mixed = np.asarray(shapely.intersects(geom, boxes), dtype=bool) & ~inside
+
+    def per_point(per_block: np.ndarray) -> np.ndarray:
+        return np.repeat(np.repeat(per_block, block, axis=0), block, axis=1)[:nx, :ny]
+
+    out = per_point(inside)
+    ii, jj = np.nonzero(per_point(mixed))
+    test = shapely.contains_xy if strict else shapely.intersects_xy
+    out[ii, jj] = test(geom, origin[0] + cell_size * ii, origin[1] + cell_size * jj)
+    return out
 
 
 def angle_in_interval(theta: np.ndarray, interval: tuple[float, float], *, tol: float = 1e-9) -> np.ndarray:

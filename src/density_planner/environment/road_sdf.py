@@ -144,31 +144,37 @@ class RoadSDF:
         return np.where(inside, -d, d)
 
 
+def _lattice_shape(bounds: tuple[float, float, float, float], cell_size: float, max_cells: int
+                   ) -> tuple[float, int, int]:
+    """``(cell size, NX, NY)`` of the field's lattice over ``bounds``: ``cell_size``, coarser where the lattice
+    would hold more than ``max_cells`` points."""
+    xmin, xmax, ymin, ymax = (float(b) for b in bounds)
+    h = float(cell_size)
+    cells = (math.floor((xmax - xmin) / h) + 2) * (math.floor((ymax - ymin) / h) + 2)
+    if cells > max_cells:
+        h = h * math.sqrt(cells / max_cells) * 1.01
+    return h, math.floor((xmax - xmin) / h) + 2, math.floor((ymax - ymin) / h) + 2
+
+
 def _lattice_values(drivable: Any, bounds: tuple[float, float, float, float], cell_size: float, max_cells: int,
                     exact_band: int) -> tuple[np.ndarray, tuple[float, float], float]:
     """``(values (NX, NY), (xmin, ymin), cell size)`` of :meth:`RoadSDF.from_geometry` (numpy: no torch)."""
-    import shapely
     from scipy import ndimage
+
+    from .road import lattice_in
 
     xmin, xmax, ymin, ymax = (float(b) for b in bounds)
     if not (xmax > xmin and ymax > ymin) or not all(math.isfinite(b) for b in bounds):
         raise ValueError(f"RoadSDF bounds must be finite (xmin < xmax, ymin < ymax), got {bounds}")
     if drivable is None or drivable.is_empty:
         raise ValueError("RoadSDF needs a non-empty drivable area")
-    h = float(cell_size)
-    cells = (math.floor((xmax - xmin) / h) + 2) * (math.floor((ymax - ymin) / h) + 2)
-    if cells > max_cells:
-        h = h * math.sqrt(cells / max_cells) * 1.01
+    h, nx, ny = _lattice_shape(bounds, cell_size, max_cells)
+    if h != float(cell_size):
         log.info("road SDF: cell size %.3g m -> %.3g m to stay within %d lattice points", cell_size, h, max_cells)
-    nx = math.floor((xmax - xmin) / h) + 2
-    ny = math.floor((ymax - ymin) / h) + 2
-    xs = xmin + h * np.arange(nx)
-    ys = ymin + h * np.arange(ny)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    shapely.prepare(drivable)
-    inside = np.asarray(shapely.contains_xy(drivable, gx, gy), dtype=bool)
+    inside = lattice_in(drivable, (xmin, ymin), h, (nx, ny), strict=True)  # shapely.contains_xy of every point
     if inside.all() or not inside.any():
         # the edge lies outside the lattice: exact distances everywhere
+        gx, gy = np.meshgrid(xmin + h * np.arange(nx), ymin + h * np.arange(ny), indexing="ij")
         sdf = RoadSDF._exact(drivable, gx.ravel(), gy.ravel(), inside.ravel()).reshape(nx, ny)
     else:
         d_out = ndimage.distance_transform_edt(~inside) * h  # off-road cells: distance to the road
@@ -176,7 +182,8 @@ def _lattice_values(drivable: Any, bounds: tuple[float, float, float, float], ce
         sdf = np.where(inside, -(d_in - 0.5 * h), d_out - 0.5 * h)
         if exact_band > 0:
             band = np.abs(sdf) <= exact_band * h
-            sdf[band] = RoadSDF._exact(drivable, gx[band], gy[band], inside[band])
+            ii, jj = np.nonzero(band)
+            sdf[ii, jj] = RoadSDF._exact(drivable, xmin + h * ii, ymin + h * jj, inside[ii, jj])
     return sdf, (xmin, ymin), h
 
 
@@ -239,8 +246,9 @@ def requesting_road_sdf(*, cell_size: float = 0.2, max_cells: int = 4_000_000, m
         del _STARTED[started:]
 
 
-#: niceness of the field's process started during a scene's build (:func:`map_ready`): it finishes well before the
-#: planner reads it, and yields the second core to the build's own threads (``raster_threads``) meanwhile
+#: niceness of the field's process started during a scene's build (:func:`map_ready`) where its lattice holds no
+#: more points than a slice of the grid: it then finishes within the build even at low priority, and yields the
+#: second core to the build's own threads (``raster_threads``) meanwhile
 _BUILD_NICE = 10
 
 
@@ -252,8 +260,12 @@ def map_ready(drivable: Any, origin: tuple[float, float], cell_size: float, nx: 
         return False
     sdf_cell, max_cells, margin = _REQUEST
     bounds = _grid_bounds(origin, float(cell_size), int(nx), int(ny), margin)
+    # the field's work grows with its lattice, the build's with the grid: a lattice larger than a slice of the grid
+    # (a large map on coarse cells) keeps its priority, the planner would wait for it
+    _, lx, ly = _lattice_shape(bounds, sdf_cell, max_cells)
+    nice = _BUILD_NICE if lx * ly <= int(nx) * int(ny) else 0
     if not _PENDING.start(drivable, (_REQUEST, bounds), _float32_lattice, drivable, bounds, sdf_cell, max_cells,
-                          nice=_BUILD_NICE):
+                          nice=nice):
         return False
     _STARTED.append(weakref.ref(drivable))
     return True
