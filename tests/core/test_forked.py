@@ -42,6 +42,31 @@ def test_forked_call_value_error_and_cancel():
     assert pid not in _children() and not slow._proc.is_alive()
 
 
+@needs_fork
+def test_forked_call_runs_at_the_niceness_asked():
+    """``nice``: the child runs that much nicer than this process (a call with time to spare yields its core)."""
+    here = os.nice(0)
+    for extra in (0, 5):
+        call = ForkedCall.start(os.nice, 0, nice=extra)
+        assert call is not None and call.result() == min(here + extra, 19)
+
+
+def test_the_field_started_during_a_build_yields_its_core_only_where_its_lattice_is_small(monkeypatch):
+    """map_ready starts the road's field at niceness 10 where its lattice holds no more points than a slice of the
+    grid (it then ends within the build), at the build's own priority where it is larger (the planner would wait)."""
+    import shapely
+
+    from density_planner.environment import road_sdf
+
+    asked = []
+    monkeypatch.setattr(road_sdf._PENDING, "start", lambda *args, nice=0: asked.append(nice) or False)
+    road = shapely.box(0.0, 0.0, 200.0, 100.0)
+    with road_sdf.requesting_road_sdf(cell_size=0.2, margin=10.0):
+        road_sdf.map_ready(road, (0.0, 0.0), 0.15, 1334, 667)  # 0.15-m grid cells: lattice (0.2 m) smaller
+        road_sdf.map_ready(road, (0.0, 0.0), 0.5, 401, 201)  # 0.5-m grid cells: lattice larger than a slice
+    assert asked == [road_sdf._BUILD_NICE, 0] and road_sdf._BUILD_NICE > 0
+
+
 def test_forked_call_without_fork(monkeypatch):
     monkeypatch.setattr(mp, "get_all_start_methods", lambda: ["spawn"])
     assert ForkedCall.start(len, "abc") is None
