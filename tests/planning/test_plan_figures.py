@@ -128,9 +128,9 @@ def test_plan_layout_keeps_panels_and_their_labels_apart_inside_the_figure(aspec
     assert (lay.colorbar is not None) == colorbar and len(lay.snapshots) == n_snap
     if colorbar:
         boxes.append(inches(lay.colorbar, 0.0, 0.0, L.BAR_LABELS - 0.05))
-    header = 0.5 + 0.15 * lines
+    assert lay.header >= L.VERDICT_TOP + L.LINE * lines  # below the verdict's last line
     for x0, y0, x1, y1 in boxes:
-        assert 0.0 <= x0 < x1 <= w + 1e-9 and 0.0 <= y0 < y1 <= h - header + 1e-9
+        assert 0.0 <= x0 < x1 <= w + 1e-9 and 0.0 <= y0 < y1 <= h - lay.header + 1e-9
     for i, a in enumerate(boxes):
         for b in boxes[i + 1:]:
             assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)

@@ -179,7 +179,11 @@ class _PlanLayout:
     overview: Rect
     colorbar: Rect | None
     snapshots: list[Rect]
+    #: [in] height of the header above the panels (the title, then the verdict's lines)
+    header: float
 
+    #: [in] from the figure's top to the title's top and to the verdict's first line, and per line of verdict
+    TITLE_TOP, VERDICT_TOP, LINE = 0.1, 0.4, 0.15
     #: [in] left of the overview (tick labels, axis label), below it, right of the figure
     OVER_LEFT, OVER_BOTTOM, RIGHT = 0.7, 0.55, 0.1
     #: [in] gap between the overview and its colour bar, the bar's width, and its tick labels and label
@@ -189,7 +193,7 @@ class _PlanLayout:
 
     @classmethod
     def of(cls, aspect: float, n_snap: int, *, header_lines: int = 1, colorbar: bool = True) -> _PlanLayout:
-        header = 0.5 + 0.15 * header_lines  # the title, then the verdict's lines
+        header = cls.VERDICT_TOP + 0.1 + cls.LINE * header_lines
         bar = cls.BAR_GAP + cls.BAR_WIDTH + cls.BAR_LABELS if colorbar else 0.0
         ncol = max((n_snap + 1) // 2, 1)
         snap_pad_w, snap_pad_h = cls.SNAP_LEFT + cls.SNAP_RIGHT, cls.SNAP_TOP + cls.SNAP_BOTTOM
@@ -205,7 +209,7 @@ class _PlanLayout:
             cells = [(cls.RIGHT + c * (width - 2 * cls.RIGHT) / ncol, 3.2 * (1 - r), (width - 2 * cls.RIGHT) / ncol,
                       3.2) for r in range(2) for c in range(ncol)]
         else:  # the overview on the left, two rows of snapshots beside it
-            width, height = 13.0 + max(0.0, aspect - 1.0) * 3.0 + extra, 7.5 + 0.15 * header_lines
+            width, height = 13.0 + max(0.0, aspect - 1.0) * 3.0 + extra, 7.5 + cls.LINE * header_lines
             content = height - header
             row_h = content / 2.0
             side_max = row_h - snap_pad_h  # the snapshots' side where the height limits them
@@ -231,7 +235,7 @@ class _PlanLayout:
         bar_rect = None
         if colorbar:
             bar_rect = frac((box[0] + box[2] + cls.BAR_GAP, box[1] + 0.25 * box[3], cls.BAR_WIDTH, 0.5 * box[3]))
-        return cls((width, height), frac(box), bar_rect, [frac(r) for r in snaps])
+        return cls((width, height), frac(box), bar_rect, [frac(r) for r in snaps], header)
 
 
 def warm_up(scene: Scene | None = None) -> None:
@@ -305,8 +309,8 @@ def plot_plan(
     text, colour = _verdict_line(verdict, width=170)
     layout = _PlanLayout.of(aspect, n_snap, header_lines=text.count("\n") + 1, colorbar=has_cloud)
     fig = plt.figure(figsize=layout.size)
-    fig.text(0.1 / layout.size[0], 1.0 - 0.4 / layout.size[1], text, color=colour, fontsize=8.5, va="top",
-             ha="left")  # the verdict, coloured, over the whole width
+    fig.text(0.1 / layout.size[0], 1.0 - layout.VERDICT_TOP / layout.size[1], text, color=colour, fontsize=8.5,
+             va="top", ha="left")  # the verdict, coloured, over the whole width
     ax = fig.add_axes(layout.overview)
     # occupancy cropped to what each panel shows and strided for display (large maps draw fast)
     t0 = grid.t0 if scene.t_start is None else float(scene.t_start)  # on the grid's clock
@@ -330,7 +334,7 @@ def plot_plan(
     frame_map(ax, x0, x1, y0, y1)
     ax.set_facecolor(_OUTSIDE_MAP)
     ax.legend(loc=_emptiest_corner(states[:, :2], roi), fontsize=7, framealpha=0.8)
-    fig.suptitle(title or f"{scene.name}: plan", fontsize=10, y=1.0 - 0.1 / layout.size[1], va="top")
+    fig.suptitle(title or f"{scene.name}: plan", fontsize=10, y=1.0 - layout.TITLE_TOP / layout.size[1], va="top")
     if sc is not None and layout.colorbar is not None:
         bar = fig.colorbar(sc, cax=fig.add_axes(layout.colorbar))
         bar.set_label(r"$\rho/\max\rho$ (per time)", fontsize=8)
