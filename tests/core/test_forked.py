@@ -304,3 +304,17 @@ def test_route_seeds_are_not_forked_where_they_cannot_be_used(monkeypatch):
     monkeypatch.setattr(mp, "get_all_start_methods", lambda: ["spawn"])
     assert not routes.start_route_seeds(Problem())
     assert not routes._PENDING
+
+
+def test_console_start_up_collects_no_garbage_and_then_freezes_what_it_imported():
+    """The console script turns Python's cyclic collector off for its imports; once the command modules are
+    imported the objects alive are frozen (never scanned again) and the collector is on again (a fresh process)."""
+    import subprocess
+
+    code = ("import gc, density_planner.cli as cli\n"
+            "gc.disable(); cli._START_UP = True\n"
+            "cli.build_parser(); cli._start_up_done()\n"
+            "print(gc.isenabled(), gc.get_freeze_count() > 10000, cli._START_UP)\n"
+            "cli._start_up_done(); print(gc.isenabled())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["True", "True", "False", "True"]

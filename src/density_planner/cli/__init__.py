@@ -10,6 +10,7 @@ plan that failed its verdict (see :data:`EXIT_BAD_INPUT`, :func:`classify_error`
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import os
@@ -111,10 +112,32 @@ def console() -> None:
     Commands that set ``fast_exit`` (``plan``, ``drive``: every file written, no worker processes left) end with
     ``os._exit`` once the output streams and logs are flushed: the interpreter's teardown (freeing the scene's
     grids, finalising torch and matplotlib) took 0.5-1 s of a ``plan`` command's wall time
-    (``benchmarks/bench_plan_command.py``). Other commands exit normally (their worker pools shut down at exit)."""
+    (``benchmarks/bench_plan_command.py``). Other commands exit normally (their worker pools shut down at exit).
+
+    Python's cyclic garbage collector is off while the command's modules are imported and then sees only what the
+    command makes (:func:`_start_up_done`): importing torch set off three full collections (~0.1 s), and every later
+    full collection scanned the whole imported heap again (~0.1 s each, in this process and in every forked one)."""
+    global _START_UP
+    gc.disable()
+    _START_UP = True
     _prefetch_scene(sys.argv[1:])
     code = main(fast_exit=True)
     sys.exit(code)
+
+
+#: whether :func:`console` turned the garbage collector off for the start-up (:func:`_start_up_done` turns it on)
+_START_UP = False
+
+
+def _start_up_done() -> None:
+    """After the console script's imports: the objects alive so far (modules, torch, the parser) moved to the
+    collector's permanent generation (``gc.freeze``: never scanned again, nor written to by a collection in a forked
+    process, whose memory pages then stay shared), and the collector turned back on."""
+    global _START_UP
+    if _START_UP:
+        _START_UP = False
+        gc.freeze()
+        gc.enable()
 
 
 #: commands whose ``--env commonroad --file F`` scene is read by a second process while this one imports torch
@@ -159,7 +182,8 @@ def main(argv: Sequence[str] | None = None, *, fast_exit: bool = False) -> int:
 def _main(argv: Sequence[str] | None) -> tuple[int, bool]:
     """Exit code of the command, and whether the command allows :func:`_exit_now` (``set_defaults(fast_exit=
     True)``)."""
-    parser = build_parser()
+    parser = build_parser()  # imports every command's module (torch among them)
+    _start_up_done()
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     args.argv = argv
