@@ -260,11 +260,13 @@ class _OutputProcess:
 def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool, solution: bool) -> None:
     """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (the pipe's end: nothing to
     write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
+    import gc
     import os
     import signal
 
     import torch
 
+    gc.freeze()  # the heap inherited from the parent: never scanned here (as in a ForkedCall)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
     try:  # its warm-up takes only a core the planner's helpers (road distance field, route seeds) leave idle
         os.nice(19)
@@ -282,12 +284,11 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
         from ..io.commonroad_solution import preload
 
         preload(run_config.solution)
-    import gc
     import pickle
 
-    # the warm-up's garbage collected now, and every object alive so far (the inherited scene, torch, matplotlib)
-    # moved out of the collector's sight: a full collection while the figures are drawn then scans only what they
-    # make (it scanned the whole inherited heap, ~0.15 s of plan.png's time)
+    # the warm-up's garbage collected now, and every object alive so far (matplotlib's, the warm-up's) moved out of
+    # the collector's sight: a full collection while the figures are drawn then scans only what they make (it
+    # scanned the whole heap, ~0.15 s of plan.png's time)
     gc.collect()
     gc.freeze()
     try:
