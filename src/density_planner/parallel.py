@@ -18,7 +18,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "ForkedCallError", "PendingCalls", "end_child"]
+__all__ = ["TaskOutcome", "run_tasks", "default_workers", "ForkedCall", "ForkedCallError", "PendingCalls", "end_child",
+           "enter_child"]
 
 
 @dataclass
@@ -182,16 +183,17 @@ def end_child(proc, conn) -> None:
     proc.join()
 
 
-def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int, nice: int = 0) -> None:
-    """Target of :class:`ForkedCall`: compute, answer ``("ok", value)`` or ``("error", text)``."""
+def enter_child(*, threads: int = 1, nice: int = 0) -> None:
+    """The start of a forked helper process (a :class:`ForkedCall`, the ``plan`` command's figures' process): the
+    heap inherited from the parent out of the garbage collector's sight (``gc.freeze``: a full collection here scans
+    only what the child makes, it scanned the parent's scene and modules, ~0.1 s, and leaves the shared pages
+    unwritten), Ctrl-C ignored (the parent ends the child), ``nice`` more niceness, ``threads`` torch threads if torch
+    is loaded."""
     import gc
     import os
-    import pickle
     import signal
     import sys
 
-    # the heap inherited from the parent out of the garbage collector's sight: a full collection here scans only
-    # what this call makes (it scanned the parent's scene and modules, ~0.1 s) and leaves the shared pages unwritten
     gc.freeze()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if nice:
@@ -201,6 +203,13 @@ def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int, nice: 
             pass
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(threads)
+
+
+def _forked_call(conn, fn: Callable[..., Any], args: tuple, threads: int, nice: int) -> None:
+    """Target of :class:`ForkedCall`: compute, answer ``("ok", value)`` or ``("error", text)``."""
+    import pickle
+
+    enter_child(threads=threads, nice=nice)
     try:  # plain pickling (torch's multiprocessing reductions would share memory that dies with this process)
         payload = pickle.dumps(("ok", fn(*args)), protocol=pickle.HIGHEST_PROTOCOL)
     except Exception as exc:  # noqa: BLE001 - the parent raises it as one line

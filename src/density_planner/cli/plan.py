@@ -261,19 +261,13 @@ def _output_process(conn, parent_end, out, scene, problem, run_config, gif: bool
     """Target of :class:`_OutputProcess`: warm up, wait for ``(result, verdict, body)`` (the pipe's end: nothing to
     write), write the files, answer ``("ok", names, laps)`` or ``("error", message, laps)``."""
     import gc
-    import os
-    import signal
 
-    import torch
+    from ..parallel import enter_child
 
-    gc.freeze()  # the heap inherited from the parent: never scanned here (as in a ForkedCall)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it ends this process (cancel)
-    try:  # its warm-up takes only a core the planner's helpers (road distance field, route seeds) leave idle
-        os.nice(19)
-    except OSError:
-        pass
+    # Ctrl-C is the parent's (it ends this process: cancel); the warm-up takes only a core the planner's helpers
+    # (road distance field, route seeds) leave idle
+    enter_child(threads=1, nice=19)
     parent_end.close()  # the parent's end, inherited: else the pipe never reports the parent's end
-    torch.set_num_threads(1)
     from ..viz.plan import warm_up
 
     try:

@@ -417,13 +417,7 @@ def rasterise_road_users(
     n_idx, k_idx = np.nonzero(tracks.present)
     if static is not None and not bool(torch.isfinite(static).all()):
         raise ValueError("the static occupancy map holds NaN or infinite values")
-    # the static map in every slice (one pass over the grid: fresh memory, whose first touch is most of a large
-    # map's cost), the footprints added where they are
-    with _raster_threads():
-        if static is not None:
-            out = static.to(torch.float32).expand(T, NX, NY).clone()
-        else:
-            out = torch.zeros((T, NX, NY), dtype=torch.float32)
+    pairs = None
     if n_idx.size:
         s_front, s_back, s_w = footprint_stds(tracks, cfg)
         pairs = {
@@ -446,22 +440,26 @@ def rasterise_road_users(
                 user = tracks.ids[n_idx[~np.isfinite(val)][0]]
                 raise ValueError(f"road user {user}: a non-finite footprint parameter ({key!r}); check its size, "
                                  "speed and the footprint configuration")
-        factor = int(round(cfg.coarse_cell / cell_size)) if cfg.coarse_cell > 0 else 1
-        smallest = np.minimum(np.minimum(pairs["sf"], pairs["sb"]), pairs["sw"])
-        coarse = (smallest >= cfg.coarse_min_std) if factor >= 2 else np.zeros(smallest.shape, dtype=bool)
-        if coarse.any():
-            # vehicles: evaluate on the coarse lattice (same origin, spacing factor * cell), interpolate
-            # bilinearly
-            ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
-            low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
-            with _raster_threads():
-                _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
-            with _raster_threads():
-                upsample_active(low, factor, out)
-            del low
-        with _raster_threads():
-            _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
+    # on the raster threads: the static map in every slice (one pass over the grid: fresh memory, whose first touch
+    # is most of a large map's cost), the footprints added where they are, the clamp
     with _raster_threads():
+        if static is not None:
+            out = static.to(torch.float32).expand(T, NX, NY).clone()
+        else:
+            out = torch.zeros((T, NX, NY), dtype=torch.float32)
+        if pairs is not None:
+            factor = int(round(cfg.coarse_cell / cell_size)) if cfg.coarse_cell > 0 else 1
+            smallest = np.minimum(np.minimum(pairs["sf"], pairs["sb"]), pairs["sw"])
+            coarse = (smallest >= cfg.coarse_min_std) if factor >= 2 else np.zeros(smallest.shape, dtype=bool)
+            if coarse.any():
+                # vehicles: evaluate on the coarse lattice (same origin, spacing factor * cell), interpolate
+                # bilinearly
+                ncx, ncy = (NX - 1 + factor - 1) // factor + 1, (NY - 1 + factor - 1) // factor + 1
+                low = torch.zeros((T, ncx, ncy), dtype=torch.float32)
+                _splat({key: val[coarse] for key, val in pairs.items()}, origin, cell_size * factor, low, cfg)
+                upsample_active(low, factor, out)
+                del low
+            _splat({key: val[~coarse] for key, val in pairs.items()}, origin, cell_size, out, cfg)
         return out.clamp_(0.0, 1.0)
 
 
