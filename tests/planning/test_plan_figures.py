@@ -138,3 +138,57 @@ def test_plan_layout_keeps_panels_and_their_labels_apart_inside_the_figure(aspec
     assert max(lay.overview[2] * w, lay.overview[3] * h) >= 3.5  # the main panel stays large
     for r in lay.snapshots:
         assert r[2] * w == pytest.approx(r[3] * h) and r[2] * w >= 1.5
+
+
+def test_animation_cell_map_draws_what_imshow_draws():
+    """The GIF's pixel -> cell map (occupancy copied into the frame's pixels) shows what imshow's nearest-cell
+    display shows: over an image that covers part of the axes (the rest left alone), every pixel whose centre is at
+    least a pixel away from a cell edge has imshow's colour."""
+    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+
+    from density_planner.viz.plan import _cell_map
+    from density_planner.viz.style import agg_canvas
+
+    rng = np.random.default_rng(0)
+    h, w = 7, 11
+    cells = colormaps["viridis"](rng.random((h, w)), bytes=True)  # (h, w, 4) opaque, rows from the bottom
+    extent = (-3.3, 8.1, -1.7, 5.2)
+    fig = plt.figure(figsize=(4.0, 3.0), dpi=80)
+    ax = fig.add_axes((0.15, 0.12, 0.8, 0.8))
+    ax.set_xlim(-5.0, 7.0)  # the image leaves the axes on the right and top, and does not reach the left and bottom
+    ax.set_ylim(-3.0, 4.0)
+    ax.set_facecolor("red")
+    img = ax.imshow(cells, origin="lower", extent=extent, interpolation="nearest")
+    canvas = agg_canvas(fig)
+    canvas.draw()
+    drawn = np.asarray(canvas.buffer_rgba()).copy()
+    img.remove()
+    canvas.draw()
+    mine = np.asarray(canvas.buffer_rgba()).copy()
+    rows, cols, at = _cell_map(ax, extent, (h, w), mine.shape[0])
+    assert at is not None
+    mine.view(np.uint32)[..., 0][at] = np.ascontiguousarray(cells).view(np.uint32)[..., 0].take(rows, 0).take(cols, 1)
+    plt.close(fig)
+    # pixels away from every cell edge (in x and y) and from the axes' box edge: equal
+    inv = ax.transData.inverted()
+    H = mine.shape[0]
+    yy, xx = np.mgrid[0:H, 0:mine.shape[1]]
+    data = inv.transform(np.column_stack([xx.ravel() + 0.5, H - yy.ravel() - 0.5]))
+    fx = (data[:, 0] - extent[0]) / (extent[1] - extent[0]) * w
+    fy = (data[:, 1] - extent[2]) / (extent[3] - extent[2]) * h
+    px_per_cell = min(ax.bbox.width / 12.0 * (extent[1] - extent[0]) / w,  # axes 12 m wide, 7 m high
+                      ax.bbox.height / 7.0 * (extent[3] - extent[2]) / h)
+    margin = 1.0 / px_per_cell  # one pixel, in cells
+    away = (np.abs(fx - np.round(fx)) > margin) & (np.abs(fy - np.round(fy)) > margin)
+    x0, y0, x1, y1 = ax.bbox.extents
+    inside_box = (xx.ravel() + 0.5 > x0 + 1) & (xx.ravel() + 0.5 < x1 - 1) & (H - yy.ravel() - 0.5 > y0 + 1) & (
+        H - yy.ravel() - 0.5 < y1 - 1)
+    check = (away & inside_box).reshape(H, -1)
+    assert check.sum() > 1000
+    assert np.array_equal(mine[check], drawn[check])
+    # the image is there (not the red face) where it covers the axes, and the face where it does not
+    on_image = check & ((fx >= 0) & (fx < w) & (fy >= 0) & (fy < h)).reshape(H, -1)
+    assert on_image.sum() > 500 and (check & ~on_image).sum() > 100
+    assert not (mine[on_image][:, :3] == [255, 0, 0]).all(-1).any()
+    assert (mine[check & ~on_image][:, :3] == [255, 0, 0]).all()

@@ -454,7 +454,9 @@ def animate_plan(
 
     Fast: the figure is drawn once and only its data change per frame (the scene's name is drawn once, the clock
     per frame), the occupancy is cropped to the region and strided to at most ``max_cells`` cells per side for
-    display, and every frame is quantised to one fixed palette.
+    display, colour-mapped once, and copied into each frame's pixels through a fixed pixel -> cell map (what
+    ``imshow``'s nearest-cell display draws, without resampling it per frame), and every frame is quantised to one
+    fixed palette.
     """
     from PIL import Image
 
@@ -487,12 +489,12 @@ def animate_plan(
     ax = fig.add_axes(((left + 0.5 * (size[0] - left - right - box_w)) / size[0],
                        (bottom + 0.5 * (size[1] - bottom - top - box_h)) / size[1], box_w / size[0], box_h / size[1]))
     ax.set_facecolor(_OUTSIDE_MAP)
-    # colour-mapped once for all frames (what imshow's Greys on [0, 1] would give: with nearest-cell display the
-    # map commutes with the resampling): a frame then only resamples its RGBA bytes (2x faster per frame)
+    # colour-mapped once for all frames (what imshow's Greys on [0, 1] gives), one 32-bit RGBA word per cell, rows
+    # from the bottom (y up): (S, h, w)
     from matplotlib import colormaps
 
-    sub = colormaps["Greys"](np.clip(sub, 0.0, 1.0), bytes=True).transpose(0, 2, 1, 3)  # (S, h, w, 4)
-    img = ax.imshow(sub[0], origin="lower", extent=extent, interpolation="nearest")
+    sub = colormaps["Greys"](np.clip(sub, 0.0, 1.0), bytes=True).transpose(0, 2, 1, 3)
+    cells = np.ascontiguousarray(sub).view(np.uint32)[..., 0]
     before = set(ax.get_children())
     _draw_goal(ax, scene, label=False)
     ax.plot(states[:, 0], states[:, 1], ":", color="tab:orange", lw=0.9)
@@ -513,16 +515,21 @@ def animate_plan(
     ax.set_title(scene.name, fontsize=9, loc="left")
     title = ax.set_title("t = 00.0 s", fontsize=9, loc="right")  # the clock: the only text drawn per frame
     # blitting: axes, ticks and labels are drawn (and laid out) once; each frame redraws only what changes
-    moving = [img, *overlays, title]
+    moving = [*overlays, title]
     for a in moving:
         a.set_animated(True)
     canvas = agg_canvas(fig)
     canvas.draw()
     background = canvas.copy_from_bbox(fig.bbox)
+    pixels = np.asarray(canvas.buffer_rgba())  # (H, W, 4), the canvas's own pixels (written below)
+    rows, cols, at = _cell_map(ax, extent, cells.shape[1:], pixels.shape[0])
+    words = pixels.view(np.uint32)[..., 0]
     palette = _gif_palette_image()
     frames = []
     for k, k_slice in zip(ks, frame_slice):
-        img.set_data(sub[where[k_slice]])
+        canvas.restore_region(background)
+        if at is not None:  # the occupancy under the overlays (all its cells opaque)
+            words[at] = cells[where[k_slice]].take(rows, axis=0).take(cols, axis=1)
         done.set_data(states[: k + 1, 0], states[: k + 1, 1])
         now.set_data(states[k : k + 1, 0], states[k : k + 1, 1])
         if cloud is not None and samples_x is not None and samples_log_rho is not None and k < samples_x.shape[1]:
@@ -531,11 +538,10 @@ def animate_plan(
             cloud.set_offsets(samples_x[order, k, :2])
             cloud.set_array(rel[order])
         title.set_text(f"t = {k * plan_dt:4.1f} s")
-        canvas.restore_region(background)
         for a in moving:
             (ax if a is not title else fig).draw_artist(a)
-        rgb = np.asarray(canvas.buffer_rgba())[..., :3]
-        frames.append(Image.fromarray(rgb).quantize(palette=palette, dither=Image.Dither.NONE))
+        rgb = Image.frombuffer("RGBA", (pixels.shape[1], pixels.shape[0]), pixels, "raw", "RGBA", 0, 1).convert("RGB")
+        frames.append(rgb.quantize(palette=palette, dither=Image.Dither.NONE))
     plt.close(fig)
 
     def write(fh):
@@ -545,6 +551,34 @@ def animate_plan(
     path = Path(path)
     _atomic(path, write)
     return path
+
+
+def _cell_map(ax, extent: tuple[float, float, float, float], shape: tuple[int, int], height: int
+              ) -> tuple[np.ndarray, np.ndarray, tuple[slice, slice] | None]:
+    """The pixels of ``ax`` (on a canvas ``height`` pixels high, rows from the top) that show an image of
+    ``shape = (h, w)`` cells over ``extent`` (rows from the bottom, as ``imshow(origin="lower")``) and the cell
+    each shows, that of its centre (nearest-cell display): ``(rows (n,), cols (m,), (row slice, column slice))``,
+    cell ``(rows[a], cols[b])`` at pixel ``(slice rows[a], slice cols[b])``; ``None`` for the slices where the image
+    lies outside the axes. Pixels whose centre is outside the axes box or the extent are left alone."""
+    h, w = shape
+    x0p, y0p, x1p, y1p = ax.bbox.extents  # display pixels, y up
+    inv = ax.transData.inverted()
+    cx = np.arange(math.floor(x0p), math.ceil(x1p)) + 0.5  # pixel centres, display coordinates
+    cy = np.arange(math.floor(y0p), math.ceil(y1p)) + 0.5
+    cx, cy = cx[(cx >= x0p) & (cx <= x1p)], cy[(cy >= y0p) & (cy <= y1p)]
+    xd = inv.transform(np.column_stack([cx, np.full_like(cx, cy[0] if cy.size else 0.0)]))[:, 0]
+    yd = inv.transform(np.column_stack([np.full_like(cy, cx[0] if cx.size else 0.0), cy]))[:, 1]
+    col = np.floor((xd - extent[0]) / (extent[1] - extent[0]) * w).astype(np.int64)
+    row = np.floor((yd - extent[2]) / (extent[3] - extent[2]) * h).astype(np.int64)
+    okx, oky = (col >= 0) & (col < w), (row >= 0) & (row < h)
+    if not okx.any() or not oky.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), None
+    px = (cx[okx] - 0.5).astype(np.int64)  # canvas columns
+    py = (height - 1 - (cy[oky] - 0.5)).astype(np.int64)  # canvas rows (from the top): decreasing with y
+    # the columns grow with x and the rows fall with y: each selection is one contiguous run
+    cols, rows = col[okx], row[oky][::-1]
+    at = (slice(int(py.min()), int(py.max()) + 1), slice(int(px.min()), int(px.max()) + 1))
+    return rows, cols, at
 
 
 def plot_costs(cost_history: Mapping[str, Mapping[str, Sequence[float]]], path: str | Path, *,
