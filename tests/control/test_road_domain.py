@@ -139,6 +139,37 @@ def test_saturation_passes_reference_inputs_unchanged():
     assert torch.equal(sat(u, x_hat), u)
 
 
+def test_saturation_skips_its_computation_exactly_when_nothing_is_beyond_the_knees(monkeypatch):
+    """Inputs inside the reference box: ``__call__`` and ``with_tangents`` return their inputs, the values the
+    whole computation gives (forced here); one input beyond a knee, in either channel and direction, is noticed."""
+    car = CarConfig.road()
+    sat = SmoothSaturation.from_car(car)
+    assert sat is not None
+    g = torch.Generator().manual_seed(5)
+    x_hat = torch.zeros(40, 5, dtype=F64)
+    x_hat[:, 3] = torch.linspace(0.0, 40.0, 40, dtype=F64)
+    from density_planner.control.base import _turn_limit
+
+    k = _turn_limit(x_hat[:, 3], sat.input_max[0], sat.lateral_accel_max)[0]  # the turn channel's knee
+    hi, lo = sat.input_max[1], sat.input_min[1]
+    u = torch.stack([k * (2 * torch.rand(40, generator=g, dtype=F64) - 1),
+                     lo + (hi - lo) * torch.rand(40, generator=g, dtype=F64)], -1)
+    u[0, 0], u[1, 0], u[2, 1], u[3, 1] = k[0], -k[1], hi, lo  # on the knees: not beyond
+    du = torch.randn(5, 40, 2, generator=g, dtype=F64)
+    dx = torch.randn(5, 40, 5, generator=g, dtype=F64)
+    assert not sat.beyond_knees(u, x_hat)
+    fast_u, (fast_s, fast_du) = sat(u, x_hat), sat.with_tangents(u, du, x_hat, dx)
+    monkeypatch.setattr(SmoothSaturation, "beyond_knees", lambda self, u, x_hat: True)
+    assert torch.equal(fast_u, sat(u, x_hat))
+    whole_s, whole_du = sat.with_tangents(u, du, x_hat, dx)
+    assert torch.equal(fast_s, whole_s) and torch.equal(fast_du, whole_du)
+    monkeypatch.undo()
+    for channel, value in ((0, float(k[7]) * 1.0001), (0, -float(k[7]) * 1.0001), (1, hi + 1e-9), (1, lo - 1e-9)):
+        v = u.clone()
+        v[7, channel] = value
+        assert sat.beyond_knees(v, x_hat), (channel, value)
+
+
 def test_paper_controller_is_unchanged():
     """The paper set keeps its hard clip, and its fingerprint (the shipped density predictors check it)."""
     import json

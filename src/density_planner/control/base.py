@@ -113,12 +113,34 @@ class SmoothSaturation:
             k_lo, c_lo = k_lo.expand(shape), c_lo.expand(shape)
         return k_lo, k_hi, c_lo, c_hi, dk, dc
 
+    def beyond_knees(self, u: Tensor, x_hat: Tensor) -> bool:
+        """Whether any input of ``u (*batch, nu)`` lies outside the reference box (the knees :meth:`_limits` gives,
+        compared as :func:`soft_clip` compares them). Where none does, the saturation is the identity with unit
+        derivative and zero derivatives with respect to the bounds: :meth:`__call__` and :meth:`with_tangents` then
+        return their inputs (the same values as the whole computation), skipping its ~60 tensor operations (most
+        steps of a closed loop that tracks its reference; the exact Liouville's time is mostly such operations)."""
+        lo = torch.as_tensor(self.input_min, dtype=u.dtype, device=u.device)
+        hi = torch.as_tensor(self.input_max, dtype=u.dtype, device=u.device)
+        if not self.speed_dependent:
+            return bool(((u > hi) | (u < lo)).any())
+        i = self.turn_index
+        k = _turn_limit(x_hat[..., self.speed_index], self.input_max[i], self.lateral_accel_max)[0]
+        turn = u[..., i]
+        if bool(((turn > k) | (turn < -k)).any()):
+            return True
+        rest = torch.cat([u[..., :i], u[..., i + 1:]], dim=-1)
+        return bool(((rest > torch.cat([hi[:i], hi[i + 1:]])) | (rest < torch.cat([lo[:i], lo[i + 1:]]))).any())
+
     def __call__(self, u: Tensor, x_hat: Tensor) -> Tensor:
+        if not self.beyond_knees(u, x_hat):
+            return u
         return soft_clip(u, *self._limits(u, x_hat)[:4])[0]
 
     def with_tangents(self, u: Tensor, du: Tensor, x_hat: Tensor, dx_hat: Tensor) -> tuple[Tensor, Tensor]:
         """Saturated ``u`` and its tangents from those of the raw law ``du (K, *batch, nu)`` and of the measured
         state ``dx_hat (K, *batch, nx)`` (through the speed-dependent turn-rate box)."""
+        if not self.beyond_knees(u, x_hat):
+            return u, du
         k_lo, k_hi, c_lo, c_hi, dk, dc = self._limits(u, x_hat)
         s, ds, dsk, dsc = soft_clip(u, k_lo, k_hi, c_lo, c_hi)
         out = ds * du
@@ -136,11 +158,16 @@ class SmoothSaturation:
         return s, out
 
 
-def _turn_limit_and_slope(v: Tensor, omega_max: float, a_lat: float) -> tuple[Tensor, Tensor]:
-    """``L(v) = (omega_max^-4 + (|v| / a_lat)^4)^(-1/4)`` and ``dL/dv``."""
+def _turn_limit(v: Tensor, omega_max: float, a_lat: float) -> tuple[Tensor, Tensor]:
+    """``L(v) = (omega_max^-4 + (|v| / a_lat)^4)^(-1/4)`` and ``q = L^-4``."""
     r4 = (v / a_lat) ** 4
     q = omega_max ** -4 + r4
-    lim = q ** -0.25
+    return q ** -0.25, q
+
+
+def _turn_limit_and_slope(v: Tensor, omega_max: float, a_lat: float) -> tuple[Tensor, Tensor]:
+    """``L(v)`` (:func:`_turn_limit`) and ``dL/dv``."""
+    lim, q = _turn_limit(v, omega_max, a_lat)
     slope = -(q ** -1.25) * (v ** 3) / a_lat ** 4
     return lim, slope
 
