@@ -8,17 +8,11 @@ The names below are the stable public API; everything else is importable from it
 """
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
 from .memory import tune_allocator
 
 tune_allocator()  # glibc's malloc thresholds for a planner's alloc/free pattern (DENSITY_PLANNER_TUNE_MALLOC=0: off)
-
-try:
-    __version__ = version("density-planner")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without installation
-    __version__ = "0.0.0+unknown"
 
 #: public name -> the subpackage that defines it, imported on first use (PEP 562): importing the package (and its
 #: command line, before it parses its arguments) does not import torch (~1 s), so the ``plan`` command can start
@@ -60,8 +54,22 @@ if TYPE_CHECKING:  # what the names are, for type checkers and editors
     from .systems import CarConfig, KinematicCar, LinearSystem, System
 
 
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("density-planner")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without installation
+        return "0.0.0+unknown"
+
+
 def __getattr__(name: str) -> Any:
-    """A public name (``_EXPORTS``) or a subpackage, imported on first access."""
+    """``__version__`` (the installed distribution's, looked up on first access: importlib.metadata takes ~0.05 s
+    of every command's start-up otherwise), a public name (``_EXPORTS``) or a subpackage, imported on first
+    access."""
+    if name == "__version__":
+        globals()[name] = _installed_version()
+        return globals()[name]
     where = _EXPORTS.get(name)
     if where is not None:
         value = getattr(import_module(where, __name__), name)

@@ -235,9 +235,22 @@ def test_command_line_prefetches_only_a_plan_or_drive_commonroad_file(monkeypatc
 def test_importing_the_package_and_its_command_line_does_not_import_torch():
     import subprocess
 
-    code = "import sys, density_planner, density_planner.cli, density_planner.prefetch; print('torch' in sys.modules)"
+    code = ("import sys, density_planner, density_planner.cli, density_planner.prefetch; "
+            "print('torch' in sys.modules, 'importlib.metadata' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+    # nor the package's metadata (~0.05 s before the scene file's read could start): the version is read on use
+    assert out.stdout.strip() == "False False"
+
+
+def test_version_is_the_installed_distributions():
+    import subprocess
+    from importlib.metadata import version
+
+    import density_planner
+
+    assert density_planner.__version__ == version("density-planner")
+    out = subprocess.run([sys.executable, "-m", "density_planner", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout == f"density-planner {density_planner.__version__}\n"
 
 
 # ------------------------------------------------------------------------------------------------ route seeds

@@ -52,9 +52,9 @@ class _Laps:
 
 
 @pytest.mark.skipif("fork" not in __import__("multiprocessing").get_all_start_methods(), reason="needs fork")
-def test_costs_figure_is_drawn_once_by_whichever_process_is_free_first(tmp_path, monkeypatch):
-    """plan.gif is drawn by a forked child beside plan.png; costs.png by the parent when the child is still busy
-    with the GIF, else by the child; never by both, and always written."""
+def test_gif_and_costs_figure_are_drawn_beside_plan_png_once_each(tmp_path, monkeypatch):
+    """plan.gif and costs.png are drawn by two forked children while plan.png is drawn here: at the same time
+    (each waits until the other two have started), each once, all written; a child that fails is named."""
     import time
 
     import torch
@@ -67,45 +67,60 @@ def test_costs_figure_is_drawn_once_by_whichever_process_is_free_first(tmp_path,
     scene = empty_scene()
     result = PlanResult("density", PlanStatus.SUCCESS, states=torch.tensor(_straight(101), dtype=torch.float32),
                         cost_history={"stage1": {"total": [3.0, 2.0, 1.0]}})
-    draw_costs = viz_plan.plot_costs
-    marks = tmp_path / "costs_drawn"  # one line per draw of costs.png, from either process
+    draw_costs, draw_plan = viz_plan.plot_costs, viz_plan.plot_plan
+    marks = tmp_path / "marks"  # one line per figure started, from any process
 
-    def counted_costs(history, path, **kwargs):
+    def mark(name):
         with open(marks, "a") as fh:
-            fh.write(f"{path}\n")
+            fh.write(f"{name}\n")
+
+    def wait_for_all(n=3):  # 60 s at most
+        for _ in range(600):
+            if marks.exists() and len(marks.read_text().splitlines()) >= n:
+                return
+            time.sleep(0.1)
+        raise AssertionError("the figures were not drawn at the same time")
+
+    def costs(history, path, **kwargs):
+        mark(f"costs {path.parent.name}")
+        wait_for_all()
         return draw_costs(history, path, **kwargs)
 
-    def gif_until_costs(scene, states, path, **kwargs):  # busy until the parent has drawn costs.png (60 s at most)
-        for _ in range(600):
-            if (path.parent / "costs.png").exists():
-                break
-            time.sleep(0.1)
+    def gif(scene, states, path, **kwargs):
+        mark(f"gif {path.parent.name}")
+        wait_for_all()
         path.write_bytes(b"GIF89a")
 
-    monkeypatch.setattr(viz_plan, "plot_costs", counted_costs)
-    monkeypatch.setattr(viz_plan, "animate_plan", gif_until_costs)
-    for name in ("busy", "idle"):
-        (tmp_path / name).mkdir()
-    laps = _Laps()
-    written = write_plan_figures(tmp_path / "busy", scene, result, None, clock=laps)
-    assert sorted(written) == ["costs.png", "plan.gif", "plan.png"]
-    assert laps.names == ["plan_png", "costs_png", "child_wait"]  # the parent took costs.png
-    # without a GIF the child is free at once: whoever takes costs.png, it is drawn once
-    laps = _Laps()
-    written = write_plan_figures(tmp_path / "idle", scene, result, None, gif=False, clock=laps)
-    assert sorted(written) == ["costs.png", "plan.png"] and (tmp_path / "idle" / "costs.png").stat().st_size > 0
-    assert marks.read_text().splitlines() == [str(tmp_path / name / "costs.png") for name in ("busy", "idle")]
-    # no shared-memory semaphore for the flag (e.g. no /dev/shm): the child draws costs.png, once
-    import multiprocessing.context
+    def plan(*args, **kwargs):
+        mark("plan")
+        wait_for_all()
+        return draw_plan(*args, **kwargs)
 
-    def no_semaphores(*args, **kwargs):
-        raise OSError("function not implemented")
-
-    monkeypatch.setattr(multiprocessing.context.BaseContext, "Value", no_semaphores)
-    (tmp_path / "plain").mkdir()
+    monkeypatch.setattr(viz_plan, "plot_costs", costs)
+    monkeypatch.setattr(viz_plan, "animate_plan", gif)
+    monkeypatch.setattr(viz_plan, "plot_plan", plan)
+    (tmp_path / "both").mkdir()
     laps = _Laps()
-    write_plan_figures(tmp_path / "plain", scene, result, None, gif=False, clock=laps)
-    assert laps.names == ["plan_png", "child_wait"] and marks.read_text().count("plain") == 1
+    written = write_plan_figures(tmp_path / "both", scene, result, None, clock=laps)
+    assert sorted(written) == ["costs.png", "plan.gif", "plan.png"] and laps.names == ["plan_png", "child_wait"]
+    assert all((tmp_path / "both" / name).stat().st_size > 0 for name in written)
+    assert sorted(marks.read_text().splitlines()) == ["costs both", "gif both", "plan"]
+
+    def broken_costs(history, path, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(viz_plan, "plot_costs", broken_costs)
+    monkeypatch.setattr(viz_plan, "plot_plan", draw_plan)
+    (tmp_path / "broken").mkdir()
+    with pytest.raises(RuntimeError, match=r"drawing .*costs.png \(exit code 1\) failed; rerun with --no-gif"):
+        write_plan_figures(tmp_path / "broken", scene, result, None, clock=_Laps())
+    # without fork: in turn, here
+    monkeypatch.setattr(viz_plan, "plot_costs", draw_costs)
+    monkeypatch.setattr("multiprocessing.get_all_start_methods", lambda: ["spawn"])
+    (tmp_path / "turn").mkdir()
+    laps = _Laps()
+    written = write_plan_figures(tmp_path / "turn", scene, result, None, clock=laps)
+    assert laps.names == ["plan_png", "gif", "costs_png"] and sorted(written) == ["costs.png", "plan.gif", "plan.png"]
 
 
 @pytest.mark.parametrize("aspect", [0.34, 0.7, 1.0, 1.8, 2.5, 3.0])

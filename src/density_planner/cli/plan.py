@@ -143,10 +143,13 @@ def _plan_and_write(args, setup, out, outputs, clock, t_scene) -> int:
     result = setup.planner.plan(problem)
     clock.lap("plan")
 
-    atomic_write_text(out / "config.toml", dumps_toml(run_config))
     verdict = judge(setup, result)
     clock.lap("verdict")
     outcome = PlanOutcome(setup, result, verdict)
+    body = outcome.body()
+    if body is not None and outputs is not None:  # the figures start now; plan.json is written meanwhile
+        outputs.send(result, verdict, body)
+    atomic_write_text(out / "config.toml", dumps_toml(run_config))
     summary = outcome.summary()
     summary.update({
         "scene_build_time_s": t_scene,
@@ -155,9 +158,8 @@ def _plan_and_write(args, setup, out, outputs, clock, t_scene) -> int:
     })
     atomic_write_json(out / "plan.json", summary)
     written = ["plan.json", "config.toml"]
-    body = outcome.body()
     if body is not None and outputs is not None:
-        written += outputs.finish(result, verdict, body)
+        written += outputs.wait()
         clock.lap("outputs")
         summary["output_process_timings"] = outputs.laps
     elif body is not None:  # no fork: in turn, here
@@ -206,7 +208,8 @@ class _OutputProcess:
     :func:`density_planner.api.write_plan_figures`), written by a
     process forked before planning: it imports and warms the plotting and CommonRoad writing libraries on the
     second core while this process plans (~0.5-0.8 s of the command's wall time otherwise), then waits for the plan
-    (:meth:`finish`: the result, verdict and footprint are sent through a pipe, ~1 MB). ``None`` from
+    (:meth:`send`: the result, verdict and footprint are sent through a pipe, ~1 MB; this process writes plan.json
+    meanwhile, then :meth:`wait` s for the files). ``None`` from
     :meth:`start` where ``fork`` does not exist."""
 
     def __init__(self, proc, conn) -> None:
@@ -231,12 +234,18 @@ class _OutputProcess:
         there.close()
         return cls(proc, here)
 
-    def finish(self, result, verdict, body) -> list[str]:
-        """Send the plan, wait until its files are written; returns their names."""
+    def send(self, result, verdict, body) -> None:
+        """Send the plan: its files are written from now on (:meth:`wait` for them)."""
         import pickle
 
         try:  # plain pickling (torch's multiprocessing reductions would pass shared memory by file descriptor)
             self.conn.send_bytes(pickle.dumps((result, verdict, body), protocol=pickle.HIGHEST_PROTOCOL))
+        except (OSError, BrokenPipeError):  # the process ended: wait() reports it
+            pass
+
+    def wait(self) -> list[str]:
+        """Wait until the files of the plan :meth:`send` sent are written; returns their names."""
+        try:
             status, value, laps = self.conn.recv()
         except (EOFError, OSError, BrokenPipeError):
             status, value, laps = "error", None, {}
@@ -251,7 +260,7 @@ class _OutputProcess:
 
     def cancel(self) -> None:
         """No plan to write (or an error or Ctrl-C here): end the process now (its files are written atomically, so
-        none is left half-written). Nothing happens after :meth:`finish`."""
+        none is left half-written). Nothing happens after :meth:`wait`."""
         from ..parallel import end_child
 
         end_child(self.proc, self.conn)
