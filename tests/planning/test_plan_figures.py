@@ -207,3 +207,29 @@ def test_animation_cell_map_draws_what_imshow_draws():
     assert on_image.sum() > 500 and (check & ~on_image).sum() > 100
     assert not (mine[on_image][:, :3] == [255, 0, 0]).all(-1).any()
     assert (mine[check & ~on_image][:, :3] == [255, 0, 0]).all()
+
+
+def test_overview_shows_the_goal_region_only_near_the_plan():
+    """A goal lanelet that runs on far past a short plan: the overview (and the GIF's window) holds the plan and the
+    goal region within GOAL_REGION_REACH of it, not the whole lanelet; a goal region far from the plan adds
+    nothing beyond the goal point."""
+    from dataclasses import replace
+
+    import shapely
+    from road_helpers import road_scene
+
+    from density_planner.environment.road import GoalRegion
+    from density_planner.viz.plan import GOAL_REGION_REACH, _region_of_interest
+
+    states = np.stack([np.linspace(10.0, 30.0, 21), np.full(21, 1.75), np.zeros(21), np.full(21, 5.0),
+                       np.zeros(21)], axis=1)
+    near = road_scene(GoalRegion(shapely.box(25.0, 0.0, 155.0, 3.5), (0.0, 10.0)))
+    near = replace(near, goal=(30.0, 1.75))
+    x0, x1, _, _ = _region_of_interest(near, states, None)
+    assert x0 == pytest.approx(10.0 - 12.0) and x1 == pytest.approx(30.0 + GOAL_REGION_REACH + 12.0)
+    whole = road_scene(GoalRegion(shapely.box(25.0, 0.0, 45.0, 3.5), (0.0, 10.0)))
+    whole = replace(whole, goal=(30.0, 1.75))
+    assert _region_of_interest(whole, states, None)[1] == pytest.approx(45.0 + 12.0)  # all of a small region
+    far = road_scene(GoalRegion(shapely.box(120.0, 0.0, 155.0, 3.5), (0.0, 10.0)))
+    far = replace(far, goal=(30.0, 1.75))
+    assert _region_of_interest(far, states, None)[1] == pytest.approx(30.0 + 12.0)

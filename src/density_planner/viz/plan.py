@@ -109,18 +109,30 @@ def _window(points: np.ndarray, bounds: tuple[float, float, float, float], margi
     return (max(x0, bx0), min(x1, bx1), max(y0, by0), min(y1, by1))
 
 
+#: [m] how far around the plan (trajectory, cloud, start, goal point) the overview shows the goal region
+GOAL_REGION_REACH = 30.0
+
+
 def _region_of_interest(scene: Scene, states: np.ndarray,
                         samples_x: np.ndarray | None) -> tuple[float, float, float, float]:
-    """What the overview shows: the trajectory, the sample cloud (1-99 % quantiles), start, goal and goal region,
-    with a margin, inside the map."""
+    """What the overview shows: the trajectory, the sample cloud (1-99 % quantiles), start, goal point and the goal
+    region within ``GOAL_REGION_REACH`` of them (a goal lanelet can run on for kilometres past a 100-m plan), with a
+    margin, inside the map."""
     pts = [states[:, :2], np.asarray([scene.start[:2], scene.goal])]
     if samples_x is not None:
         flat = samples_x[..., :2].reshape(-1, 2)
         pts.append(np.nanquantile(flat, [0.01, 0.99], axis=0))
     road = getattr(scene, "road", None)
     if road is not None and road.goal.shapes is not None:
-        gx0, gy0, gx1, gy1 = road.goal.shapes.bounds
-        pts.append(np.array([[gx0, gy0], [gx1, gy1]]))
+        import shapely
+
+        core = np.concatenate(pts)
+        core = core[np.isfinite(core).all(axis=1)]
+        (cx0, cy0), (cx1, cy1) = core.min(axis=0) - GOAL_REGION_REACH, core.max(axis=0) + GOAL_REGION_REACH
+        near = road.goal.shapes.intersection(shapely.box(cx0, cy0, cx1, cy1))
+        if not near.is_empty:
+            gx0, gy0, gx1, gy1 = near.bounds
+            pts.append(np.array([[gx0, gy0], [gx1, gy1]]))
     return _window(np.concatenate(pts), _extent(scene), margin=12.0)
 
 
@@ -516,8 +528,10 @@ def animate_plan(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.tick_params(labelsize=7)
-    ax.set_title(scene.name, fontsize=9, loc="left")
-    title = ax.set_title("t = 00.0 s", fontsize=9, loc="right")  # the clock: the only text drawn per frame
+    # the scene's name and the clock over the figure's width (a tall map's narrow axes cannot hold both)
+    y_text = 1.0 - 0.05 / size[1]
+    fig.text(0.1 / size[0], y_text, scene.name, fontsize=9, ha="left", va="top")
+    title = fig.text(1.0 - 0.1 / size[0], y_text, "t = 00.0 s", fontsize=9, ha="right", va="top")  # per frame
     # blitting: axes, ticks and labels are drawn (and laid out) once; each frame redraws only what changes
     moving = [*overlays, title]
     for a in moving:
