@@ -64,6 +64,9 @@ def main() -> None:
         if values:
             print(f"{name}: {len(values)} runs, median {statistics.median(values):.2f} s, "
                   f"{sum(v <= 5.0 for v in values)} within 5 s")
+    from bench_plan_command import machine_reference
+
+    print(f"machine_reference.py now: {machine_reference()} s (the machine's speed, for comparing other days)")
 
 
 if __name__ == "__main__":

@@ -7,8 +7,9 @@ counted) and prints per scenario the median wall time with the breakdown from ``
 the wait for the process that writes solution.xml and the figures, forked before planning; out_plan_png and
 out_child_wait: its plan.png and its wait for its GIF process, from ``output_process_timings``),
 then the median over all runs, with the CPU time (user + sys of the command and its figure process: the wall time a
-command would take on an idle machine with one core for it, roughly) and the load average, since wall times on a
-shared machine measure the other processes too. Target (issue 13): <= 5 s median wall time.
+command would take on an idle machine with one core for it, roughly), the load average, since wall times on a
+shared machine measure the other processes too, and ``machine_reference.py``'s time before and after (the machine's
+own speed, which drifts by 5-15 % between days). Target (issue 13): <= 5 s median wall time.
 
     python benchmarks/bench_plan_command.py [--scenarios DIR] [--n 5] [--repeats 3] [--threads 1] [-- EXTRA...]
 """
@@ -50,6 +51,7 @@ def main() -> None:
     exe = args.exe or str(Path(sys.executable).with_name("density-planner"))
     env = dict(os.environ)
     load0 = f"{os.getloadavg()[0]:.1f}"
+    ref0 = machine_reference()
     walls, cpus, rows = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for f in pick[: args.n]:
@@ -89,7 +91,18 @@ def main() -> None:
         print(f"median wall time over {len(walls)} runs: {statistics.median(walls):.2f} s (target <= 5 s), median "
               f"CPU time (user + sys, figure process included) {statistics.median(cpus):.2f} s; "
               f"cores {os.cpu_count()}, threads {args.threads}, load average before/after {load0} / "
-              f"{os.getloadavg()[0]:.1f}")
+              f"{os.getloadavg()[0]:.1f}; machine_reference.py before/after {ref0} / {machine_reference()} s "
+              "(the machine's speed: compare timings of other days through it)")
+
+
+def machine_reference() -> str:
+    """``benchmarks/machine_reference.py``'s reference time [s] now, in a fresh process (``"?"`` if it fails)."""
+    proc = subprocess.run([sys.executable, str(Path(__file__).with_name("machine_reference.py")), "--json"],
+                          capture_output=True, text=True)
+    try:
+        return f"{json.loads(proc.stdout)['reference']:.3f}"
+    except (ValueError, KeyError):
+        return "?"
 
 
 if __name__ == "__main__":
