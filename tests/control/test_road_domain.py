@@ -159,10 +159,13 @@ def test_saturation_skips_its_computation_exactly_when_nothing_is_beyond_the_kne
     dx = torch.randn(5, 40, 5, generator=g, dtype=F64)
     assert not sat.beyond_knees(u, x_hat)
     fast_u, (fast_s, fast_du) = sat(u, x_hat), sat.with_tangents(u, du, x_hat, dx)
+    narrow = sat.with_tangents(u, du[:, :1], x_hat, dx)[1]  # tangents that broadcast over the batch
     monkeypatch.setattr(SmoothSaturation, "beyond_knees", lambda self, u, x_hat: True)
     assert torch.equal(fast_u, sat(u, x_hat))
     whole_s, whole_du = sat.with_tangents(u, du, x_hat, dx)
     assert torch.equal(fast_s, whole_s) and torch.equal(fast_du, whole_du)
+    whole_narrow = sat.with_tangents(u, du[:, :1], x_hat, dx)[1]
+    assert narrow.shape == whole_narrow.shape == (5, 40, 2) and torch.equal(narrow, whole_narrow)
     monkeypatch.undo()
     for channel, value in ((0, float(k[7]) * 1.0001), (0, -float(k[7]) * 1.0001), (1, hi + 1e-9), (1, lo - 1e-9)):
         v = u.clone()

@@ -139,8 +139,8 @@ class SmoothSaturation:
     def with_tangents(self, u: Tensor, du: Tensor, x_hat: Tensor, dx_hat: Tensor) -> tuple[Tensor, Tensor]:
         """Saturated ``u`` and its tangents from those of the raw law ``du (K, *batch, nu)`` and of the measured
         state ``dx_hat (K, *batch, nx)`` (through the speed-dependent turn-rate box)."""
-        if not self.beyond_knees(u, x_hat):
-            return u, du
+        if not self.beyond_knees(u, x_hat):  # the identity: du as the whole computation shapes it (a view)
+            return u, du.expand(torch.broadcast_shapes(du.shape, u.shape))
         k_lo, k_hi, c_lo, c_hi, dk, dc = self._limits(u, x_hat)
         s, ds, dsk, dsc = soft_clip(u, k_lo, k_hi, c_lo, c_hi)
         out = ds * du
