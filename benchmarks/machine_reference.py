@@ -12,7 +12,8 @@ operations. This script times one of each, as the command does them, on one thre
 - ``python``: a pure-Python loop of 3 million additions.
 
 Prints the best of 3 repetitions of each and their sum (``reference``), e.g. before and after a benchmark
-(``bench_plan_command.py`` does). Equal code, twice the reference: roughly twice the wall time.
+(``bench_plan_command.py`` does). A guide to the machine's state, not a correction factor: within one hour it moved
+0.66 -> 0.71 s while the plan command's exact re-check went 0.49 -> 0.65 s with the same code.
 
     python benchmarks/machine_reference.py [--json]
 """
