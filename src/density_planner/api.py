@@ -513,8 +513,9 @@ def write_plan_figures(out, scene, result, verdict, *, gif: bool = True, clock: 
 
 
 def _run_quietly(draw) -> None:
-    """Target of a figure's process: one torch thread, ``draw()``."""
-    import torch
+    """Target of a figure's process: started as every forked helper is (:func:`~density_planner.parallel.enter_child`:
+    one torch thread, the inherited heap frozen, Ctrl-C the parent's), then ``draw()``."""
+    from .parallel import enter_child
 
-    torch.set_num_threads(1)
+    enter_child(threads=1)
     draw()

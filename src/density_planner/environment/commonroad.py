@@ -529,7 +529,6 @@ def offroad_cells(drivable: Any, origin: tuple[float, float], cell_size: float, 
     """``(NX, NY)`` bool: the cells whose centre lies more than ``margin`` [m] outside the drivable area (``None``:
     half the cell's diagonal, :attr:`CommonRoadSceneConfig.offroad_margin`), i.e. the off-road part of the static
     map."""
-    _, shapely = _require()
     margin = cell_size * math.sqrt(0.5) if margin is None else float(margin)
     road = drivable.buffer(margin, quad_segs=2) if margin > 0 else drivable
     return ~lattice_in(road, origin, cell_size, size)
