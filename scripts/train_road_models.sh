@@ -10,10 +10,10 @@
 # weights and logs go, default $RES/out), DEVICE (cuda or cpu, default: cuda if torch sees one), C3M_EPOCHS,
 # C3M_BATCH, DATA_REFS, DENSITY_TIME (seconds per density network), TRAJ_EPOCHS (epochs of the trajectory head; default
 # the configuration's 60), THREADS / DENSITY_THREADS. The defaults suit a GPU machine. The shipped road weights were
-# made on a 2-core CPU machine (no GPU was available): the controller with
-#   RES=results/road DEVICE=cpu THREADS=1 C3M_EPOCHS=20 C3M_BATCH=2048 bash scripts/train_road_models.sh controller
-# and the density data and networks (stop 36) with the commands recorded in their JSON files and docs/density.md,
-# which are what this script's data phase (32768 references; 8.8 min with 2 workers) and
+# made on a 2-core CPU machine (no GPU was available; stop 49): the controller with
+#   RES=results/road DEVICE=cpu THREADS=1 C3M_EPOCHS=60 C3M_BATCH=2048 bash scripts/train_road_models.sh controller
+# (12 000 steps, 17 min on one idle thread) and the density data and networks with the commands recorded in their
+# JSON files and docs/density.md, which are what this script's data phase (32768 references, 2 workers) and
 #   RES=results/road DEVICE=cpu DENSITY_TIME=3600 TRAJ_EPOCHS=120 bash scripts/train_road_models.sh density
 # run (trajectory head 20.1 min, pointwise 17.3 min, side by side, one thread each); docs/controller.md and
 # docs/density.md record the exact commands and times.
@@ -31,7 +31,7 @@ log() { echo "[$(date -u +%H:%M:%S) +${SECONDS}s] $*" | tee -a "$OUT/train_road.
 log "phase $PHASE on $DEVICE; torch $($PY -c 'import torch; print(torch.__version__)'); $(nproc) cores"
 [ "$DEVICE" = cuda ] && nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/train_road.log"
 
-C3M_SET=(--set domain=road --set min_speed=0.3 --set 'architecture.v_range=[0,40]')
+C3M_SET=(--set domain=road --set min_speed=0.3 --set 'architecture.v_range=[0,40]' --set architecture.speed_feature_scale=2.0)
 START_SET=(--set 'start_low=[-10,-10,-3.14159,0.5,0]' --set 'start_high=[10,10,3.14159,38,0]')
 
 if [ "$PHASE" = controller ] || [ "$PHASE" = all ]; then

@@ -1,0 +1,73 @@
+"""Probe: why a heading bias leaves a steady lateral offset under a static tracking law (docs/controller.md).
+
+Linearised about a straight reference at speed v, a law ``omega = -k_lat e_lat - k_head e_head`` on the *measured*
+errors settles at the lateral offset ``y* = -(k_head / k_lat) b`` for a heading bias ``b``, whatever else it does.
+This script measures, for a model set's controller:
+
+1. the gains at zero error on straight references (central differences of the unsaturated law ``raw``, float64):
+   ``k_lat = -d omega / d e_lat``, ``k_head = -d omega / d e_head``, and the predicted offset for ``b = pi/16``;
+2. the closed loop's own offset: the true car (Euler 0.01 s, 30 s) driving a straight reference from zero error
+   with the bias ``b = pi/16`` (the applied, saturated law), its lateral error at the end.
+
+    python benchmarks/probe_bias_offset.py [--models road] [--controller c3m|analytic|FILE.pt]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+
+from density_planner.control.registry import load_controller, model_set
+
+SPEEDS = (2.0, 5.0, 10.0, 20.0, 30.0, 38.0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default="road")
+    ap.add_argument("--controller", default="c3m")
+    ap.add_argument("--bias", type=float, default=math.pi / 16)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    mset = model_set(args.models)
+    system = mset.make_system()
+    ctrl = load_controller(args.controller, models=mset).to(torch.float64)
+    dt64 = torch.float64
+    v = torch.tensor(SPEEDS, dtype=dt64)
+    n = len(SPEEDS)
+    x_ref = torch.zeros(n, system.nx, dtype=dt64)
+    x_ref[:, 3] = v
+    u_ref = torch.zeros(n, 2, dtype=dt64)
+    h = 1e-4
+
+    def omega(dy: float, dth: float) -> torch.Tensor:
+        x_hat = x_ref.clone()
+        x_hat[:, 1] += dy
+        x_hat[:, 2] += dth
+        return ctrl.raw(x_hat[:, :4], x_ref[:, :4], u_ref)[:, 0]
+
+    with torch.no_grad():
+        k_lat = -(omega(h, 0.0) - omega(-h, 0.0)) / (2 * h)
+        k_head = -(omega(0.0, h) - omega(0.0, -h)) / (2 * h)
+        y_pred = (k_head / k_lat * args.bias).abs()
+        # closed loop, 30 s of Euler 0.01 s along the straight reference, true state with the bias
+        x = x_ref.clone()
+        x[:, 4] = args.bias
+        for k in range(3000):
+            xr = x_ref.clone()
+            xr[:, 0] = v * (k * 0.01)
+            u = ctrl(system.measure(x), xr, u_ref)
+            x = x + 0.01 * system.f(x, u)
+        y_sim = (x[:, 1] - x_ref[:, 1]).abs()
+    print(f"{mset.name} set, controller {args.controller}, bias {args.bias:.4f} rad")
+    print("| v [m/s] | " + " | ".join(f"{s:g}" for s in SPEEDS) + " |")
+    print("| --- |" + " --- |" * n)
+    for name, vals, fmt in (("k_lat [1/(m s)]", k_lat, "{:.2f}"), ("k_head [1/s]", k_head, "{:.2f}"),
+                            ("y* = k_head/k_lat b [m]", y_pred, "{:.2f}"), ("closed loop at 30 s [m]", y_sim, "{:.2f}")):
+        print(f"| {name} | " + " | ".join(fmt.format(float(t)) for t in vals) + " |")
+
+
+if __name__ == "__main__":
+    main()
