@@ -64,9 +64,10 @@ def main() -> None:
     print(f"{mset.name} set, controller {args.controller}, bias {args.bias:.4f} rad")
     print("| v [m/s] | " + " | ".join(f"{s:g}" for s in SPEEDS) + " |")
     print("| --- |" + " --- |" * n)
-    for name, vals, fmt in (("k_lat [1/(m s)]", k_lat, "{:.2f}"), ("k_head [1/s]", k_head, "{:.2f}"),
-                            ("y* = k_head/k_lat b [m]", y_pred, "{:.2f}"), ("closed loop at 30 s [m]", y_sim, "{:.2f}")):
-        print(f"| {name} | " + " | ".join(fmt.format(float(t)) for t in vals) + " |")
+    rows = (("k_lat [1/(m s)]", k_lat), ("k_head [1/s]", k_head), ("y* = k_head/k_lat b [m]", y_pred),
+            ("closed loop at 30 s [m]", y_sim))
+    for name, vals in rows:
+        print(f"| {name} | " + " | ".join(f"{float(t):.2f}" for t in vals) + " |")
 
 
 if __name__ == "__main__":
