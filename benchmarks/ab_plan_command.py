@@ -2,7 +2,8 @@
 
 Wall times on a shared or virtual machine drift by tens of per cent within an hour, so two codes are compared in
 the same minutes: for every scenario the command runs once with each tree's ``src`` first on ``PYTHONPATH`` (e.g.
-a ``git worktree`` of the older commit, byte-compiled), in alternating order from one scenario to the next. Prints
+a ``git worktree`` of the older commit), in alternating order from one scenario to the next. Both trees are
+byte-compiled first, and both or neither must hold their compiled collision kernels (``_check_trees_alike``). Prints
 per run the wall time, verdict status and P_coll max (which must agree where a change keeps the plans), then per
 tree the median wall time and how many runs took at most 5 s (issue 13's target).
 
@@ -12,6 +13,7 @@ tree the median wall time and how many runs took at most 5 s (issue 13's target)
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import statistics
@@ -41,6 +43,7 @@ def main() -> None:
         if not (tree / "src" / "density_planner").is_dir():
             sys.exit(f"{tree} holds no src/density_planner")
         srcs.append((tree.name or str(tree), str((tree / "src").resolve())))
+    _check_trees_alike([Path(src) for _, src in srcs])
     if not files:
         sys.exit(f"no scenario to run in {args.scenarios}")
     walls: dict[str, list[float]] = {name: [] for name, _ in srcs}
@@ -67,6 +70,27 @@ def main() -> None:
     from bench_plan_command import machine_reference
 
     print(f"machine_reference.py now: {machine_reference()} s (the machine's speed, for comparing other days)")
+
+
+def _check_trees_alike(srcs: list[Path]) -> None:
+    """Both trees byte-compiled, and each holding the compiled collision kernels of its own source or neither, so
+    that neither pays start-up costs the other does not: a copied tree's ``.pyc`` files are stale (the copy's
+    sources are newer) and, with ``PYTHONDONTWRITEBYTECODE``, every run compiles every module again (~0.3 s); a
+    tree without the ahead-of-time kernels (``cost/_collision_aot_*.so``, a build product that ``git worktree``
+    and ``git archive`` do not carry) loads numba's just-in-time code instead (~0.5 s per run)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    for src in srcs:
+        subprocess.run([sys.executable, "-m", "compileall", "-q", str(src / "density_planner")], env=env, check=True)
+    have = []
+    for src in srcs:  # the kernels' file name carries a hash of their source (density_planner.cost._aot)
+        cost = src / "density_planner" / "cost"
+        name = "_collision_aot_" + hashlib.sha256((cost / "_jit.py").read_bytes()).hexdigest()[:16]
+        have.append(any(cost.glob(name + "*")))
+    if have[0] != have[1]:
+        lacking = srcs[have.index(False)]
+        sys.exit(f"{lacking} lacks the compiled collision kernels the other tree has: build them there with "
+                 f"PYTHONPATH={lacking} python -m density_planner.cost._aot (or copy the file if the kernels' "
+                 "source is the same)")
 
 
 if __name__ == "__main__":
