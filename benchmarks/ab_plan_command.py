@@ -13,7 +13,7 @@ tree the median wall time and how many runs took at most 5 s (issue 13's target)
 from __future__ import annotations
 
 import argparse
-import hashlib
+import importlib.util
 import json
 import os
 import statistics
@@ -82,10 +82,15 @@ def _check_trees_alike(srcs: list[Path]) -> None:
     for src in srcs:
         subprocess.run([sys.executable, "-m", "compileall", "-q", str(src / "density_planner")], env=env, check=True)
     have = []
-    for src in srcs:  # the kernels' file name carries a hash of their source (density_planner.cost._aot)
+    for i, src in enumerate(srcs):  # each tree's own rule for its kernels' module name (it hashes their source)
         cost = src / "density_planner" / "cost"
-        name = "_collision_aot_" + hashlib.sha256((cost / "_jit.py").read_bytes()).hexdigest()[:16]
-        have.append(any(cost.glob(name + "*")))
+        spec = importlib.util.spec_from_file_location(f"_ab_aot_{i}", cost / "_aot.py")
+        if spec is None or spec.loader is None:
+            sys.exit(f"{cost / '_aot.py'} cannot be loaded")
+        aot = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(aot)  # stdlib and numpy only at import
+        name = aot.module_name()
+        have.append(name is not None and any(cost.glob(name + "*")))
     if have[0] != have[1]:
         lacking = srcs[have.index(False)]
         sys.exit(f"{lacking} lacks the compiled collision kernels the other tree has: build them there with "
