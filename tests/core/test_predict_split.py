@@ -54,6 +54,22 @@ def test_split_prediction_equals_one_process(processes):
     assert _new_children(before) == []
 
 
+@pytest.mark.parametrize("processes", [1, 2])
+def test_split_states_only_equals_predict_states(processes):
+    """``states_only``: every part by ``predict_states`` (exact Liouville: no divergence, NaN log-densities), the
+    same trajectories as the full prediction."""
+    before = set(mp.active_children())
+    predictor, reference, x0, log_rho0 = _setup()
+    with torch.no_grad():
+        whole = predictor.predict(x0, log_rho0, reference)
+        split = predict_split(predictor, x0, log_rho0, reference, processes=processes, states_only=True)
+    assert split.x.shape == whole.x.shape and split.log_rho.shape == whole.log_rho.shape
+    torch.testing.assert_close(split.x, whole.x, atol=1e-5, rtol=0)
+    assert torch.isnan(split.log_rho[..., 1:]).all()  # left out, so that any use shows
+    torch.testing.assert_close(split.log_rho0, whole.log_rho0.expand(1, 41), atol=0, rtol=0)
+    assert _new_children(before) == []
+
+
 def test_split_falls_back_to_one_process():
     before = set(mp.active_children())
     predictor, reference, x0, log_rho0 = _setup(n=3)

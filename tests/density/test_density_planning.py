@@ -12,6 +12,7 @@ import torch
 from density_planner.cli import main
 from density_planner.control.analytic import CarTrackingController
 from density_planner.density.liouville import ExactLiouville
+from density_planner.density.split import using_prediction_processes
 from density_planner.density.network import (
     DensityNetArchitecture,
     DensityNetwork,
@@ -57,6 +58,36 @@ def test_learned_predictor_in_density_planner(arch):
     assert result.extras["predictor_estimate"]["predictor"] == arch
     # stage 2 changed the parameters: the prediction is differentiable w.r.t. them
     assert len(result.cost_history["stage2"]["total"]) == FAST.epochs_density
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_exact_check_of_states_reports_what_the_exact_log_densities_report(processes):
+    """The exact check propagates only the states by default (``exact_log_density = False``): the reported cost and
+    collision probability are those with the exact log-densities integrated too, bit for bit (importance weights
+    and "mass" cost weights read no log-density along the trajectories), and the cloud's log-densities are the
+    planning predictor's for the same samples."""
+    car, ctrl = KinematicCar(), CarTrackingController()
+    problem = PlanningProblem.from_scene(random_scene(1), seed=1)
+    results = {}
+    with using_prediction_processes(processes):
+        for exact_density in (False, True):
+            cfg = dataclasses.replace(FAST, exact_log_density=exact_density)
+            results[exact_density] = DensityPlanner(LearnedDensity(untrained("trajectory")), cfg,
+                                                    exact_check=ExactLiouville(car, ctrl)).plan(problem)
+    fast, full = results[False], results[True]
+    assert fast.extras["exact_check"]["log_density"] == "trajectory"
+    assert full.extras["exact_check"]["log_density"] == "exact"
+    assert torch.equal(fast.samples.x, full.samples.x)
+    assert float(fast.collision.max) == float(full.collision.max)
+    assert fast.collision.to_dict() == full.collision.to_dict()
+    assert fast.cost == full.cost
+    # the cloud's log-densities: the network's for the same samples (what it reports without report_exact), not
+    # the exact ones
+    cfg = dataclasses.replace(FAST, report_exact=False)
+    learned = DensityPlanner(LearnedDensity(untrained("trajectory")), cfg, exact_check=ExactLiouville(car, ctrl)
+                             ).plan(problem)
+    assert torch.equal(fast.samples.log_rho, learned.samples.log_rho)
+    assert not torch.allclose(fast.samples.log_rho, full.samples.log_rho)
 
 
 def test_report_exact_false_keeps_the_learned_estimate():

@@ -68,10 +68,12 @@ def split_possible(processes: int, *tensors: Tensor) -> bool:
 
 
 def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference, *,
-                  processes: int = 2) -> DensityTrajectory:
+                  processes: int = 2, states_only: bool = False) -> DensityTrajectory:
     """``predictor.predict(x0 (*batch, N, nx), log_rho0, reference)`` with the ``N`` samples cut into
     ``processes`` contiguous parts, all but the first predicted in forked processes (module docstring). Runs
     ``predictor.predict`` unsplit where :func:`split_possible` says no or there are fewer samples than processes.
+    ``states_only``: :meth:`~density_planner.density.base.DensityPredictor.predict_states` instead (the
+    log-densities along the trajectories may be NaN).
     Without gradient every part is predicted in inference mode (:func:`_predict_part`); the result holds ordinary
     tensors.
 
@@ -83,8 +85,8 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
         raise ValueError(f"processes must be >= 1, got {processes}")
     if not split_possible(processes, x0, log_rho0, reference.x) or n < processes:
         if torch.is_grad_enabled():
-            return predictor.predict(x0, log_rho0, reference)
-        traj = _predict_part(predictor, x0, log_rho0, reference)
+            return (predictor.predict_states if states_only else predictor.predict)(x0, log_rho0, reference)
+        traj = _predict_part(predictor, x0, log_rho0, reference, states_only)
         return DensityTrajectory(t=traj.t.clone(), x=traj.x.clone(), log_rho=traj.log_rho.clone(),
                                  log_rho0=traj.log_rho0.clone())  # ordinary tensors (below)
     log_rho0 = log_rho0.expand(x0.shape[:-1])
@@ -92,10 +94,11 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
     helpers: list[ForkedCall] = []
     try:
         for a, b in zip(cuts[1:-1], cuts[2:]):
-            call = ForkedCall.start(_predict_part, predictor, x0[..., a:b, :], log_rho0[..., a:b], reference)
+            call = ForkedCall.start(_predict_part, predictor, x0[..., a:b, :], log_rho0[..., a:b], reference,
+                                    states_only)
             assert call is not None  # split_possible: fork exists
             helpers.append(call)
-        parts = [_predict_part(predictor, x0[..., : cuts[1], :], log_rho0[..., : cuts[1]], reference)]
+        parts = [_predict_part(predictor, x0[..., : cuts[1], :], log_rho0[..., : cuts[1]], reference, states_only)]
         for call in helpers:
             try:
                 parts.append(call.result())
@@ -110,14 +113,14 @@ def predict_split(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, ref
                              log_rho0=torch.cat([p.log_rho0 for p in parts], dim=-1))
 
 
-def _predict_part(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference
-                  ) -> DensityTrajectory:
+def _predict_part(predictor: DensityPredictor, x0: Tensor, log_rho0: Tensor, reference: Reference,
+                  states_only: bool = False) -> DensityTrajectory:
     """What :func:`predict_split` computes here and in each helper (a :class:`~density_planner.parallel.ForkedCall`):
     a part of the samples, with contiguous tensors. In inference mode: without autograd's bookkeeping each of the
     prediction's many small operations is cheaper (exact Liouville: ~10 % of its time). Its tensors are inference
     tensors; the caller returns ordinary ones (a concatenation, a clone, or the helper's pickled copy), which may be
     edited in place or used in a later computation with gradient."""
     with torch.inference_mode():
-        traj = predictor.predict(x0, log_rho0, reference)
+        traj = (predictor.predict_states if states_only else predictor.predict)(x0, log_rho0, reference)
     return DensityTrajectory(t=traj.t, x=traj.x.contiguous(), log_rho=traj.log_rho.contiguous(),
                              log_rho0=traj.log_rho0.contiguous())

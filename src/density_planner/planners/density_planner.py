@@ -122,6 +122,16 @@ class DensityPlannerConfig:
     #: estimate in ``extras["predictor_estimate"]`` (True); or report the learned predictor's figures and the exact
     #: ones in ``extras["exact_check"]`` only (False)
     report_exact: bool = True
+    #: the exact check (``exact_check``) integrates the exact log-densities along its samples too (True), or
+    #: propagates only their states exactly (False) and takes their log-densities from the planning predictor,
+    #: which predicted the same samples. Under ``weighting = "mass"`` and
+    #: ``risk.estimator = "is"`` the reported cost and collision probability read only the trajectories and the
+    #: samples' initial weights, so they are the same either way; the log-densities along the trajectories then
+    #: only colour the figures' sample cloud (``PlanResult.samples.log_rho``; ``extras["exact_check"]
+    #: ["log_density"]`` says whose they are). The divergence doubles the check's time (250 samples x 10 s on
+    #: the 2-core box: 0.93 vs 0.47 s). Where the reported figures read them (``weighting = "density"``,
+    #: ``risk.estimator = "paper"``) they are exact whatever this says
+    exact_log_density: bool = False
     #: random seed of the initial parameters and samples
     seed: int = 0
     #: cost terms and weights
@@ -386,10 +396,11 @@ class DensityPlanner(Planner):
         gradient)."""
         start = problem.reference_start(self.dtype, self.device)
         ref = make_reference(problem.system, start, params.unsqueeze(0), problem.parameterization)
+        if processes > 1 or not torch.is_grad_enabled():  # without gradient: in inference mode (predict_split)
+            return ref, predict_split(predictor, x0.unsqueeze(0), log_rho0.unsqueeze(0), ref, processes=processes,
+                                      states_only=states_only)
         if states_only:
             return ref, predictor.predict_states(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
-        if processes > 1 or not torch.is_grad_enabled():  # without gradient: in inference mode (predict_split)
-            return ref, predict_split(predictor, x0.unsqueeze(0), log_rho0.unsqueeze(0), ref, processes=processes)
         return ref, predictor.predict(x0.unsqueeze(0), log_rho0.unsqueeze(0), ref)
 
     def _inputs(self, ref: Reference, traj: DensityTrajectory, log_q0: Tensor, slices: Tensor) -> CostInputs:
@@ -512,13 +523,23 @@ class DensityPlanner(Planner):
         extras: dict = {"predictor": predictor_name, "reported_by": predictor_name}
         if self.exact_check is not None and self.exact_check is not self.predictor:
             t3 = time.perf_counter()
+            # the states alone where the reported figures read no log-density along the trajectories
+            states_only = not self.config.exact_log_density and self.config.weighting == "mass" and \
+                problem.risk.estimator == "is"
             with torch.no_grad():  # an execution setting: the command line's plan splits it over 2 cores
                 ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0,
-                                              processes=prediction_processes())
+                                              processes=prediction_processes(), states_only=states_only)
+            if states_only:  # the figures' colouring: the same samples' log-densities, by the planning predictor
+                if traj.log_rho.shape != traj_e.log_rho.shape:
+                    raise RuntimeError(f"the planning predictor's log-densities {tuple(traj.log_rho.shape)} do not "
+                                       f"match the exact check's samples {tuple(traj_e.log_rho.shape)}; set "
+                                       "density_planner.exact_log_density = true")
+                traj_e = DensityTrajectory(traj_e.t, traj_e.x, traj.log_rho, traj_e.log_rho0)
             cost_e, coll_e = self.evaluate(problem, ref_e, traj_e, log_q0, slices)
             exact_name = getattr(self.exact_check, "name", type(self.exact_check).__name__)
             extras["exact_check"] = {
                 "predictor": exact_name,
+                "log_density": predictor_name if states_only else exact_name,
                 "cost": cost_e,
                 "collision_probability_max": float(coll_e.max),
                 "collision_probability_sum": float(coll_e.sum),
