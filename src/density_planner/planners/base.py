@@ -56,7 +56,9 @@ class PlanResult:
         params: ``(nu, n_segments)`` reference parameters (``None`` when the planner has none, e.g. MPC).
         reference: the planned reference trajectory (batch shape ``()``), or ``None``.
         states: ``(T, nx)`` planned nominal state trajectory on the planning grid (reference or MPC prediction).
-        samples: predicted sample trajectories with log-densities for the final plan (density planners).
+        samples: predicted sample trajectories with log-densities for the final plan (density planners; where
+            an exact check reports the plan, its exact trajectories with the log-densities that
+            ``extras["exact_check"]["log_density"]`` names: ``DensityPlannerConfig.exact_log_density``).
         cost: unweighted final cost terms and the weighted total (evaluation form: no goal-far factor).
         cost_history: per stage, per term, one value per iteration (the objective actually optimised).
         collision: collision probability of the final sample cloud with its standard error (:class:`CollisionReport`).
