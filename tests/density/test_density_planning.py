@@ -12,7 +12,6 @@ import torch
 from density_planner.cli import main
 from density_planner.control.analytic import CarTrackingController
 from density_planner.density.liouville import ExactLiouville
-from density_planner.density.split import using_prediction_processes
 from density_planner.density.network import (
     DensityNetArchitecture,
     DensityNetwork,
@@ -20,6 +19,7 @@ from density_planner.density.network import (
     controller_fingerprint,
     save_density_model,
 )
+from density_planner.density.split import using_prediction_processes
 from density_planner.environment import random_scene
 from density_planner.planners.base import PlanStatus
 from density_planner.planners.density_planner import DensityPlanner, DensityPlannerConfig

@@ -124,13 +124,13 @@ class DensityPlannerConfig:
     report_exact: bool = True
     #: the exact check (``exact_check``) integrates the exact log-densities along its samples too (True), or
     #: propagates only their states exactly (False) and takes their log-densities from the planning predictor,
-    #: which predicted the same samples. Under ``weighting = "mass"`` and
-    #: ``risk.estimator = "is"`` the reported cost and collision probability read only the trajectories and the
-    #: samples' initial weights, so they are the same either way; the log-densities along the trajectories then
-    #: only colour the figures' sample cloud (``PlanResult.samples.log_rho``; ``extras["exact_check"]
-    #: ["log_density"]`` says whose they are). The divergence doubles the check's time (250 samples x 10 s on
-    #: the 2-core box: 0.93 vs 0.47 s). Where the reported figures read them (``weighting = "density"``,
-    #: ``risk.estimator = "paper"``) they are exact whatever this says
+    #: which predicted the same samples. Under ``weighting = "mass"`` and ``risk.estimator = "is"`` the reported
+    #: cost and collision probability read only the trajectories and the samples' initial weights, so they are the
+    #: same either way; the log-densities along the trajectories then only colour the figures' sample cloud
+    #: (``PlanResult.samples.log_rho``; ``extras["exact_check"]["log_density"]`` says whose they are). The
+    #: divergence doubles the check's time (250 samples x 10 s on the 2-core box: 0.93 vs 0.47 s). Where the
+    #: reported figures read them (``weighting = "density"``, ``risk.estimator = "paper"``) they are exact
+    #: whatever this says
     exact_log_density: bool = False
     #: random seed of the initial parameters and samples
     seed: int = 0
