@@ -4,6 +4,9 @@ Part 1 (speed): for each integration scheme, the median wall time over repeats o
 memory of a fresh process that runs only that propagation, and its error against a fine solution (RK4 at
 0.005 s in float64).
 
+Then the default scheme in inference mode with and without the log-density (the states alone are what the density
+planner's exact re-check integrates by default, ``density_planner.exact_log_density = false``).
+
 Part 2 (accuracy, issue 14): the errors on ``--accuracy-references`` random feasible references spread over the
 model set's whole domain (initial errors uniform in XE0, heading bias included), against a converged float64
 solution (RK4 at 0.005 s; its own difference to 0.01 s is printed): max / 99th percentile / median absolute
@@ -32,7 +35,7 @@ import torch
 from density_planner.control.reference import make_reference
 from density_planner.control.registry import load_controller, model_set
 from density_planner.density.distributions import paper_gaussian_mixture
-from density_planner.density.liouville import LiouvilleConfig, propagate_density
+from density_planner.density.liouville import LiouvilleConfig, propagate_density, simulate_closed_loop
 from density_planner.systems.car import KinematicCar
 
 SCHEMES = [("euler", 0.01), ("rk4", 0.1), ("rk4", 0.05), ("euler", 0.005)]
@@ -117,6 +120,22 @@ def main() -> None:
               f"{mem['peak_mb']:8.0f} {pos_err:14.2e} {float(lr_err.max()):14.2e} {float(lr_err.median()):17.2e}")
     print("peak MB = peak resident memory of a fresh process running one propagation (includes the torch runtime, "
           f"~{mem['base_mb']:.0f} MB before propagating)")
+    # the states alone (ExactLiouville.predict_states: no divergence, so no tangents through the controller), what
+    # the density planner's exact re-check integrates by default since stop 50 (density_planner.exact_log_density)
+    timings = {}
+    for name in ("states only", "with log-density"):
+        times = []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            with torch.inference_mode():
+                if name == "states only":
+                    simulate_closed_loop(car, controller, x0, ref)
+                else:
+                    propagate_density(car, controller, x0, ref, log_rho0=lr0)
+            times.append(time.perf_counter() - t0)
+        timings[name] = statistics.median(times)
+    print(f"default scheme in inference mode (the exact re-check's mode): states only {timings['states only']:.3f} s, "
+          f"with the log-density {timings['with log-density']:.3f} s (median of {args.repeats})")
     if args.accuracy_references > 0:
         from density_planner.density.validation import liouville_accuracy
 

@@ -128,9 +128,9 @@ class DensityPlannerConfig:
     #: cost and collision probability read only the trajectories and the samples' initial weights, so they are the
     #: same either way; the log-densities along the trajectories then only colour the figures' sample cloud
     #: (``PlanResult.samples.log_rho``; ``extras["exact_check"]["log_density"]`` says whose they are). The
-    #: divergence doubles the check's time (250 samples x 10 s on the 2-core box: 0.93 vs 0.47 s). Where the
-    #: reported figures read them (``weighting = "density"``, ``risk.estimator = "paper"``) they are exact
-    #: whatever this says
+    #: divergence more than doubles the check's time (500 samples x 10 s, road models, one thread: 1.44 vs 0.63 s,
+    #: ``benchmarks/bench_liouville.py --models road``). Where the reported figures read them (``weighting =
+    #: "density"``, ``risk.estimator = "paper"``) they are exact whatever this says
     exact_log_density: bool = False
     #: random seed of the initial parameters and samples
     seed: int = 0
