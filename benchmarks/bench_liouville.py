@@ -57,6 +57,16 @@ def setup(n: int, controller_name: str | None, dtype: torch.dtype, models: str |
     return car, controller, x0, dist.log_prob(x0), reference
 
 
+def _timed(run, repeats: int) -> tuple[list[float], object]:
+    """``run()`` ``repeats`` times: the wall time of each [s] and the last result."""
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = run()
+        times.append(time.perf_counter() - t0)
+    return times, out
+
+
 def run_once(args) -> dict:
     """Child process: one propagation, report time and peak RSS."""
     car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32, args.models)
@@ -100,12 +110,9 @@ def main() -> None:
           f"{'max |dlogrho|':>14} {'median |dlogrho|':>17}")
     for integrator, dt in SCHEMES:
         cfg = LiouvilleConfig(integrator=integrator, dt=dt)
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            with torch.no_grad():
-                out = propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
-            times.append(time.perf_counter() - t0)
+        with torch.no_grad():
+            times, out = _timed(lambda c=cfg: propagate_density(car, controller, x0, ref, log_rho0=lr0, config=c),
+                                args.repeats)
         child = subprocess.run(
             [sys.executable, __file__, "--samples", str(args.samples), "--threads", str(args.threads),
              "--child-integrator", integrator,
@@ -122,20 +129,11 @@ def main() -> None:
           f"~{mem['base_mb']:.0f} MB before propagating)")
     # the states alone (ExactLiouville.predict_states: no divergence, so no tangents through the controller), what
     # the density planner's exact re-check integrates by default since stop 50 (density_planner.exact_log_density)
-    timings = {}
-    for name in ("states only", "with log-density"):
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            with torch.inference_mode():
-                if name == "states only":
-                    simulate_closed_loop(car, controller, x0, ref)
-                else:
-                    propagate_density(car, controller, x0, ref, log_rho0=lr0)
-            times.append(time.perf_counter() - t0)
-        timings[name] = statistics.median(times)
-    print(f"default scheme in inference mode (the exact re-check's mode): states only {timings['states only']:.3f} s, "
-          f"with the log-density {timings['with log-density']:.3f} s (median of {args.repeats})")
+    with torch.inference_mode():
+        states, _ = _timed(lambda: simulate_closed_loop(car, controller, x0, ref), args.repeats)
+        full, _ = _timed(lambda: propagate_density(car, controller, x0, ref, log_rho0=lr0), args.repeats)
+    print(f"default scheme in inference mode (the exact re-check's mode): states only {statistics.median(states):.3f} "
+          f"s, with the log-density {statistics.median(full):.3f} s (median of {args.repeats})")
     if args.accuracy_references > 0:
         from density_planner.density.validation import liouville_accuracy
 

@@ -19,7 +19,9 @@ import math
 
 import torch
 
+from density_planner.control.reference import PiecewiseConstantInputs, make_reference
 from density_planner.control.registry import load_controller, model_set
+from density_planner.density.liouville import LiouvilleConfig, simulate_closed_loop
 
 SPEEDS = (2.0, 5.0, 10.0, 20.0, 30.0, 38.0)
 
@@ -52,15 +54,13 @@ def main() -> None:
         k_lat = -(omega(h, 0.0) - omega(-h, 0.0)) / (2 * h)
         k_head = -(omega(0.0, h) - omega(0.0, -h)) / (2 * h)
         y_pred = (k_head / k_lat * args.bias).abs()
-        # closed loop, 30 s of Euler 0.01 s along the straight reference, true state with the bias
-        x = x_ref.clone()
-        x[:, 4] = args.bias
-        for k in range(3000):
-            xr = x_ref.clone()
-            xr[:, 0] = v * (k * 0.01)
-            u = ctrl(system.measure(x), xr, u_ref)
-            x = x + 0.01 * system.f(x, u)
-        y_sim = (x[:, 1] - x_ref[:, 1]).abs()
+        # closed loop, 30 s of Euler 0.01 s along the straight reference (zero inputs), true state with the bias
+        reference = make_reference(system, x_ref, torch.zeros(n, 2, 30, dtype=dt64),
+                                   PiecewiseConstantInputs(n_segments=30))
+        x0 = x_ref.clone()
+        x0[:, 4] = args.bias
+        _, x = simulate_closed_loop(system, ctrl, x0.unsqueeze(-2), reference, config=LiouvilleConfig("euler", 0.01))
+        y_sim = (x[:, 0, -1, 1] - reference.x[:, -1, 1]).abs()
     print(f"{mset.name} set, controller {args.controller}, bias {args.bias:.4f} rad")
     print("| v [m/s] | " + " | ".join(f"{s:g}" for s in SPEEDS) + " |")
     print("| --- |" + " --- |" * n)
