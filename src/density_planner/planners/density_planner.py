@@ -299,14 +299,13 @@ class DensityPlanner(Planner):
         system, par = problem.system, problem.parameterization
         low, high = self._bounds(problem)
         start = problem.reference_start(self.dtype, self.device)
-        # the seeds before the objective: where the command computes the road's distance field (which the objective
-        # reads) in another process, this one builds its share of the seeds meanwhile instead of waiting for it
-        t_seed = time.perf_counter()
-        seeds = self.seed_candidates(problem)
-        t_seed = time.perf_counter() - t_seed
         objective = build_cost(problem.scene, cfg.cost, optimisation=True, device=self.device,
                                system=problem.system, risk=problem.risk)
         slices = self._slices(problem)
+
+        t_seed = time.perf_counter()
+        seeds = self.seed_candidates(problem)
+        t_seed = time.perf_counter() - t_seed
         n_seeds = 0 if seeds is None else int(seeds.shape[0])
         # beside route seeds (they start on the road, near the goal) fewer random candidates and epochs serve
         seeded = n_seeds > 0 and self.candidate_seeds is None
