@@ -15,7 +15,9 @@
 # (12 000 steps, 17 min on one idle thread) and the density data and networks with the commands recorded in their
 # JSON files and docs/density.md, which are what this script's data phase (32768 references, 2 workers) and
 #   RES=results/road DEVICE=cpu DENSITY_TIME=3600 TRAJ_EPOCHS=120 bash scripts/train_road_models.sh density
-# run (stop 49: data 5.2 min; trajectory head 16.2 min, pointwise 14.5 min, side by side, one thread each);
+# run (stop 49: data 5.2 min; trajectory head 16.2 min, pointwise 14.5 min, side by side, one thread each). The
+# shipped trajectory head is stop 52's, on four times the references (DATA_REFS=131072: data 15.1 min with 2 workers;
+# the head alone, 120 epochs on 2 threads, 32.4 min); the shipped pointwise net is still stop 49's.
 # docs/controller.md and docs/density.md record the exact commands and times.
 set -eo pipefail
 PHASE=${1:-all}
