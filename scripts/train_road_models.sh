@@ -17,7 +17,9 @@
 #   RES=results/road DEVICE=cpu DENSITY_TIME=3600 TRAJ_EPOCHS=120 bash scripts/train_road_models.sh density
 # run (stop 49: data 5.2 min; trajectory head 16.2 min, pointwise 14.5 min, side by side, one thread each). The
 # shipped trajectory head is stop 52's, on four times the references (DATA_REFS=131072: data 15.1 min with 2 workers;
-# the head alone, 120 epochs on 2 threads, 32.4 min); the shipped pointwise net is still stop 49's.
+# then the head alone, 120 epochs on 2 threads, 32.4 min, with the train command in docs/density.md: this script's
+# density phase trains both networks side by side under DENSITY_TIME and would stop it early on a 2-core CPU);
+# the shipped pointwise net is still stop 49's.
 # docs/controller.md and docs/density.md record the exact commands and times.
 set -eo pipefail
 PHASE=${1:-all}
