@@ -1,6 +1,6 @@
 """Benchmark: exact Liouville density for 500 samples x 10 s with the car (float32, CPU threads as available).
 
-Part 1 (speed): for each integration scheme, the median wall time over repeats on one reference, the peak resident
+Part 1 (speed): for each integration scheme (a fixed step), the median wall time over repeats on one reference, the peak resident
 memory of a fresh process that runs only that propagation, and its error against a fine solution (RK4 at
 0.005 s in float64).
 
@@ -10,14 +10,15 @@ planner's exact re-check integrates by default, ``density_planner.exact_log_dens
 Part 2 (accuracy, issue 14): the errors on ``--accuracy-references`` random feasible references spread over the
 model set's whole domain (initial errors uniform in XE0, heading bias included), against a converged float64
 solution (RK4 at 0.005 s; its own difference to 0.01 s is printed): max / 99th percentile / median absolute
-log-density error over samples and times [nats], max position error [m]. Target for the default (RK4 0.1 s):
-max <= 0.1 nats.
+log-density error over samples and times [nats], max position error [m], for fixed steps and for the default
+(RK4 at 0.1 s, refined for references faster than 15 m/s by ``LiouvilleConfig.speed_steps``; its largest error per
+band of the references' top speed is printed too). Target for the default: max <= 0.1 nats.
 
 Targets (issue 2): <= 3 s for Euler at dt = 0.01 s, <= 1.5 s for the default integrator at equal or better
 accuracy, peak memory <= 500 MB.
 
     python benchmarks/bench_liouville.py [--models paper|road] [--controller c3m|analytic] [--samples 500]
-        [--repeats 5] [--threads 1] [--accuracy-references 100] [--accuracy-samples 20]
+        [--repeats 5] [--threads 1] [--accuracy-references 100] [--accuracy-samples 20] [--accuracy-seed 0]
 """
 
 from __future__ import annotations
@@ -71,7 +72,7 @@ def run_once(args) -> dict:
     """Child process: one propagation, report time and peak RSS."""
     car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32, args.models)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt)
+    cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt, speed_steps=())
     t0 = time.perf_counter()
     with torch.no_grad():
         propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
@@ -87,6 +88,7 @@ def main() -> None:
     p.add_argument("--accuracy-references", type=int, default=100,
                    help="random references of the accuracy part (default 100; 0 skips it)")
     p.add_argument("--accuracy-samples", type=int, default=20, help="samples per reference (default 20)")
+    p.add_argument("--accuracy-seed", type=int, default=0, help="seed of the accuracy part's references (default 0)")
     p.add_argument("--samples", type=int, default=500)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1; 0 = torch's default)")
@@ -109,7 +111,7 @@ def main() -> None:
     print(f"{'scheme':>14} {'median s':>9} {'min s':>7} {'peak MB':>8} {'max pos err m':>14} "
           f"{'max |dlogrho|':>14} {'median |dlogrho|':>17}")
     for integrator, dt in SCHEMES:
-        cfg = LiouvilleConfig(integrator=integrator, dt=dt)
+        cfg = LiouvilleConfig(integrator=integrator, dt=dt, speed_steps=())  # a fixed step
         with torch.no_grad():
             times, out = _timed(lambda c=cfg: propagate_density(car, controller, x0, ref, log_rho0=lr0, config=c),
                                 args.repeats)
@@ -132,13 +134,15 @@ def main() -> None:
     with torch.inference_mode():
         states, _ = _timed(lambda: simulate_closed_loop(car, controller, x0, ref), args.repeats)
         full, _ = _timed(lambda: propagate_density(car, controller, x0, ref, log_rho0=lr0), args.repeats)
-    print(f"default scheme in inference mode (the exact re-check's mode): states only {statistics.median(states):.3f} "
+    step = LiouvilleConfig().step_for_speed(float(ref.x[..., 3].abs().max()))
+    print(f"default scheme (RK4 {step:g} s for this reference's top speed) in inference mode (the exact re-check's "
+          f"mode): states only {statistics.median(states):.3f} "
           f"s, with the log-density {statistics.median(full):.3f} s (median of {args.repeats})")
     if args.accuracy_references > 0:
         from density_planner.density.validation import liouville_accuracy
 
         rep = liouville_accuracy(car, controller, n_references=args.accuracy_references,
-                                 samples=args.accuracy_samples, seed=0, schemes=SCHEMES[:3])
+                                 samples=args.accuracy_samples, seed=args.accuracy_seed, schemes=SCHEMES[:3])
         r = rep["reference"]
         print(f"\naccuracy on {rep['n_references']} random references x {rep['samples_per_reference']} samples "
               f"(start speeds {rep['start_speed']['min']:.1f}-{rep['start_speed']['max']:.1f} m/s, up to "
@@ -149,6 +153,10 @@ def main() -> None:
             print(f"{name:>14} {e['max_abs_log_density_error']:14.2e} {e['p99_abs_log_density_error']:9.2e} "
                   f"{e['median_abs_log_density_error']:9.2e} {e['max_position_error_m']:14.2e} "
                   f"{e['wall_time_s']:7.2f}")
+        bands = rep["schemes"]["default"]["by_top_speed"]
+        if bands:
+            print("default, max |dlogrho| per band of the references' top speed [m/s]: " + ", ".join(
+                f"{band} {e['max_abs_log_density_error']:.3f} ({e['n_references']} refs)" for band, e in bands.items()))
 
 
 if __name__ == "__main__":

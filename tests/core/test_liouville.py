@@ -241,3 +241,81 @@ def test_gradcheck_of_exact_liouville(controller_kind, divergence, one_thread):
     assert float(u.abs().max()) < 2.0
     fast = divergence == "autodiff"
     assert torch.autograd.gradcheck(predict, (params, x0), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=fast)
+
+
+# --------------------------------------------------------------------------- the step schedule for fast references
+def _road_references(speeds, dtype=torch.float64):
+    """The road model set's car and analytic controller; references at constant ``speeds`` [m/s] (one per batch
+    element), with 0.2 rad/s turns, and 6 initial states around each start."""
+    from density_planner.control.registry import model_set
+
+    car = model_set("road").make_system()
+    controller = CarTrackingController().to(dtype)
+    g = torch.Generator().manual_seed(4)
+    n = len(speeds)
+    starts = torch.zeros(n, 5, dtype=dtype)
+    starts[:, 3] = torch.tensor(speeds, dtype=dtype)
+    params = torch.zeros(n, 2, 10, dtype=dtype)
+    params[:, 0, 3:6] = 0.04  # a gentle turn (inside every speed's turn-rate limit)
+    reference = make_reference(car, starts, params)
+    hw = torch.tensor(car.config.initial_error_max, dtype=dtype)
+    x0 = starts[:, None, :] + (2 * torch.rand(n, 6, 5, generator=g, dtype=dtype) - 1) * hw
+    return car, controller, reference, x0
+
+
+def test_speed_schedule_picks_the_step_by_top_speed():
+    cfg = LiouvilleConfig()
+    assert [cfg.step_for_speed(v) for v in (0.0, 14.9, 15.0, 19.9, 20.0, 24.9, 25.0, 40.0)] == [
+        0.1, 0.1, 0.05, 0.05, 0.025, 0.025, 0.02, 0.02]
+    # dt is the largest step: the schedule only refines it
+    assert LiouvilleConfig(dt=0.01, integrator="euler").step_for_speed(40.0) == 0.01
+    assert LiouvilleConfig(speed_steps=()).step_for_speed(40.0) == 0.1
+    car, _, reference, _ = _road_references([5.0, 17.0, 22.0, 33.0])
+    steps = cfg.steps_for(car, reference)
+    assert steps is not None and steps.tolist() == [0.1, 0.05, 0.025, 0.02]
+    assert cfg.steps_for(car, reference.select(slice(0, 1))) is None  # slow references: the fixed step
+    system, _, linear_reference = linear_problem()
+    assert cfg.steps_for(system, linear_reference) is None  # no speed state
+
+
+@pytest.mark.parametrize("bad", [[[15.0, 0.03]], [[-1.0, 0.05]], [[15.0, 0.0]], [[15.0]], [[math.nan, 0.05]]])
+def test_speed_schedule_rejects_bad_pairs(bad):
+    with pytest.raises(ValueError, match="speed_steps"):
+        LiouvilleConfig(speed_steps=bad)
+
+
+def test_speed_schedule_from_toml_lists_is_a_tuple():
+    cfg = LiouvilleConfig(speed_steps=[[15, 0.05], [30, 0.02]])
+    assert cfg.speed_steps == ((15.0, 0.05), (30.0, 0.02))
+    assert hash(cfg) == hash(LiouvilleConfig(speed_steps=((15.0, 0.05), (30.0, 0.02))))
+
+
+def test_scheduled_batch_equals_each_reference_at_its_own_step():
+    """A batch of references of four speeds is integrated group by group: each reference's states and densities
+    are those of a fixed-step run at its scheduled step (to round-off), and the fast ones differ from 0.1 s."""
+    car, controller, reference, x0 = _road_references([5.0, 17.0, 22.0, 33.0])
+    out = propagate_density(car, controller, x0, reference)
+    states = simulate_closed_loop(car, controller, x0, reference)[1]
+    torch.testing.assert_close(states, out.x, atol=1e-12, rtol=0)
+    assert out.x.shape == (4, 6, 101, 5) and out.t.shape == (101,)
+    for b, step in enumerate((0.1, 0.05, 0.025, 0.02)):
+        fixed = propagate_density(car, controller, x0[b], reference.select(b),
+                                  config=LiouvilleConfig(dt=step, speed_steps=()))
+        torch.testing.assert_close(out.x[b], fixed.x, atol=1e-12, rtol=0)
+        torch.testing.assert_close(out.log_rho[b], fixed.log_rho, atol=1e-12, rtol=0)
+        if step < 0.1:
+            coarse = propagate_density(car, controller, x0[b], reference.select(b),
+                                       config=LiouvilleConfig(speed_steps=()))
+            assert float((coarse.x - fixed.x).abs().max()) > 1e-9
+
+
+def test_scheduled_batch_gradient_equals_per_reference_gradients():
+    car, controller, reference, x0 = _road_references([5.0, 22.0, 33.0])
+    params = reference.params.clone().requires_grad_(True)
+    out = propagate_density(car, controller, x0, make_reference(car, reference.start, params))
+    (grad,) = torch.autograd.grad(out.x[..., -1, :2].pow(2).sum() + out.log_rho[..., -1].sum(), params)
+    for b in range(3):
+        p = reference.params[b].clone().requires_grad_(True)
+        one = propagate_density(car, controller, x0[b], make_reference(car, reference.start[b], p))
+        (g,) = torch.autograd.grad(one.x[..., -1, :2].pow(2).sum() + one.log_rho[..., -1].sum(), p)
+        torch.testing.assert_close(grad[b], g, atol=1e-9, rtol=1e-9)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -14,7 +15,7 @@ import torch
 from density_planner.control.reference import make_reference
 from density_planner.control.registry import load_controller, model_set
 from density_planner.density.data import DensityDataConfig, _config_key, generate_density_data, load_density_data
-from density_planner.density.liouville import ExactLiouville, propagate_density
+from density_planner.density.liouville import ExactLiouville, LiouvilleConfig, propagate_density
 from density_planner.density.network import (
     DensityLayout,
     DensityNetArchitecture,
@@ -139,7 +140,11 @@ def test_ks_data_config_uses_the_systems_boxes():
     assert DensityDataConfig().start_low == (-12.0, -30.0, 0.0, 1.0, 0.0) and DensityDataConfig().param_scale == 2.0
     assert _config_key(DensityDataConfig()) == "03e6519196587f80"
     road = DensityDataConfig(domain="road", start_low=(-10, -10, -3.14159, 0.5, 0), start_high=(10, 10, 3.14159, 38, 0))
-    assert _config_key(road) == "b100456750eaab6a"
+    # the road set's fast references are integrated on the finer steps of LiouvilleConfig.speed_steps: other data,
+    # another key; with a fixed step, the key of the data written before the schedule existed
+    assert _config_key(road) == "264e38a9c6434386"
+    fixed = replace(road, liouville=LiouvilleConfig(speed_steps=()))
+    assert _config_key(fixed) == "b100456750eaab6a"
 
 
 @pytest.fixture(scope="module")

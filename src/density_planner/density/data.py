@@ -304,6 +304,11 @@ def _config_key(config: DensityDataConfig) -> str:
 
     d = config.to_dict()
     d.pop("device")
+    steps = config.liouville.speed_steps
+    if not steps or config.make_system().speed_max < min(v for v, _ in steps):
+        # the step schedule cannot act on this domain (its speeds stay below every scheduled speed): the data are
+        # those of the fixed step, and so is the key (data written before the schedule existed stay resumable)
+        d["liouville"].pop("speed_steps", None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -31,6 +31,10 @@ __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
 #: edges of the reference start-speed bands of the accuracy reports [m/s]
 SPEED_BANDS = (0.0, 5.0, 10.0, 20.0, 30.0, 41.0)
+#: bands of a reference's highest speed [m/s] in :func:`liouville_accuracy` (the edges of the default
+#: ``LiouvilleConfig.speed_steps`` among them)
+_TOP_SPEED_BANDS = (0.0, 10.0, 15.0, 20.0, 25.0, 30.0, 45.0)
+
 #: the paper's stored validation numbers of its density network (``docs/spec.md`` §6)
 PAPER_ERROR_MSE = 0.0182
 PAPER_LOG_DENSITY_RMSE = 9.3
@@ -201,14 +205,17 @@ def liouville_accuracy(
     reference_scheme: tuple[IntegratorName, float] = ("rk4", 0.005),
     dtype: torch.dtype = torch.float32,
     chunk: int = 25,
+    default: bool = True,
 ) -> dict:
     """Accuracy of the exact Liouville integration on ``n_references`` random feasible references of ``system``'s
     domain (initial errors uniform in its XE0 box, heading bias included), against a converged float64 solution.
 
     The float64 reference uses ``reference_scheme``; its own convergence is reported as the largest difference to
-    the same scheme at twice the step (``reference_self_error``). For every scheme (run in ``dtype``): the largest
-    and the median absolute log-density error over samples and times [nats], its 99th percentile, the largest
-    position error [m] and the wall time [s].
+    the same scheme at twice the step (``reference_self_error``). For every scheme (run in ``dtype``; each a fixed
+    step) and, with ``default``, for the default :class:`~.liouville.LiouvilleConfig` (RK4 at 0.1 s refined for fast
+    references by its ``speed_steps``; reported as ``"default"``): the largest and the median absolute log-density
+    error over samples and times [nats], its 99th percentile, the largest position error [m], the wall time [s],
+    and per band of the references' highest speed the largest log-density error (``by_top_speed``).
     """
     import copy
 
@@ -242,18 +249,33 @@ def liouville_accuracy(
         "max_speed": float(ref64.x[..., 3].max()),
         "schemes": {},
     }
-    for integrator, step in schemes:
+    speeds = system.speeds(ref64.x)
+    top = speeds.abs().amax(dim=-1) if speeds is not None else None
+    configs = {f"{integrator} {step:g}": LiouvilleConfig(integrator, step, speed_steps=())
+               for integrator, step in schemes}
+    if default:
+        configs["default"] = LiouvilleConfig()
+    for label, config in configs.items():
         t0 = time.perf_counter()
-        x, lr = run(ctrl, x064.to(dtype), ref, LiouvilleConfig(integrator, step))
+        x, lr = run(ctrl, x064.to(dtype), ref, config)
         wall = time.perf_counter() - t0
         err = (lr.double() - fine_lr).abs()
         pos = (x[..., :2].double() - fine_x[..., :2]).norm(dim=-1)
-        report["schemes"][f"{integrator} {step:g}"] = {
+        bands = {}
+        if top is not None:
+            per_ref = err.amax(dim=(-1, -2))
+            for lo, hi in zip(_TOP_SPEED_BANDS[:-1], _TOP_SPEED_BANDS[1:]):
+                sel = (top >= lo) & (top < hi)
+                if bool(sel.any()):
+                    bands[f"[{lo:g},{hi:g})"] = {"n_references": int(sel.sum()),
+                                                 "max_abs_log_density_error": float(per_ref[sel].max())}
+        report["schemes"][label] = {
             "max_abs_log_density_error": float(err.max()),
             "median_abs_log_density_error": float(err.median()),
             "p99_abs_log_density_error": float(torch.quantile(err.flatten()[:: max(1, err.numel() // 1_000_000)],
                                                               0.99)),
             "max_position_error_m": float(pos.max()),
             "wall_time_s": wall,
+            "by_top_speed": bands,
         }
     return report

@@ -96,7 +96,9 @@ class Execution:
 
 
 def _liouville_config(config: EvaluationConfig, problem: PlanningProblem) -> LiouvilleConfig:
-    return LiouvilleConfig(integrator=config.integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt)
+    # the executed vehicle: the configured step, never a schedule (LiouvilleConfig.speed_steps)
+    return LiouvilleConfig(integrator=config.integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt,
+                           speed_steps=())
 
 
 @torch.no_grad()
