@@ -1,7 +1,7 @@
 """Benchmark: exact Liouville density for 500 samples x 10 s with the car (float32, CPU threads as available).
 
-Part 1 (speed): for each integration scheme (a fixed step), the median wall time over repeats on one reference, the peak resident
-memory of a fresh process that runs only that propagation, and its error against a fine solution (RK4 at
+Part 1 (speed): for each integration scheme (a fixed step), the median wall time over repeats on one reference, the
+peak resident memory of a fresh process that runs only that propagation, and its error against a fine solution (RK4 at
 0.005 s in float64).
 
 Then the default scheme in inference mode with and without the log-density (the states alone are what the density

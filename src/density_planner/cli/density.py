@@ -44,7 +44,9 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.add_argument("--start", type=float, nargs=4, default=DEFAULT_START, metavar="X",
                    help="start pose x y heading speed, mapped to the system's state (default: %(default)s)")
     p.add_argument("--integrator", default=None, choices=("euler", "rk4"), help="integration scheme (default rk4)")
-    p.add_argument("--dt", type=float, default=None, help="integration step [s] (default 0.1 for rk4, 0.01 euler; references faster than 15 m/s take the finer steps of LiouvilleConfig.speed_steps)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="integration step [s] (default 0.1 for rk4, 0.01 euler; references faster than 15 m/s take "
+                   "the finer steps of LiouvilleConfig.speed_steps)")
     add_system(p, density=False)
     add_seed(p)
     add_device(p)

@@ -193,8 +193,9 @@ def _integrate_scheduled(
     batch = y0[0].shape[:-2]
     flat = steps.expand(batch).reshape(-1)
     n = flat.numel()
-    ref = Reference(*(v.expand(*batch, *v.shape[-2:]).reshape(n, *v.shape[-2:])
-                      for v in (reference.params, reference.x, reference.u)), reference.parameterization)
+    params, x_ref, u_ref = (v.expand(*batch, *v.shape[-2:]).reshape(n, *v.shape[-2:])
+                            for v in (reference.params, reference.x, reference.u))
+    ref = Reference(params, x_ref, u_ref, reference.parameterization)
     flat_y0 = tuple(y.reshape(n, *y.shape[len(batch):]) for y in y0)
     order, parts = [], []
     t = None
