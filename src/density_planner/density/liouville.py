@@ -126,9 +126,18 @@ def _integrate(
 ) -> tuple[Tensor, list[list[Tensor]]]:
     """Integrate ``y0 = (x0, [log_rho0])`` over the reference horizon; returns the saved times and states.
     ``plant`` (states only): the executed vehicle, held at rest (:meth:`System.standstill`) at every stage and
-    after every step."""
+    after every step. Each reference takes its step from ``config.speed_steps`` (:meth:`LiouvilleConfig.steps_for`;
+    a batch of several steps is integrated group by group); ``all_steps`` needs one time grid: the whole batch then
+    takes its finest step."""
     if plant and with_density:
         raise ValueError("the plant's standstill is not a smooth flow: no density along it")
+    steps = config.steps_for(closed_loop.system, reference)
+    if steps is not None:
+        values = sorted(set(steps.reshape(-1).tolist()))
+        if len(values) > 1 and not all_steps:
+            return _integrate_groups(steps, values, y0, reference, lambda y, ref, dt: _integrate(
+                closed_loop, y, ref, config.with_step(dt), with_density, False, plant))
+        config = config.with_step(values[0])
     integrator = get_integrator(config.integrator)
     horizon = reference.n_steps * reference.dt
     n_steps_f = horizon / config.dt
@@ -171,25 +180,12 @@ def _integrate(
     return t, saved
 
 
-def _integrate_scheduled(
-    closed_loop: ClosedLoop,
-    y0: tuple[Tensor, ...],
-    reference: Reference,
-    config: LiouvilleConfig,
-    with_density: bool,
-    all_steps: bool,
-    plant: bool = False,
+def _integrate_groups(
+    steps: Tensor, values: list[float], y0: tuple[Tensor, ...], reference: Reference, run
 ) -> tuple[Tensor, list[list[Tensor]]]:
-    """:func:`_integrate` with each reference's step from ``config.speed_steps``
-    (:meth:`LiouvilleConfig.steps_for`): the references of a batch are grouped by step, each group integrated
-    alone, the results put back in the batch's order (differentiable like one integration). ``all_steps`` needs
-    one time grid: the whole batch then takes its finest step."""
-    steps = config.steps_for(closed_loop.system, reference)
-    if steps is None:
-        return _integrate(closed_loop, y0, reference, config, with_density, all_steps, plant)
-    values = sorted(set(steps.reshape(-1).tolist()))
-    if len(values) == 1 or all_steps:
-        return _integrate(closed_loop, y0, reference, config.with_step(values[0]), with_density, all_steps, plant)
+    """The batch's references grouped by their step ``steps (*batch,)`` (distinct ``values``), each group
+    integrated alone by ``run(y0_group, reference_group, step)``, the results put back in the batch's order
+    (differentiable like one integration)."""
     batch = y0[0].shape[:-2]
     flat = steps.expand(batch).reshape(-1)
     n = flat.numel()
@@ -201,8 +197,7 @@ def _integrate_scheduled(
     t = None
     for value in values:
         idx = torch.nonzero(flat == value).squeeze(-1).to(y0[0].device)
-        t, saved = _integrate(closed_loop, tuple(y.index_select(0, idx) for y in flat_y0), ref.select(idx),
-                              config.with_step(value), with_density, False, plant)
+        t, saved = run(tuple(y.index_select(0, idx) for y in flat_y0), ref.select(idx), value)
         order.append(idx)
         parts.append(saved)
     assert t is not None
@@ -231,8 +226,7 @@ def simulate_closed_loop(
     """
     config = config or LiouvilleConfig()
     x0 = _check_inputs(system, x0, reference)
-    t, saved = _integrate_scheduled(ClosedLoop(system, controller), (x0,), reference, config, False, all_steps,
-                                    plant)
+    t, saved = _integrate(ClosedLoop(system, controller), (x0,), reference, config, False, all_steps, plant)
     return t, torch.stack(saved[0], dim=-2)
 
 
@@ -258,7 +252,7 @@ def propagate_density(
     else:
         log_rho0 = expand_log_rho0(log_rho0, x0)
     closed_loop = ClosedLoop(system, controller)
-    t, saved = _integrate_scheduled(closed_loop, (x0, log_rho0), reference, config, True, all_steps)
+    t, saved = _integrate(closed_loop, (x0, log_rho0), reference, config, True, all_steps)
     x = torch.stack(saved[0], dim=-2)
     log_rho = torch.stack(saved[1], dim=-1)
     return DensityTrajectory(t=t, x=x, log_rho=log_rho, log_rho0=log_rho0)
