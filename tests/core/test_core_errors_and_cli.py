@@ -71,6 +71,22 @@ def test_density_cli_writes_outputs(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_density_cli_reports_the_step_a_fast_reference_took(tmp_path, capsys):
+    """A road reference at 30 m/s is integrated at the finer step of LiouvilleConfig.speed_steps (0.02 s), and
+    the command says so; at the default 3 m/s start the step is 0.1 s."""
+    assert main(["density", "--models", "road", "--start", "0", "0", "0", "30", "--samples", "4", "--params",
+                 str(_zero_params(tmp_path)), "--out", str(tmp_path / "fast")]) == 0
+    assert "(rk4, dt=0.02 s)" in capsys.readouterr().out
+    assert main(["density", "--samples", "4", "--out", str(tmp_path / "slow")]) == 0
+    assert "(rk4, dt=0.1 s)" in capsys.readouterr().out
+
+
+def _zero_params(tmp_path):
+    path = tmp_path / "zero.json"
+    path.write_text(json.dumps({"params": np.zeros((2, 10)).tolist()}))
+    return path
+
+
 def test_density_cli_params_file(tmp_path):
     params = np.zeros((2, 10))
     params[1, :3] = 1.0

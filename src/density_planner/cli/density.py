@@ -108,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
     with torch.no_grad():
         traj = propagate_density(car, controller, x0, reference, log_rho0=log_rho0, config=config)
     elapsed = time.perf_counter() - t0
+    steps = config.steps_for(car, reference)  # the step this reference took (refined for a fast one)
+    dt = float(steps) if steps is not None else dt
 
     arrays = {
         "t": traj.t.cpu().numpy(),
