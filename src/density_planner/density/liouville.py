@@ -53,9 +53,10 @@ class LiouvilleConfig:
     #: closed loop saturates its turn rate at highway speed (the band between the reference's and the actuator's
     #: turn-rate limits narrows as ``a_lat / v``, and the learned law crosses it within a few hundredths of a
     #: second), which a 0.1-s step cannot resolve: on 100 random road references x 20 samples the largest
-    #: log-density error of RK4 at 0.1 s is 0.09 nats below 15 m/s and up to 10 nats above (docs/core.md); with
-    #: this schedule it is 0.09 everywhere, at the same cost below 15 m/s and 2-5x above. Systems without a speed
-    #: state, and references slower than every ``v``, use ``dt``; ``()`` turns the schedule off (a fixed step)
+    #: log-density error of RK4 at 0.1 s is 0.08-0.10 nats below 15 m/s and up to 6-10 nats above (docs/core.md);
+    #: with this schedule it is at most 0.09-0.18 (three draws), at the same cost below 15 m/s and 2-5x above.
+    #: Systems without a speed state, and references slower than every ``v``, use ``dt``; ``()`` turns the
+    #: schedule off (a fixed step)
     speed_steps: tuple[tuple[float, float], ...] = ((15.0, 0.05), (20.0, 0.025), (25.0, 0.02))
 
     def __post_init__(self) -> None:
