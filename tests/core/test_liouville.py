@@ -278,10 +278,18 @@ def test_speed_schedule_picks_the_step_by_top_speed():
     assert cfg.steps_for(system, linear_reference) is None  # no speed state
 
 
-@pytest.mark.parametrize("bad", [[[15.0, 0.03]], [[-1.0, 0.05]], [[15.0, 0.0]], [[15.0]], [[math.nan, 0.05]]])
+@pytest.mark.parametrize("bad", [[[-1.0, 0.05]], [[15.0, 0.0]], [[15.0]], [[math.nan, 0.05]]])
 def test_speed_schedule_rejects_bad_pairs(bad):
     with pytest.raises(ValueError, match="speed_steps"):
         LiouvilleConfig(speed_steps=bad)
+
+
+def test_speed_schedule_rounds_a_step_down_to_a_divisor_of_the_output_step():
+    assert LiouvilleConfig(speed_steps=[[15.0, 0.03]]).step_for_speed(20.0) == pytest.approx(0.025)
+    cfg = LiouvilleConfig(dt=0.15, output_dt=0.15)
+    assert cfg.step_for_speed(30.0) == pytest.approx(0.15 / 8)  # 0.02 does not divide 0.15: 0.01875 does
+    steps = [cfg.step_for_speed(v) for v in (16.0, 21.0, 30.0)]
+    assert all(abs(0.15 / s - round(0.15 / s)) < 1e-9 for s in steps)
 
 
 def test_speed_schedule_from_toml_lists_is_a_tuple():
