@@ -265,17 +265,30 @@ def _road_references(speeds, dtype=torch.float64):
 
 def test_speed_schedule_picks_the_step_by_top_speed():
     cfg = LiouvilleConfig()
-    assert [cfg.step_for_speed(v) for v in (0.0, 14.9, 15.0, 19.9, 20.0, 24.9, 25.0, 40.0)] == [
+    car, _, reference, _ = _road_references([5.0, 17.0, 22.0, 33.0])
+    assert [cfg.step_for_speed(v, car) for v in (0.0, 14.9, 15.0, 19.9, 20.0, 24.9, 25.0, 40.0)] == [
         0.1, 0.1, 0.05, 0.05, 0.025, 0.025, 0.02, 0.02]
     # dt is the largest step: the schedule only refines it
-    assert LiouvilleConfig(dt=0.01, integrator="euler").step_for_speed(40.0) == 0.01
-    assert LiouvilleConfig(speed_steps=()).step_for_speed(40.0) == 0.1
-    car, _, reference, _ = _road_references([5.0, 17.0, 22.0, 33.0])
+    assert LiouvilleConfig(dt=0.01, integrator="euler").step_for_speed(40.0, car) == 0.01
+    assert LiouvilleConfig(speed_steps=()).step_for_speed(40.0, car) == 0.1
     steps = cfg.steps_for(car, reference)
     assert steps is not None and steps.tolist() == [0.1, 0.05, 0.025, 0.02]
     assert cfg.steps_for(car, reference.select(slice(0, 1))) is None  # slow references: the fixed step
     system, _, linear_reference = linear_problem()
     assert cfg.steps_for(system, linear_reference) is None  # no speed state
+
+
+def test_speed_schedule_is_the_systems_own_unless_configured():
+    """The default schedule is the system's: the car's road domain has one, the paper's box and KS none (their
+    fixed 0.1-s step is accurate); a configured schedule applies to every system, ``()`` to none."""
+    from density_planner.control.registry import model_set
+
+    road, paper, ks = (model_set(name).make_system() for name in ("road", "paper", "ks"))
+    assert LiouvilleConfig().schedule(road) == ((15.0, 0.05), (20.0, 0.025), (25.0, 0.02))
+    assert LiouvilleConfig().schedule(paper) == () and LiouvilleConfig().schedule(ks) == ()
+    assert LiouvilleConfig().step_for_speed(30.0, ks) == 0.1
+    assert LiouvilleConfig(speed_steps=[[20, 0.05]]).step_for_speed(30.0, ks) == 0.05
+    assert LiouvilleConfig(speed_steps=()).schedule(road) == ()
 
 
 @pytest.mark.parametrize("bad", [[[-1.0, 0.05]], [[15.0, 0.0]], [[15.0]], [[math.nan, 0.05]]])
@@ -286,7 +299,7 @@ def test_speed_schedule_rejects_bad_pairs(bad):
 
 def test_speed_schedule_rounds_a_step_down_to_a_divisor_of_the_output_step():
     assert LiouvilleConfig(speed_steps=[[15.0, 0.03]]).step_for_speed(20.0) == pytest.approx(0.025)
-    cfg = LiouvilleConfig(dt=0.15, output_dt=0.15)
+    cfg = LiouvilleConfig(dt=0.15, output_dt=0.15, speed_steps=((15.0, 0.05), (20.0, 0.025), (25.0, 0.02)))
     assert cfg.step_for_speed(30.0) == pytest.approx(0.15 / 8)  # 0.02 does not divide 0.15: 0.01875 does
     steps = [cfg.step_for_speed(v) for v in (16.0, 21.0, 30.0)]
     assert all(abs(0.15 / s - round(0.15 / s)) < 1e-9 for s in steps)

@@ -304,11 +304,14 @@ def _config_key(config: DensityDataConfig) -> str:
 
     d = config.to_dict()
     d.pop("device")
-    steps = config.liouville.speed_steps
-    if not steps or config.make_system().speed_max < min(v for v, _ in steps):
-        # the step schedule cannot act on this domain (its speeds stay below every scheduled speed): the data are
+    system = config.make_system()
+    steps = config.liouville.schedule(system)
+    if not steps or system.speed_max < min(v for v, _ in steps):
+        # no step schedule acts on this domain (none, or its speeds stay below every scheduled speed): the data are
         # those of the fixed step, and so is the key (data written before the schedule existed stay resumable)
         d["liouville"].pop("speed_steps", None)
+    else:  # the schedule in force, whether configured or the system's own
+        d["liouville"]["speed_steps"] = [list(pair) for pair in steps]
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

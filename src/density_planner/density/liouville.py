@@ -50,14 +50,12 @@ class LiouvilleConfig:
     output_dt: float = 0.1
     #: finer steps for fast references, ``((v, dt_v), ...)`` [m/s, s]: a reference whose highest speed reaches
     #: ``v`` is integrated with a step of at most ``dt_v`` (the largest such step that divides ``output_dt``).
-    #: The road model set's closed loop saturates its turn rate at highway speed (the band between the
-    #: reference's and the actuator's turn-rate limits narrows as ``a_lat / v``, and the learned law crosses it
-    #: within a few hundredths of a second), which a 0.1-s step cannot resolve: on 100 random road references x 20
-    #: samples the largest log-density error of RK4 at 0.1 s is 0.08-0.10 nats below 15 m/s and up to 6-10 nats
-    #: above (docs/core.md); with this schedule it is at most 0.09-0.18 (three draws), at the same cost below
-    #: 15 m/s and 2-5x above. Systems without a speed state, and references slower than every ``v``, use ``dt``;
-    #: ``()`` turns the schedule off (a fixed step)
-    speed_steps: tuple[tuple[float, float], ...] = ((15.0, 0.05), (20.0, 0.025), (25.0, 0.02))
+    #: ``None`` (default): the system's own schedule (:attr:`System.liouville_speed_steps`: the car's road domain
+    #: refines 0.1 s to 0.05 / 0.025 / 0.02 s from 15 / 20 / 25 m/s, where its controller crosses its turn-rate
+    #: saturation within hundredths of a second; other systems and the paper's box keep the fixed step);
+    #: ``()``: the fixed step ``dt``; pairs: this schedule for every system. Systems without a speed state, and
+    #: references slower than every ``v``, use ``dt``
+    speed_steps: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         check_choice("integrator", self.integrator, ("euler", "rk4"))
@@ -67,6 +65,8 @@ class LiouvilleConfig:
         r = self.output_dt / self.dt
         if abs(r - round(r)) > 1e-6 * max(1.0, r) or round(r) < 1:
             raise ValueError(f"output_dt ({self.output_dt}) must be an integer multiple of dt ({self.dt})")
+        if self.speed_steps is None:
+            return
         steps = tuple(tuple(float(v) for v in pair) for pair in self.speed_steps)
         object.__setattr__(self, "speed_steps", steps)  # TOML lists -> tuples (hashable, comparable)
         for pair in steps:
@@ -86,10 +86,16 @@ class LiouvilleConfig:
         """The largest step <= ``step`` that divides ``output_dt``."""
         return self.output_dt / math.ceil(self.output_dt / step - 1e-9)
 
-    def step_for_speed(self, speed: float) -> float:
-        """The step [s] of a reference whose highest speed is ``speed`` [m/s] (``dt`` refined by ``speed_steps``)."""
+    def schedule(self, system: System | None = None) -> tuple[tuple[float, float], ...]:
+        """The step schedule in force: ``speed_steps``, or where it is ``None`` the system's own (none without one)."""
+        if self.speed_steps is not None:
+            return self.speed_steps
+        return () if system is None else tuple(getattr(system, "liouville_speed_steps", ()))
+
+    def step_for_speed(self, speed: float, system: System | None = None) -> float:
+        """The step [s] of a reference whose highest speed is ``speed`` [m/s]: ``dt`` refined by :meth:`schedule`."""
         dt = self.dt
-        for v, step in self.speed_steps:
+        for v, step in self.schedule(system):
             if speed >= v:
                 dt = min(dt, self._dividing(step))
         return dt
@@ -98,16 +104,17 @@ class LiouvilleConfig:
         """Per reference of the batch ``(*batch,)``, the step [s] of :meth:`step_for_speed` for its highest
         speed; ``None`` where every reference gets ``dt`` (no schedule, a system without a speed state, or no
         reference reaching a scheduled speed)."""
-        if not self.speed_steps:
+        schedule = self.schedule(system)
+        if not schedule:
             return None
         speeds = system.speeds(reference.x.detach())
         if speeds is None:
             return None
         top = speeds.abs().amax(dim=-1)
-        if not bool((top >= min(v for v, _ in self.speed_steps)).any()):
+        if not bool((top >= min(v for v, _ in schedule)).any()):
             return None
         dt = torch.full(top.shape, self.dt, dtype=torch.float64, device=top.device)
-        for v, step in self.speed_steps:
+        for v, step in schedule:
             dt = torch.where(top >= v, dt.clamp(max=self._dividing(step)), dt)
         return dt
 

@@ -108,6 +108,13 @@ class System(ABC):
         return None if self.speed_index is None else x[..., self.speed_index]
 
     @property
+    def liouville_speed_steps(self) -> tuple[tuple[float, float], ...]:
+        """Finer steps of exact Liouville for fast references, ``((v, dt_v), ...)`` [m/s, s], that this system's
+        closed loop needs (:attr:`~density_planner.density.liouville.LiouvilleConfig.speed_steps`); ``()`` (the
+        default): the fixed step is accurate at every speed."""
+        return ()
+
+    @property
     def speed_max(self) -> float:
         """Largest speed of the state box [m/s] (``inf`` without a speed state): starts above it lie outside the
         domain of the controller and of the density predictors trained for the system."""
