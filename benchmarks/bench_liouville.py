@@ -134,7 +134,7 @@ def main() -> None:
     with torch.inference_mode():
         states, _ = _timed(lambda: simulate_closed_loop(car, controller, x0, ref), args.repeats)
         full, _ = _timed(lambda: propagate_density(car, controller, x0, ref, log_rho0=lr0), args.repeats)
-    step = LiouvilleConfig().step_for_speed(float(ref.x[..., 3].abs().max()), car)
+    step = LiouvilleConfig().step_for_speed(float(car.speeds(ref.x).abs().max()), car)
     print(f"default scheme (RK4 {step:g} s for this reference's top speed) in inference mode (the exact re-check's "
           f"mode): states only {statistics.median(states):.3f} "
           f"s, with the log-density {statistics.median(full):.3f} s (median of {args.repeats})")

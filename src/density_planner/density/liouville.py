@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_positive
+from ..checks import check_choice, check_positive, check_speed_steps
 from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..systems.base import System
@@ -67,12 +67,7 @@ class LiouvilleConfig:
             raise ValueError(f"output_dt ({self.output_dt}) must be an integer multiple of dt ({self.dt})")
         if self.speed_steps is None:
             return
-        steps = tuple(tuple(float(v) for v in pair) for pair in self.speed_steps)
-        object.__setattr__(self, "speed_steps", steps)  # TOML lists -> tuples (hashable, comparable)
-        for pair in steps:
-            if len(pair) != 2 or not all(math.isfinite(v) for v in pair) or pair[0] < 0 or pair[1] <= 0:
-                raise ValueError(f"LiouvilleConfig.speed_steps must hold pairs (speed >= 0 [m/s], step > 0 [s]), got "
-                                 f"{self.speed_steps!r}; e.g. [[15, 0.05], [20, 0.025]], or [] for a fixed step")
+        object.__setattr__(self, "speed_steps", check_speed_steps("LiouvilleConfig.speed_steps", self.speed_steps))
 
     @property
     def save_every(self) -> int:
@@ -90,7 +85,7 @@ class LiouvilleConfig:
         """The step schedule in force: ``speed_steps``, or where it is ``None`` the system's own (none without one)."""
         if self.speed_steps is not None:
             return self.speed_steps
-        return () if system is None else tuple(getattr(system, "liouville_speed_steps", ()))
+        return () if system is None else system.liouville_speed_steps
 
     def step_for_speed(self, speed: float, system: System | None = None) -> float:
         """The step [s] of a reference whose highest speed is ``speed`` [m/s]: ``dt`` refined by :meth:`schedule`."""

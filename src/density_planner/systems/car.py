@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import broadcast_shape
+from ..checks import broadcast_shape, check_speed_steps
 from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
@@ -97,11 +97,8 @@ class CarConfig:
         for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
-        steps = tuple(tuple(float(v) for v in pair) for pair in self.liouville_speed_steps)
-        object.__setattr__(self, "liouville_speed_steps", steps)  # TOML lists -> tuples
-        if any(len(p) != 2 or not all(math.isfinite(v) for v in p) or p[0] < 0 or p[1] <= 0 for p in steps):
-            raise ValueError("CarConfig.liouville_speed_steps must hold pairs (speed >= 0 [m/s], step > 0 [s]), got "
-                             f"{self.liouville_speed_steps!r}")
+        object.__setattr__(self, "liouville_speed_steps",
+                           check_speed_steps("CarConfig.liouville_speed_steps", self.liouville_speed_steps))
         if (self.actuator_min is None) != (self.actuator_max is None):
             raise ValueError("CarConfig.actuator_min and actuator_max must both be set or both be None")
         if self.actuator_min is not None:
