@@ -11,8 +11,9 @@ Part 2 (accuracy, issue 14): the errors on ``--accuracy-references`` random feas
 model set's whole domain (initial errors uniform in XE0, heading bias included), against a converged float64
 solution (RK4 at 0.005 s; its own difference to 0.01 s is printed): max / 99th percentile / median absolute
 log-density error over samples and times [nats], max position error [m], for fixed steps and for the default
-(RK4 at 0.1 s, refined for references faster than 15 m/s by ``LiouvilleConfig.speed_steps``; its largest error per
-band of the references' top speed is printed too). Target for the default: max <= 0.1 nats.
+(the system's scheme, ``LiouvilleConfig().scheme(system)``: RK4 at 0.1 s, or for the road domain the error-controlled
+Dormand-Prince 5(4) "dopri5"; its largest error per band of the references' top speed is printed too). Target for
+the default: max <= 0.1 nats.
 
 Targets (issue 2): <= 3 s for Euler at dt = 0.01 s, <= 1.5 s for the default integrator at equal or better
 accuracy, peak memory <= 500 MB.
@@ -39,7 +40,7 @@ from density_planner.density.distributions import paper_gaussian_mixture
 from density_planner.density.liouville import LiouvilleConfig, propagate_density, simulate_closed_loop
 from density_planner.systems.car import KinematicCar
 
-SCHEMES = [("euler", 0.01), ("rk4", 0.1), ("rk4", 0.05), ("euler", 0.005)]
+SCHEMES = [("euler", 0.01), ("rk4", 0.1), ("dopri5", 0.1), ("rk4", 0.05), ("euler", 0.005)]
 
 
 def setup(n: int, controller_name: str | None, dtype: torch.dtype, models: str | None = None):
@@ -72,7 +73,7 @@ def run_once(args) -> dict:
     """Child process: one propagation, report time and peak RSS."""
     car, controller, x0, lr0, ref = setup(args.samples, args.controller, torch.float32, args.models)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt, speed_steps=())
+    cfg = LiouvilleConfig(integrator=args.child_integrator, dt=args.child_dt)
     t0 = time.perf_counter()
     with torch.no_grad():
         propagate_density(car, controller, x0, ref, log_rho0=lr0, config=cfg)
@@ -111,7 +112,7 @@ def main() -> None:
     print(f"{'scheme':>14} {'median s':>9} {'min s':>7} {'peak MB':>8} {'max pos err m':>14} "
           f"{'max |dlogrho|':>14} {'median |dlogrho|':>17}")
     for integrator, dt in SCHEMES:
-        cfg = LiouvilleConfig(integrator=integrator, dt=dt, speed_steps=())  # a fixed step
+        cfg = LiouvilleConfig(integrator=integrator, dt=dt)
         with torch.no_grad():
             times, out = _timed(lambda c=cfg: propagate_density(car, controller, x0, ref, log_rho0=lr0, config=c),
                                 args.repeats)
@@ -134,8 +135,7 @@ def main() -> None:
     with torch.inference_mode():
         states, _ = _timed(lambda: simulate_closed_loop(car, controller, x0, ref), args.repeats)
         full, _ = _timed(lambda: propagate_density(car, controller, x0, ref, log_rho0=lr0), args.repeats)
-    step = LiouvilleConfig().step_for_speed(float(car.speeds(ref.x).abs().max()), car)
-    print(f"default scheme (RK4 {step:g} s for this reference's top speed) in inference mode (the exact re-check's "
+    print(f"default scheme ({LiouvilleConfig().describe(car)}) in inference mode (the exact re-check's "
           f"mode): states only {statistics.median(states):.3f} "
           f"s, with the log-density {statistics.median(full):.3f} s (median of {args.repeats})")
     if args.accuracy_references > 0:

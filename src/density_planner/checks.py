@@ -80,16 +80,6 @@ def check_positive(name: str, value: float, *, allow_zero: bool = False) -> floa
     return value
 
 
-def check_speed_steps(name: str, value: Any) -> tuple[tuple[float, float], ...]:
-    """Require a step schedule of exact Liouville, pairs ``(speed >= 0 [m/s], step > 0 [s])``; returns it as
-    tuples of floats (a TOML list of lists becomes hashable and comparable)."""
-    steps = tuple(tuple(float(v) for v in pair) for pair in value)
-    if any(len(p) != 2 or not all(math.isfinite(v) for v in p) or p[0] < 0 or p[1] <= 0 for p in steps):
-        raise ValueError(f"{name} must hold pairs (speed >= 0 [m/s], step > 0 [s]), got {value!r}; e.g. "
-                         "[[15, 0.05], [20, 0.025]], or [] for a fixed step")
-    return tuple((v, dt) for v, dt in steps)
-
-
 def check_finite_number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")

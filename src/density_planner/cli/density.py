@@ -43,10 +43,14 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="reference parameters (nu x 10) as .json/.npy/.npz (default: a built-in S-curve)")
     p.add_argument("--start", type=float, nargs=4, default=DEFAULT_START, metavar="X",
                    help="start pose x y heading speed, mapped to the system's state (default: %(default)s)")
-    p.add_argument("--integrator", default=None, choices=("euler", "rk4"), help="integration scheme (default rk4)")
+    p.add_argument("--integrator", default=None, choices=("euler", "rk4", "dopri5"),
+                   help="integration scheme (default: the system's, rk4 or for the road domain the error-controlled "
+                   "dopri5)")
     p.add_argument("--dt", type=float, default=None,
-                   help="integration step [s] (default 0.1 for rk4, 0.01 euler; references faster than 15 m/s take "
-                   "the finer steps of LiouvilleConfig.speed_steps)")
+                   help="integration step [s] (default 0.1 for rk4 and dopri5, whose steps it bounds; 0.01 euler)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="dopri5: largest local error per step of every state component and of the log-density "
+                   "(default: LiouvilleConfig.tolerance, 1e-4)")
     add_system(p, density=False)
     add_seed(p)
     add_device(p)
@@ -92,9 +96,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--start contains NaN or infinite values")
     start = torch.tensor(car.state_from_pose(*args.start), dtype=dtype, device=device)
 
-    integrator: IntegratorName = args.integrator or "rk4"
-    dt = args.dt if args.dt is not None else (0.1 if integrator == "rk4" else 0.01)
-    config = LiouvilleConfig(integrator=integrator, dt=dt)
+    integrator: IntegratorName = args.integrator or LiouvilleConfig().scheme(car)
+    dt = args.dt if args.dt is not None else (0.01 if integrator == "euler" else 0.1)
+    config = LiouvilleConfig(integrator=integrator, dt=dt,
+                             **({} if args.tolerance is None else {"tolerance": args.tolerance}))
 
     out = out_dir(args.out)  # every input is valid: create the output directory
     gen = torch.Generator().manual_seed(args.seed)
@@ -108,8 +113,6 @@ def run(args: argparse.Namespace) -> int:
     with torch.no_grad():
         traj = propagate_density(car, controller, x0, reference, log_rho0=log_rho0, config=config)
     elapsed = time.perf_counter() - t0
-    steps = config.steps_for(car, reference)  # the step this reference took (refined for a fast one)
-    dt = float(steps) if steps is not None else dt
 
     arrays = {
         "t": traj.t.cpu().numpy(),
@@ -123,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from ..viz.density import plot_density_snapshots
 
     plot_density_snapshots(arrays["t"], arrays["x"], arrays["log_rho"], arrays["x_ref"], out / "density.png",
-                           title=f"{args.samples} samples, {integrator} dt={dt}s, {elapsed:.2f}s")
+                           title=f"{args.samples} samples, {config.describe(car)}, {elapsed:.2f}s")
     print(f"propagated {args.samples} samples over {float(traj.t[-1]):.1f} s in {elapsed:.2f} s "
-          f"({integrator}, dt={dt} s); wrote {out / 'density.npz'} and {out / 'density.png'}")
+          f"({config.describe(car)}); wrote {out / 'density.npz'} and {out / 'density.png'}")
     return 0

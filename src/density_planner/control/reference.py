@@ -187,6 +187,27 @@ class Reference:
         u_stage = u_stage.movedim(-2, 0).reshape(n_steps, len(stages), *self.batch_shape, self.u.shape[-1])
         return x_stage, u_stage
 
+    def values_at(self, rows: Tensor, t: Tensor, left: Tensor | bool) -> tuple[Tensor, Tensor]:
+        """Reference states and inputs at one time per row, for integrators whose rows keep their own clocks.
+
+        ``rows (M,)`` index the references of a batch flattened to one dimension (``x (B, K + 1, nx)``), ``t (M,)``
+        are times [s] (float64). The same convention as :meth:`stage_values`: states interpolated linearly on the
+        fine grid, inputs piecewise constant; where ``left`` (a stage inside or at the end of a step), an input
+        switching exactly at ``t`` is taken as its left limit, else (a step's first stage) as its right limit.
+
+        Returns ``x_ref (M, nx)`` and ``u_ref (M, nu)``.
+        """
+        if self.x.ndim != 3:
+            raise ValueError(f"values_at needs a batch flattened to one dimension, got x of shape {tuple(self.x.shape)}")
+        k_max = self.n_steps
+        pos = t / self.dt
+        lo = torch.clamp(torch.floor(pos + 1e-9), 0, k_max - 1).long()
+        frac = (pos - lo).clamp(0.0, 1.0).to(self.x.dtype).unsqueeze(-1)
+        x_lo = self.x[rows, lo]
+        x_ref = x_lo + frac * (self.x[rows, lo + 1] - x_lo)
+        u_idx = torch.where(torch.as_tensor(left, device=t.device), torch.ceil(pos - 1e-9) - 1, torch.floor(pos + 1e-9))
+        return x_ref, self.u[rows, torch.clamp(u_idx, 0, k_max - 1).long()]
+
 
 def _check_input_bounds(system: System, params: Tensor) -> None:
     """Reference inputs outside the system's input bounds are bad input (the controller and the learned models

@@ -304,14 +304,11 @@ def _config_key(config: DensityDataConfig) -> str:
 
     d = config.to_dict()
     d.pop("device")
-    system = config.make_system()
-    steps = config.liouville.schedule(system)
-    if not steps or system.speed_max < min(v for v, _ in steps):
-        # no step schedule acts on this domain (none, or its speeds stay below every scheduled speed): the data are
-        # those of the fixed step, and so is the key (data written before the schedule existed stay resumable)
-        d["liouville"].pop("speed_steps", None)
-    else:  # the schedule in force, whether configured or the system's own
-        d["liouville"]["speed_steps"] = [list(pair) for pair in steps]
+    # the scheme in force, whether configured or the system's own; the tolerance only where it acts (the keys of
+    # fixed-step data written before the error-controlled scheme existed stay as they were, hence resumable)
+    d["liouville"]["integrator"] = config.liouville.scheme(config.make_system())
+    if d["liouville"]["integrator"] != "dopri5":
+        d["liouville"].pop("tolerance", None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -6,8 +6,9 @@ Along every closed-loop trajectory the Liouville equation reduces to the ODE (pa
     d/dt log rho = -div f_cl(x, t)
 
 integrated here jointly, in log form (never NaN, unlike the Euler step ``log(1 - dt div f)`` of the paper's
-code), with the same explicit scheme and step for both components. The loop runs over time only; all samples
-(and all references of a batch) advance together.
+code), with the same explicit scheme and step for both components. The loop runs over time only. With a fixed
+step all samples (and all references of a batch) advance together; the error-controlled "dopri5" gives every
+sample its own step and evaluates, at each pass, the samples still running.
 """
 
 from __future__ import annotations
@@ -19,103 +20,91 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_positive, check_speed_steps
+from ..checks import check_choice, check_positive
 from ..control.base import TrackingController
 from ..control.reference import Reference
 from ..systems.base import System
 from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 from .closed_loop import ClosedLoop, DivergenceMethod
-from .integrators import get_integrator
+from .integrators import DOPRI5, get_integrator
 
 __all__ = ["LiouvilleConfig", "simulate_closed_loop", "propagate_density", "ExactLiouville"]
 
-IntegratorName = Literal["euler", "rk4"]
+IntegratorName = Literal["euler", "rk4", "dopri5"]
+FIXED_STEP = ("euler", "rk4")
 
 
 @dataclass(frozen=True)
 class LiouvilleConfig:
     """Numerics of the exact density propagation.
 
-    The default (RK4 at 0.1 s) is both faster and more accurate than Euler at 0.01 s (the paper's scheme); see
-    ``benchmarks/bench_liouville.py`` for the measured errors against a fine RK4 solution.
+    ``"rk4"`` at 0.1 s is both faster and more accurate than Euler at 0.01 s (the paper's scheme); ``"dopri5"``
+    controls its error, per sample, where a closed loop turns fast (the car's road domain); see
+    ``benchmarks/bench_liouville.py`` and docs/core.md for the measured errors against a converged solution.
     """
 
-    #: explicit scheme: "euler" (order 1) or "rk4" (order 4)
-    integrator: IntegratorName = "rk4"
-    #: integration step [s] (the largest: see ``speed_steps``); must divide the output step
+    #: scheme: "euler" (order 1) or "rk4" (order 4) at the fixed step ``dt``; "dopri5": the Dormand-Prince 5(4) pair
+    #: with error control (every sample keeps its own step, at most ``dt``, so that the estimated local error of
+    #: every state component and of the log-density stays below ``tolerance``); ``None`` (default): the system's
+    #: own (:attr:`System.liouville_integrator`: "dopri5" for the car's road domain, whose learned controller
+    #: crosses its turn-rate saturation within hundredths of a second at highway speed; "rk4" elsewhere)
+    integrator: IntegratorName | None = None
+    #: integration step [s] (with "dopri5" the largest and the first tried); must divide the output step
     dt: float = 0.1
     #: divergence: "structured" (fast, for control-affine systems with constant B) or "autodiff" (any system)
     divergence: DivergenceMethod = "structured"
     #: time between saved points [s] (the planning grid)
     output_dt: float = 0.1
-    #: finer steps for fast references, ``((v, dt_v), ...)`` [m/s, s]: a reference whose highest speed reaches
-    #: ``v`` is integrated with a step of at most ``dt_v`` (the largest such step that divides ``output_dt``).
-    #: ``None`` (default): the system's own schedule (:attr:`System.liouville_speed_steps`: the car's road domain
-    #: refines 0.1 s to 0.05 / 0.025 / 0.02 s from 15 / 20 / 25 m/s, where its controller crosses its turn-rate
-    #: saturation within hundredths of a second; other systems and the paper's box keep the fixed step);
-    #: ``()``: the fixed step ``dt``; pairs: this schedule for every system. Systems without a speed state, and
-    #: references slower than every ``v``, use ``dt``
-    speed_steps: tuple[tuple[float, float], ...] | None = None
+    #: "dopri5": largest estimated local error per step, absolute, of every state component (in its unit) and of
+    #: the log-density [nats]
+    tolerance: float = 1e-4
 
     def __post_init__(self) -> None:
-        check_choice("integrator", self.integrator, ("euler", "rk4"))
+        if self.integrator is not None:
+            check_choice("integrator", self.integrator, ("euler", "rk4", "dopri5"))
         check_choice("divergence", self.divergence, ("structured", "autodiff"))
         check_positive("dt", self.dt)
         check_positive("output_dt", self.output_dt)
+        check_positive("tolerance", self.tolerance)
         r = self.output_dt / self.dt
         if abs(r - round(r)) > 1e-6 * max(1.0, r) or round(r) < 1:
             raise ValueError(f"output_dt ({self.output_dt}) must be an integer multiple of dt ({self.dt})")
-        if self.speed_steps is None:
-            return
-        object.__setattr__(self, "speed_steps", check_speed_steps("LiouvilleConfig.speed_steps", self.speed_steps))
 
     @property
     def save_every(self) -> int:
         return int(round(self.output_dt / self.dt))
 
-    def with_step(self, dt: float) -> LiouvilleConfig:
-        """This configuration with the fixed step ``dt`` (no schedule)."""
-        return replace(self, dt=dt, speed_steps=())
+    def with_step(self, dt: float, integrator: IntegratorName | None = None) -> LiouvilleConfig:
+        """This configuration with the fixed step ``dt`` (of ``integrator``, default: this one's if it has a fixed
+        step, else RK4)."""
+        if integrator is None:
+            integrator = self.integrator if self.integrator in FIXED_STEP else "rk4"
+        return replace(self, dt=dt, integrator=integrator)
 
-    def _dividing(self, step: float) -> float:
-        """The largest step <= ``step`` that divides ``output_dt``."""
-        return self.output_dt / math.ceil(self.output_dt / step - 1e-9)
+    def scheme(self, system: System | None = None) -> IntegratorName:
+        """The scheme in force: ``integrator``, or where it is ``None`` the system's own ("rk4" without one)."""
+        if self.integrator is not None:
+            return self.integrator
+        return "rk4" if system is None else system.liouville_integrator
 
-    def schedule(self, system: System | None = None) -> tuple[tuple[float, float], ...]:
-        """The step schedule in force: ``speed_steps``, or where it is ``None`` the system's own (none without one)."""
-        if self.speed_steps is not None:
-            return self.speed_steps
-        return () if system is None else system.liouville_speed_steps
-
-    def step_for_speed(self, speed: float, system: System | None = None) -> float:
-        """The step [s] of a reference whose highest speed is ``speed`` [m/s]: ``dt`` refined by :meth:`schedule`."""
-        dt = self.dt
-        for v, step in self.schedule(system):
-            if speed >= v:
-                dt = min(dt, self._dividing(step))
-        return dt
-
-    def steps_for(self, system: System, reference: Reference) -> Tensor | None:
-        """Per reference of the batch ``(*batch,)``, the step [s] of :meth:`step_for_speed` for its highest
-        speed; ``None`` where every reference gets ``dt`` (no schedule, a system without a speed state, or no
-        reference reaching a scheduled speed)."""
-        schedule = self.schedule(system)
-        if not schedule:
-            return None
-        speeds = system.speeds(reference.x.detach())
-        if speeds is None:
-            return None
-        top = speeds.abs().amax(dim=-1)
-        if not bool((top >= min(v for v, _ in schedule)).any()):
-            return None
-        dt = torch.full(top.shape, self.dt, dtype=torch.float64, device=top.device)
-        for v, step in schedule:
-            dt = torch.where(top >= v, dt.clamp(max=self._dividing(step)), dt)
-        return dt
+    def describe(self, system: System | None = None) -> str:
+        """One line naming the scheme and its step (or tolerance), e.g. for the CLI."""
+        scheme = self.scheme(system)
+        if scheme == "dopri5":
+            return f"dopri5 (error-controlled, tolerance {self.tolerance:g}, steps <= {self.dt:g} s)"
+        return f"{scheme} at {self.dt:g} s"
 
 
 def _check_inputs(system: System, x0: Tensor, reference: Reference) -> Tensor:
     return expand_samples(x0, reference, system.nx)
+
+
+def _n_steps(horizon: float, dt: float, what: str) -> int:
+    n_f = horizon / dt
+    n = int(round(n_f))
+    if abs(n_f - n) > 1e-6 * max(1.0, n_f):
+        raise ValueError(f"{what} ({dt}) must divide the reference horizon ({horizon} s)")
+    return n
 
 
 def _integrate(
@@ -129,24 +118,19 @@ def _integrate(
 ) -> tuple[Tensor, list[list[Tensor]]]:
     """Integrate ``y0 = (x0, [log_rho0])`` over the reference horizon; returns the saved times and states.
     ``plant`` (states only): the executed vehicle, held at rest (:meth:`System.standstill`) at every stage and
-    after every step. Each reference takes its step from ``config.speed_steps`` (:meth:`LiouvilleConfig.steps_for`;
-    a batch of several steps is integrated group by group); ``all_steps`` needs one time grid: the whole batch then
-    takes its finest step."""
+    after every step. The scheme is :meth:`LiouvilleConfig.scheme`; "dopri5" saves the output grid only and has no
+    plant mode (the hold is not a smooth flow): both need a fixed step."""
     if plant and with_density:
         raise ValueError("the plant's standstill is not a smooth flow: no density along it")
-    steps = config.steps_for(closed_loop.system, reference)
-    if steps is not None:
-        values = sorted(set(steps.reshape(-1).tolist()))
-        if len(values) > 1 and not all_steps:
-            return _integrate_groups(steps, values, y0, reference, lambda y, ref, dt: _integrate(
-                closed_loop, y, ref, config.with_step(dt), with_density, False, plant))
-        config = config.with_step(values[0])
-    integrator = get_integrator(config.integrator)
+    scheme = config.scheme(closed_loop.system)
+    if scheme == "dopri5":
+        if all_steps or plant:
+            raise ValueError("LiouvilleConfig: the error-controlled 'dopri5' has no common time grid of all steps "
+                             "and no plant mode; choose a fixed step, e.g. LiouvilleConfig(integrator='rk4')")
+        return _integrate_adaptive(closed_loop, y0, reference, config, with_density)
+    integrator = get_integrator(scheme)
     horizon = reference.n_steps * reference.dt
-    n_steps_f = horizon / config.dt
-    n_steps = int(round(n_steps_f))
-    if abs(n_steps_f - n_steps) > 1e-6 * max(1.0, n_steps_f):
-        raise ValueError(f"dt ({config.dt}) must divide the reference horizon ({horizon} s)")
+    n_steps = _n_steps(horizon, config.dt, "dt")
     save_every = 1 if all_steps else config.save_every
     if n_steps % save_every:
         raise ValueError(f"output_dt ({config.output_dt}) must divide the reference horizon ({horizon} s)")
@@ -183,31 +167,129 @@ def _integrate(
     return t, saved
 
 
-def _integrate_groups(
-    steps: Tensor, values: list[float], y0: tuple[Tensor, ...], reference: Reference, run
+#: step-size control of "dopri5": safety factor and the bounds of one change of the step
+_SAFETY, _SHRINK_MIN, _GROW_MAX = 0.9, 0.2, 5.0
+
+
+def _integrate_adaptive(
+    closed_loop: ClosedLoop,
+    y0: tuple[Tensor, ...],
+    reference: Reference,
+    config: LiouvilleConfig,
+    with_density: bool,
 ) -> tuple[Tensor, list[list[Tensor]]]:
-    """The batch's references grouped by their step ``steps (*batch,)`` (distinct ``values``), each group
-    integrated alone by ``run(y0_group, reference_group, step)``, the results put back in the batch's order
-    (differentiable like one integration)."""
-    batch = y0[0].shape[:-2]
-    flat = steps.expand(batch).reshape(-1)
-    n = flat.numel()
-    params, x_ref, u_ref = (v.expand(*batch, *v.shape[-2:]).reshape(n, *v.shape[-2:])
-                            for v in (reference.params, reference.x, reference.u))
-    ref = Reference(params, x_ref, u_ref, reference.parameterization)
-    flat_y0 = tuple(y.reshape(n, *y.shape[len(batch):]) for y in y0)
-    order, parts = [], []
-    t = None
-    for value in values:
-        idx = torch.nonzero(flat == value).squeeze(-1).to(y0[0].device)
-        t, saved = run(tuple(y.index_select(0, idx) for y in flat_y0), ref.select(idx), value)
-        order.append(idx)
-        parts.append(saved)
-    assert t is not None
-    inverse = torch.argsort(torch.cat(order))
-    merged = [[torch.cat([p[c][k] for p in parts]).index_select(0, inverse).reshape(*batch, *parts[0][c][k].shape[1:])
-               for k in range(len(parts[0][c]))] for c in range(len(y0))]
-    return t, merged
+    """:func:`_integrate` with the error-controlled Dormand-Prince 5(4) pair (:data:`~.integrators.DOPRI5`).
+
+    Every sample (row) keeps its own clock and step: a step is accepted where the estimated local error of every
+    component is at most ``config.tolerance`` (else retried shorter), the next step is ``h (0.9 / err)^(1/5)``
+    (at most 5x longer, 5x shorter, and ``config.dt``), and no step passes the next output time, where the row's
+    state is saved. Only rows still running are evaluated. The step sizes are chosen without gradient (as in any
+    error-controlled solver) and the solution is differentiable along them: every update is out of place.
+    """
+    pair = DOPRI5
+    system = closed_loop.system
+    x0 = y0[0]
+    batch, n_samples, nx = x0.shape[:-2], x0.shape[-2], x0.shape[-1]
+    n_ref = math.prod(batch)
+    horizon = reference.n_steps * reference.dt
+    _n_steps(horizon, config.dt, "dt")
+    n_out = _n_steps(horizon, config.output_dt, "output_dt")
+    flat_ref = Reference(*(v.expand(*batch, *v.shape[-2:]).reshape(n_ref, *v.shape[-2:])
+                           for v in (reference.params, reference.x, reference.u)), reference.parameterization)
+    m = n_ref * n_samples
+    device = x0.device
+    ref_rows = torch.arange(n_ref, device=device).repeat_interleave(n_samples)
+    y = [x0.reshape(m, nx)] + ([y0[1].reshape(m)] if with_density else [])
+    method = config.divergence
+
+    def func(ys, t, left, rows):
+        x_ref, u_ref = flat_ref.values_at(rows, t, left)
+        if with_density:
+            dx, div = closed_loop.rhs_and_divergence(ys[0], x_ref, u_ref, method)
+            return [dx, -div], u_ref
+        return [closed_loop.rhs(ys[0], x_ref, u_ref)], u_ref
+
+    t = torch.zeros(m, dtype=torch.float64, device=device)
+    h = torch.full((m,), config.dt, dtype=torch.float64, device=device)
+    k_next = torch.ones(m, dtype=torch.long, device=device)  # index of the next output time per row
+    k1, _ = func(y, t, False, ref_rows)
+    out_rows, out_k, out_vals = [], [], [[] for _ in y]
+    active = torch.arange(m, device=device)
+    while active.numel():
+        rows = ref_rows[active]
+        t_a = t[active]
+        h_prop = h[active]
+        h_a = torch.minimum(h_prop, k_next[active].to(torch.float64) * config.output_dt - t_a)
+        if bool((h_a < 1e-9 * config.dt).any()):
+            raise FloatingPointError(
+                "exact Liouville ('dopri5'): the step size underflowed (the closed loop is not finite or not "
+                "integrable there); check the initial states and the reference, or use a fixed step "
+                "(LiouvilleConfig(integrator='rk4'))")
+        hd = h_a.to(x0.dtype)
+        y_a = [v.index_select(0, active) for v in y]
+        ks = [[k.index_select(0, active) for k in k1]]
+        left = torch.ones_like(active, dtype=torch.bool)
+        u_last = None
+        for i in range(1, len(pair.stages)):
+            y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a)]
+            k_i, u_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows)
+            ks.append(k_i)
+        y_new = y_i  # FSAL: the last stage is evaluated at the 5th-order solution
+        err = torch.stack([(_weighted(hd, pair.error, [k[c] for k in ks]).abs().reshape(len(active), -1)
+                            .amax(-1)) for c in range(len(y))]).amax(0).detach().to(torch.float64) / config.tolerance
+        ok = err <= 1.0  # NaN is never accepted: the step then shrinks until it underflows (error above)
+        factor = (_SAFETY * err.clamp(min=1e-12) ** (-1.0 / pair.order)).clamp(_SHRINK_MIN, _GROW_MAX)
+        factor = torch.where(torch.isnan(factor), torch.full_like(factor, _SHRINK_MIN), factor)
+        h_new = h_a * factor
+        # a step cut short by an output time, accepted, keeps the proposal it was cut from
+        h_new = torch.where(ok & (h_a < h_prop), torch.maximum(h_new, h_prop), h_new)
+        h = h.index_put((active,), h_new.clamp(max=config.dt))
+        acc = active[ok]
+        if acc.numel():
+            t_acc = t_a[ok] + h_a[ok]
+            k_acc = k_next[acc]
+            landed = (t_acc - k_acc.to(torch.float64) * config.output_dt).abs() <= 1e-9 * config.dt
+            t_acc = torch.where(landed, k_acc.to(torch.float64) * config.output_dt, t_acc)
+            t = t.index_put((acc,), t_acc)
+            y = [v.index_put((acc,), vn[ok]) for v, vn in zip(y, y_new)]
+            k1 = [k.index_put((acc,), kn[ok]) for k, kn in zip(k1, ks[-1])]
+            if bool(landed.any()):
+                rows_l = acc[landed]
+                out_rows.append(rows_l)
+                out_k.append(k_acc[landed])
+                for store, vn in zip(out_vals, y_new):
+                    store.append(vn[ok][landed])
+                k_next = k_next.index_put((rows_l,), k_acc[landed] + 1)
+            # where the input switches at the new time, the next step's first stage takes its right limit
+            assert u_last is not None
+            _, u_right = flat_ref.values_at(ref_rows[acc], t_acc, False)
+            switched = acc[(u_right != u_last[ok]).any(-1) & (k_next[acc] <= n_out)]
+            if switched.numel():
+                k_sw, _ = func([v.index_select(0, switched) for v in y], t.index_select(0, switched), False,
+                               ref_rows[switched])
+                k1 = [k.index_put((switched,), kn) for k, kn in zip(k1, k_sw)]
+        active = active[k_next[active] <= n_out]
+    rows_all = torch.cat(out_rows) if out_rows else torch.zeros(0, dtype=torch.long, device=device)
+    k_all = torch.cat(out_k) if out_k else torch.zeros(0, dtype=torch.long, device=device)
+    saved: list[list[Tensor]] = []
+    for c, (v0, store) in enumerate(zip(y0, out_vals)):
+        flat0 = v0.reshape(m, -1)
+        grid = flat0.new_zeros(m, n_out + 1, flat0.shape[-1])
+        grid = grid.index_put((torch.arange(m, device=device), torch.zeros(m, dtype=torch.long, device=device)),
+                              flat0)
+        if store:
+            grid = grid.index_put((rows_all, k_all), torch.cat(store).reshape(len(rows_all), -1))
+        grid = grid.reshape(*batch, n_samples, n_out + 1, *v0.shape[len(batch) + 1:])
+        saved.append(list(grid.unbind(len(batch) + 1)))
+    t_out = torch.arange(n_out + 1, dtype=x0.dtype, device=device) * config.output_dt
+    return t_out, saved
+
+
+def _weighted(h: Tensor, coefficients: tuple[float, ...], ks: list[Tensor]) -> Tensor:
+    """``h sum_j c_j k_j`` (``h`` per row, broadcast over the trailing dimensions of ``k_j``)."""
+    total = sum(c * k for c, k in zip(coefficients, ks) if c != 0.0)
+    assert isinstance(total, Tensor)
+    return h.reshape(-1, *([1] * (total.ndim - 1))) * total
 
 
 def simulate_closed_loop(

@@ -31,8 +31,7 @@ __all__ = ["DensityComparison", "compare_with_exact", "fresh_references"]
 
 #: edges of the reference start-speed bands of the accuracy reports [m/s]
 SPEED_BANDS = (0.0, 5.0, 10.0, 20.0, 30.0, 41.0)
-#: bands of a reference's highest speed [m/s] in :func:`liouville_accuracy` (the edges of the default
-#: ``LiouvilleConfig.speed_steps`` among them)
+#: bands of a reference's highest speed [m/s] in :func:`liouville_accuracy`
 _TOP_SPEED_BANDS = (0.0, 10.0, 15.0, 20.0, 25.0, 30.0, 45.0)
 
 #: the paper's stored validation numbers of its density network (``docs/spec.md`` §6)
@@ -212,8 +211,8 @@ def liouville_accuracy(
 
     The float64 reference uses ``reference_scheme``; its own convergence is reported as the largest difference to
     the same scheme at twice the step (``reference_self_error``). For every scheme (run in ``dtype``; each a fixed
-    step) and, with ``default``, for the default :class:`~.liouville.LiouvilleConfig` (RK4 at 0.1 s refined for fast
-    references by its ``speed_steps``; reported as ``"default"``): the largest and the median absolute log-density
+    step) and, with ``default``, for the default :class:`~.liouville.LiouvilleConfig` (the system's scheme: for the
+    road domain the error-controlled "dopri5"; reported as ``"default"``): the largest and the median absolute log-density
     error over samples and times [nats], its 99th percentile, the largest position error [m], the wall time [s],
     and per band of the references' highest speed the largest log-density error (``by_top_speed``).
     """
@@ -251,7 +250,7 @@ def liouville_accuracy(
     }
     speeds = system.speeds(ref64.x)
     top = speeds.abs().amax(dim=-1) if speeds is not None else None
-    configs = {f"{integrator} {step:g}": LiouvilleConfig(integrator, step, speed_steps=())
+    configs = {f"{integrator} {step:g}": LiouvilleConfig(integrator, step)
                for integrator, step in schemes}
     if default:
         configs["default"] = LiouvilleConfig()

@@ -36,7 +36,7 @@ BIAS_VARIANTS = ("unbiased", "biased")
 #: closed-loop integration of the tracking check: explicit Euler at 0.01 s, the scheme that defines the references
 #: (``docs/spec.md`` §1), so that an unbiased reference is an exact trajectory of the simulated model and the
 #: measured error is the controller's, not the integrator's; saved every 0.1 s
-TRACKING_INTEGRATION = LiouvilleConfig(integrator="euler", dt=0.01, output_dt=0.1, speed_steps=())
+TRACKING_INTEGRATION = LiouvilleConfig(integrator="euler", dt=0.01, output_dt=0.1)
 
 
 @dataclass

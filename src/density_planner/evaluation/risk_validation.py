@@ -145,8 +145,7 @@ def simulate_closed_loops(
         raise ValueError(f"the Monte-Carlo check needs at least 2 initial states, got {n}")
     config = config or EvaluationConfig()
     ref = plan.reference
-    lcfg = LiouvilleConfig(integrator=integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt,
-                           speed_steps=())  # executions: the configured step
+    lcfg = LiouvilleConfig(integrator=integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt)
     gen = torch.Generator().manual_seed(seed)
     x0 = problem.initial_distribution.sample(n, gen, dtype=torch.float64)
     for start in range(0, n, chunk):

@@ -96,9 +96,8 @@ class Execution:
 
 
 def _liouville_config(config: EvaluationConfig, problem: PlanningProblem) -> LiouvilleConfig:
-    # the executed vehicle: the configured step, never a schedule (LiouvilleConfig.speed_steps)
-    return LiouvilleConfig(integrator=config.integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt,
-                           speed_steps=())
+    # the executed vehicle: the configured fixed step
+    return LiouvilleConfig(integrator=config.integrator, dt=config.dt, output_dt=problem.parameterization.plan_dt)
 
 
 @torch.no_grad()

@@ -108,11 +108,11 @@ class System(ABC):
         return None if self.speed_index is None else x[..., self.speed_index]
 
     @property
-    def liouville_speed_steps(self) -> tuple[tuple[float, float], ...]:
-        """Finer steps of exact Liouville for fast references, ``((v, dt_v), ...)`` [m/s, s], that this system's
-        closed loop needs (:attr:`~density_planner.density.liouville.LiouvilleConfig.speed_steps`); ``()`` (the
-        default): the fixed step is accurate at every speed."""
-        return ()
+    def liouville_integrator(self) -> str:
+        """The scheme of exact Liouville that this system's closed loop needs (the default of
+        :attr:`~density_planner.density.liouville.LiouvilleConfig.integrator`): "rk4" (the default, a fixed step)
+        or "dopri5" (error-controlled, for closed loops that turn within hundredths of a second)."""
+        return "rk4"
 
     @property
     def speed_max(self) -> float:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import broadcast_shape, check_speed_steps
+from ..checks import broadcast_shape, check_choice
 from .base import ConfigBoxes, ControlAffineSystem, Footprint
 from .registry import register_system
 
@@ -68,12 +68,12 @@ class CarConfig:
     #: the planned trajectories' speeds should stay this far inside the speed box [m/s] (the bounds cost J_B; the
     #: paper's X_MIN_MP / X_MAX_MP: v in [0.1, 9.9] m/s for the box [0, 10])
     planning_speed_margin: float = 0.1
-    #: finer steps of exact Liouville for fast references, ``((v, dt_v), ...)`` [m/s, s] (the default of
-    #: :attr:`~density_planner.density.liouville.LiouvilleConfig.speed_steps`): with the road domain's smooth
+    #: scheme of exact Liouville for this domain (the default of
+    #: :attr:`~density_planner.density.liouville.LiouvilleConfig.integrator`): with the road domain's smooth
     #: saturation the turn-rate band between the reference's and the actuator's limits narrows as ``a_lat / v``, and
-    #: the learned controller crosses it within hundredths of a second at highway speed, which a 0.1-s step cannot
-    #: resolve (docs/core.md, "Accuracy on random references"); ``()``: the fixed step
-    liouville_speed_steps: tuple[tuple[float, float], ...] = ()
+    #: the learned controller crosses it within hundredths of a second at highway speed, which a fixed 0.1-s step
+    #: cannot resolve: "dopri5" refines its step there, per sample (docs/core.md, "Accuracy on random references")
+    liouville_integrator: str = "rk4"
     #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
     length: float = 4.5
     #: body width [m]
@@ -97,8 +97,7 @@ class CarConfig:
         for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
-        object.__setattr__(self, "liouville_speed_steps",
-                           check_speed_steps("CarConfig.liouville_speed_steps", self.liouville_speed_steps))
+        check_choice("CarConfig.liouville_integrator", self.liouville_integrator, ("euler", "rk4", "dopri5"))
         if (self.actuator_min is None) != (self.actuator_max is None):
             raise ValueError("CarConfig.actuator_min and actuator_max must both be set or both be None")
         if self.actuator_min is not None:
@@ -160,7 +159,7 @@ class CarConfig:
             actuator_max=(1.5, 4.5),
             actuator_lateral_accel_max=8.0,
             domain="road",
-            liouville_speed_steps=((15.0, 0.05), (20.0, 0.025), (25.0, 0.02)),
+            liouville_integrator="dopri5",
         )
 
 
@@ -227,9 +226,9 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         return (float(x), float(y), wrap_heading(float(heading)), float(speed), 0.0)
 
     @property
-    def liouville_speed_steps(self) -> tuple[tuple[float, float], ...]:
-        """:attr:`CarConfig.liouville_speed_steps` (the road domain's step schedule of exact Liouville)."""
-        return self.config.liouville_speed_steps
+    def liouville_integrator(self) -> str:
+        """:attr:`CarConfig.liouville_integrator` (the road domain's: "dopri5")."""
+        return self.config.liouville_integrator
 
     def planning_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """Heading in the state box, speed ``config.planning_speed_margin`` inside the speed box, bias free."""
