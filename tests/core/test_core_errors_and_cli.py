@@ -71,14 +71,17 @@ def test_density_cli_writes_outputs(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
-def test_density_cli_reports_the_step_a_fast_reference_took(tmp_path, capsys):
-    """A road reference at 30 m/s is integrated at the finer step of LiouvilleConfig.speed_steps (0.02 s), and
-    the command says so; at the default 3 m/s start the step is 0.1 s."""
+def test_density_cli_names_the_scheme(tmp_path, capsys):
+    """The road domain integrates with the error-controlled dopri5 and the command says so; the paper's box with
+    RK4 at 0.1 s; ``--integrator`` / ``--tolerance`` choose."""
     assert main(["density", "--models", "road", "--start", "0", "0", "0", "30", "--samples", "4", "--params",
                  str(_zero_params(tmp_path)), "--out", str(tmp_path / "fast")]) == 0
-    assert "(rk4, dt=0.02 s)" in capsys.readouterr().out
+    assert "dopri5 (error-controlled, tolerance 0.0001, steps <= 0.1 s)" in capsys.readouterr().out
     assert main(["density", "--samples", "4", "--out", str(tmp_path / "slow")]) == 0
-    assert "(rk4, dt=0.1 s)" in capsys.readouterr().out
+    assert "(rk4 at 0.1 s)" in capsys.readouterr().out
+    assert main(["density", "--samples", "4", "--integrator", "dopri5", "--tolerance", "1e-6",
+                 "--out", str(tmp_path / "tol")]) == 0
+    assert "tolerance 1e-06" in capsys.readouterr().out
 
 
 def _zero_params(tmp_path):

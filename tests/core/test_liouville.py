@@ -263,80 +263,79 @@ def _road_references(speeds, dtype=torch.float64):
     return car, controller, reference, x0
 
 
-def test_speed_schedule_picks_the_step_by_top_speed():
-    cfg = LiouvilleConfig()
-    car, _, reference, _ = _road_references([5.0, 17.0, 22.0, 33.0])
-    assert [cfg.step_for_speed(v, car) for v in (0.0, 14.9, 15.0, 19.9, 20.0, 24.9, 25.0, 40.0)] == [
-        0.1, 0.1, 0.05, 0.05, 0.025, 0.025, 0.02, 0.02]
-    # dt is the largest step: the schedule only refines it
-    assert LiouvilleConfig(dt=0.01, integrator="euler").step_for_speed(40.0, car) == 0.01
-    assert LiouvilleConfig(speed_steps=()).step_for_speed(40.0, car) == 0.1
-    steps = cfg.steps_for(car, reference)
-    assert steps is not None and steps.tolist() == [0.1, 0.05, 0.025, 0.02]
-    assert cfg.steps_for(car, reference.select(slice(0, 1))) is None  # slow references: the fixed step
-    system, _, linear_reference = linear_problem()
-    assert cfg.steps_for(system, linear_reference) is None  # no speed state
-
-
-def test_speed_schedule_is_the_systems_own_unless_configured():
-    """The default schedule is the system's: the car's road domain has one, the paper's box and KS none (their
-    fixed 0.1-s step is accurate); a configured schedule applies to every system, ``()`` to none."""
+def test_scheme_is_the_systems_own_unless_configured():
+    """The default scheme is the system's: the error-controlled "dopri5" for the car's road domain, RK4 for the
+    paper's box and KS (their fixed 0.1-s step is accurate); a configured scheme applies to every system."""
     from density_planner.control.registry import model_set
 
     road, paper, ks = (model_set(name).make_system() for name in ("road", "paper", "ks"))
-    assert LiouvilleConfig().schedule(road) == ((15.0, 0.05), (20.0, 0.025), (25.0, 0.02))
-    assert LiouvilleConfig().schedule(paper) == () and LiouvilleConfig().schedule(ks) == ()
-    assert LiouvilleConfig().step_for_speed(30.0, ks) == 0.1
-    assert LiouvilleConfig(speed_steps=[[20, 0.05]]).step_for_speed(30.0, ks) == 0.05
-    assert LiouvilleConfig(speed_steps=()).schedule(road) == ()
+    assert LiouvilleConfig().scheme(road) == "dopri5"
+    assert LiouvilleConfig().scheme(paper) == "rk4" and LiouvilleConfig().scheme(ks) == "rk4"
+    assert LiouvilleConfig(integrator="rk4").scheme(road) == "rk4"
+    assert LiouvilleConfig(integrator="dopri5").scheme(ks) == "dopri5"
+    assert "tolerance 0.0001" in LiouvilleConfig().describe(road) and LiouvilleConfig().describe(paper) == "rk4 at 0.1 s"
 
 
-@pytest.mark.parametrize("bad", [[[-1.0, 0.05]], [[15.0, 0.0]], [[15.0]], [[math.nan, 0.05]]])
-def test_speed_schedule_rejects_bad_pairs(bad):
-    with pytest.raises(ValueError, match="speed_steps"):
-        LiouvilleConfig(speed_steps=bad)
+@pytest.mark.parametrize("kwargs,match", [({"tolerance": 0.0}, "tolerance"), ({"tolerance": math.nan}, "tolerance"),
+                                          ({"integrator": "rk45"}, "integrator")])
+def test_liouville_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LiouvilleConfig(**kwargs)
 
 
-def test_speed_schedule_rounds_a_step_down_to_a_divisor_of_the_output_step():
-    assert LiouvilleConfig(speed_steps=[[15.0, 0.03]]).step_for_speed(20.0) == pytest.approx(0.025)
-    cfg = LiouvilleConfig(dt=0.15, output_dt=0.15, speed_steps=((15.0, 0.05), (20.0, 0.025), (25.0, 0.02)))
-    assert cfg.step_for_speed(30.0) == pytest.approx(0.15 / 8)  # 0.02 does not divide 0.15: 0.01875 does
-    steps = [cfg.step_for_speed(v) for v in (16.0, 21.0, 30.0)]
-    assert all(abs(0.15 / s - round(0.15 / s)) < 1e-9 for s in steps)
+def test_dopri5_converges_as_its_tolerance_shrinks():
+    """Error control: on references of 5, 17 and 33 m/s tracked by the analytic controller (whose hard clip a
+    fixed step resolves slowly: RK4 at 0.005 s is still 0.015 nats off), the states and log-densities approach the
+    solution at a tolerance of 1e-10 as the tolerance shrinks."""
+    car, controller, reference, x0 = _road_references([5.0, 17.0, 33.0])
+    best = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("dopri5", tolerance=1e-10))
+    errors = []
+    for tol in (1e-3, 1e-5, 1e-7):
+        out = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("dopri5", tolerance=tol))
+        assert out.x.shape == best.x.shape == (3, 6, 101, 5) and torch.equal(out.t, best.t)
+        errors.append(max(float((out.log_rho - best.log_rho).abs().max()), float((out.x - best.x).abs().max())))
+    assert errors[0] > errors[1] > errors[2] and errors[2] < 1e-3
+    torch.testing.assert_close(best.x[..., 0, :], x0)  # the first output is the initial state, exactly
 
 
-def test_speed_schedule_from_toml_lists_is_a_tuple():
-    cfg = LiouvilleConfig(speed_steps=[[15, 0.05], [30, 0.02]])
-    assert cfg.speed_steps == ((15.0, 0.05), (30.0, 0.02))
-    assert hash(cfg) == hash(LiouvilleConfig(speed_steps=((15.0, 0.05), (30.0, 0.02))))
-
-
-def test_scheduled_batch_equals_each_reference_at_its_own_step():
-    """A batch of references of four speeds is integrated group by group: each reference's states and densities
-    are those of a fixed-step run at its scheduled step (to round-off), and the fast ones differ from 0.1 s."""
-    car, controller, reference, x0 = _road_references([5.0, 17.0, 22.0, 33.0])
-    out = propagate_density(car, controller, x0, reference)
-    states = simulate_closed_loop(car, controller, x0, reference)[1]
-    torch.testing.assert_close(states, out.x, atol=1e-12, rtol=0)
-    assert out.x.shape == (4, 6, 101, 5) and out.t.shape == (101,)
-    for b, step in enumerate((0.1, 0.05, 0.025, 0.02)):
-        fixed = propagate_density(car, controller, x0[b], reference.select(b),
-                                  config=LiouvilleConfig(dt=step, speed_steps=()))
-        torch.testing.assert_close(out.x[b], fixed.x, atol=1e-12, rtol=0)
-        torch.testing.assert_close(out.log_rho[b], fixed.log_rho, atol=1e-12, rtol=0)
-        if step < 0.1:
-            coarse = propagate_density(car, controller, x0[b], reference.select(b),
-                                       config=LiouvilleConfig(speed_steps=()))
-            assert float((coarse.x - fixed.x).abs().max()) > 1e-9
-
-
-def test_scheduled_batch_gradient_equals_per_reference_gradients():
+def test_dopri5_samples_keep_their_own_steps_independently():
+    """Every sample has its own clock: a batch of references gives each the result of integrating it alone (to
+    float64 round-off)."""
     car, controller, reference, x0 = _road_references([5.0, 22.0, 33.0])
-    params = reference.params.clone().requires_grad_(True)
-    out = propagate_density(car, controller, x0, make_reference(car, reference.start, params))
-    (grad,) = torch.autograd.grad(out.x[..., -1, :2].pow(2).sum() + out.log_rho[..., -1].sum(), params)
+    out = propagate_density(car, controller, x0, reference)
     for b in range(3):
-        p = reference.params[b].clone().requires_grad_(True)
-        one = propagate_density(car, controller, x0[b], make_reference(car, reference.start[b], p))
-        (g,) = torch.autograd.grad(one.x[..., -1, :2].pow(2).sum() + one.log_rho[..., -1].sum(), p)
-        torch.testing.assert_close(grad[b], g, atol=1e-9, rtol=1e-9)
+        one = propagate_density(car, controller, x0[b], reference.select(b))
+        torch.testing.assert_close(out.x[b], one.x, atol=1e-9, rtol=0)
+        torch.testing.assert_close(out.log_rho[b], one.log_rho, atol=1e-9, rtol=0)
+
+
+def test_dopri5_gradient_matches_finite_differences():
+    """The solution is differentiable along its (gradient-free) steps: at a tight tolerance its gradient w.r.t. the
+    reference parameters matches central differences of the solution."""
+    car, controller, reference, x0 = _road_references([12.0, 30.0])
+    x0 = x0[:, :2]
+    config = LiouvilleConfig("dopri5", tolerance=1e-10)
+
+    def loss(p):
+        out = propagate_density(car, controller, x0, make_reference(car, reference.start, p), config=config)
+        return out.x[..., -1, :2].pow(2).sum() + out.log_rho[..., -1].sum()
+
+    p = reference.params.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(loss(p), p)
+    eps = 1e-5
+    for idx in ((0, 0, 2), (1, 1, 4), (1, 0, 7)):
+        d = torch.zeros_like(p)
+        d[idx] = eps
+        with torch.no_grad():
+            fd = (loss(reference.params + d) - loss(reference.params - d)) / (2 * eps)
+        assert float(g[idx]) == pytest.approx(float(fd), rel=1e-4, abs=1e-5)
+
+
+def test_dopri5_refuses_what_needs_a_common_grid():
+    car, controller, reference, x0 = _road_references([5.0])
+    with pytest.raises(ValueError, match="dopri5.*fixed step"):
+        propagate_density(car, controller, x0, reference, all_steps=True)
+    with pytest.raises(ValueError, match="dopri5.*fixed step"):
+        simulate_closed_loop(car, controller, x0, reference, plant=True)
+    # the executed vehicle with a fixed step still runs on the road domain
+    simulate_closed_loop(car, controller, x0, reference, plant=True, config=LiouvilleConfig("rk4"))

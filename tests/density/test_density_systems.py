@@ -140,10 +140,10 @@ def test_ks_data_config_uses_the_systems_boxes():
     assert DensityDataConfig().start_low == (-12.0, -30.0, 0.0, 1.0, 0.0) and DensityDataConfig().param_scale == 2.0
     assert _config_key(DensityDataConfig()) == "03e6519196587f80"
     road = DensityDataConfig(domain="road", start_low=(-10, -10, -3.14159, 0.5, 0), start_high=(10, 10, 3.14159, 38, 0))
-    # the road set's fast references are integrated on the finer steps of LiouvilleConfig.speed_steps: other data,
-    # another key; with a fixed step, the key of the data written before the schedule existed
-    assert _config_key(road) == "264e38a9c6434386"
-    fixed = replace(road, liouville=LiouvilleConfig(speed_steps=()))
+    # the road set is integrated with the error-controlled dopri5 (its domain's scheme): other data, another key;
+    # with RK4 named, the key of the fixed-step data written before
+    assert _config_key(road) == "2578d97a5d489174"
+    fixed = replace(road, liouville=LiouvilleConfig(integrator="rk4"))
     assert _config_key(fixed) == "b100456750eaab6a"
 
 
