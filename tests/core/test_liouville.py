@@ -273,7 +273,7 @@ def test_scheme_is_the_systems_own_unless_configured():
     assert LiouvilleConfig().scheme(paper) == "rk4" and LiouvilleConfig().scheme(ks) == "rk4"
     assert LiouvilleConfig(integrator="rk4").scheme(road) == "rk4"
     assert LiouvilleConfig(integrator="dopri5").scheme(ks) == "dopri5"
-    assert "tolerance 0.0001" in LiouvilleConfig().describe(road) and LiouvilleConfig().describe(paper) == "rk4 at 0.1 s"
+    assert "tolerance 5e-05" in LiouvilleConfig().describe(road) and LiouvilleConfig().describe(paper) == "rk4 at 0.1 s"
 
 
 @pytest.mark.parametrize("kwargs,match", [({"tolerance": 0.0}, "tolerance"), ({"tolerance": math.nan}, "tolerance"),

@@ -50,7 +50,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="integration step [s] (default 0.1 for rk4 and dopri5, whose steps it bounds; 0.01 euler)")
     p.add_argument("--tolerance", type=float, default=None,
                    help="dopri5: largest local error per step of every state component and of the log-density "
-                   "(default: LiouvilleConfig.tolerance, 1e-4)")
+                   "(default: LiouvilleConfig.tolerance, 5e-5)")
     add_system(p, density=False)
     add_seed(p)
     add_device(p)

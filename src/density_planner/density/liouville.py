@@ -57,7 +57,7 @@ class LiouvilleConfig:
     output_dt: float = 0.1
     #: "dopri5": largest estimated local error per step, absolute, of every state component (in its unit) and of
     #: the log-density [nats]
-    tolerance: float = 1e-4
+    tolerance: float = 5e-5
 
     def __post_init__(self) -> None:
         if self.integrator is not None:
