@@ -198,7 +198,8 @@ class Reference:
         Returns ``x_ref (M, nx)`` and ``u_ref (M, nu)``.
         """
         if self.x.ndim != 3:
-            raise ValueError(f"values_at needs a batch flattened to one dimension, got x of shape {tuple(self.x.shape)}")
+            raise ValueError(f"values_at needs a batch flattened to one dimension, got x of shape "
+                             f"{tuple(self.x.shape)}")
         k_max = self.n_steps
         pos = t / self.dt
         lo = torch.clamp(torch.floor(pos + 1e-9), 0, k_max - 1).long()

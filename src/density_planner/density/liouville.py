@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, cast
 
 import torch
 from torch import Tensor
@@ -85,7 +85,11 @@ class LiouvilleConfig:
         """The scheme in force: ``integrator``, or where it is ``None`` the system's own ("rk4" without one)."""
         if self.integrator is not None:
             return self.integrator
-        return "rk4" if system is None else system.liouville_integrator
+        if system is None:
+            return "rk4"
+        scheme = system.liouville_integrator
+        check_choice("System.liouville_integrator", scheme, ("euler", "rk4", "dopri5"))
+        return cast(IntegratorName, scheme)
 
     def describe(self, system: System | None = None) -> str:
         """One line naming the scheme and its step (or tolerance), e.g. for the CLI."""
@@ -187,15 +191,15 @@ def _integrate_adaptive(
     error-controlled solver) and the solution is differentiable along them: every update is out of place.
     """
     pair = DOPRI5
-    system = closed_loop.system
     x0 = y0[0]
     batch, n_samples, nx = x0.shape[:-2], x0.shape[-2], x0.shape[-1]
     n_ref = math.prod(batch)
     horizon = reference.n_steps * reference.dt
     _n_steps(horizon, config.dt, "dt")
     n_out = _n_steps(horizon, config.output_dt, "output_dt")
-    flat_ref = Reference(*(v.expand(*batch, *v.shape[-2:]).reshape(n_ref, *v.shape[-2:])
-                           for v in (reference.params, reference.x, reference.u)), reference.parameterization)
+    params, x_ref, u_ref = (v.expand(*batch, *v.shape[-2:]).reshape(n_ref, *v.shape[-2:])
+                            for v in (reference.params, reference.x, reference.u))
+    flat_ref = Reference(params, x_ref, u_ref, reference.parameterization)
     m = n_ref * n_samples
     device = x0.device
     ref_rows = torch.arange(n_ref, device=device).repeat_interleave(n_samples)
@@ -213,7 +217,9 @@ def _integrate_adaptive(
     h = torch.full((m,), config.dt, dtype=torch.float64, device=device)
     k_next = torch.ones(m, dtype=torch.long, device=device)  # index of the next output time per row
     k1, _ = func(y, t, False, ref_rows)
-    out_rows, out_k, out_vals = [], [], [[] for _ in y]
+    out_rows: list[Tensor] = []
+    out_k: list[Tensor] = []
+    out_vals: list[list[Tensor]] = [[] for _ in y]
     active = torch.arange(m, device=device)
     while active.numel():
         rows = ref_rows[active]
@@ -272,7 +278,7 @@ def _integrate_adaptive(
     rows_all = torch.cat(out_rows) if out_rows else torch.zeros(0, dtype=torch.long, device=device)
     k_all = torch.cat(out_k) if out_k else torch.zeros(0, dtype=torch.long, device=device)
     saved: list[list[Tensor]] = []
-    for c, (v0, store) in enumerate(zip(y0, out_vals)):
+    for v0, store in zip(y0, out_vals):
         flat0 = v0.reshape(m, -1)
         grid = flat0.new_zeros(m, n_out + 1, flat0.shape[-1])
         grid = grid.index_put((torch.arange(m, device=device), torch.zeros(m, dtype=torch.long, device=device)),
