@@ -14,7 +14,7 @@ sample its own step and evaluates, at each pass, the samples still running.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal, cast
 
 import torch
@@ -31,7 +31,6 @@ from .integrators import DOPRI5, get_integrator
 __all__ = ["LiouvilleConfig", "simulate_closed_loop", "propagate_density", "ExactLiouville"]
 
 IntegratorName = Literal["euler", "rk4", "dopri5"]
-FIXED_STEP = ("euler", "rk4")
 
 
 @dataclass(frozen=True)
@@ -73,13 +72,6 @@ class LiouvilleConfig:
     @property
     def save_every(self) -> int:
         return int(round(self.output_dt / self.dt))
-
-    def with_step(self, dt: float, integrator: IntegratorName | None = None) -> LiouvilleConfig:
-        """This configuration with the fixed step ``dt`` (of ``integrator``, default: this one's if it has a fixed
-        step, else RK4)."""
-        if integrator is None:
-            integrator = self.integrator if self.integrator in FIXED_STEP else "rk4"
-        return replace(self, dt=dt, integrator=integrator)
 
     def scheme(self, system: System | None = None) -> IntegratorName:
         """The scheme in force: ``integrator``, or where it is ``None`` the system's own ("rk4" without one)."""
