@@ -339,3 +339,22 @@ def test_dopri5_refuses_what_needs_a_common_grid():
         simulate_closed_loop(car, controller, x0, reference, plant=True)
     # the executed vehicle with a fixed step still runs on the road domain
     simulate_closed_loop(car, controller, x0, reference, plant=True, config=LiouvilleConfig("rk4"))
+
+
+def test_liouville_accuracy_reports_the_default_from_the_run_of_the_same_scheme():
+    """The default scheme (the road domain's dopri5 at 0.1 s) is integrated once: when it is among the listed
+    schemes its report is that run's; otherwise it is run on its own, and every report has its speed bands."""
+    from density_planner.control.registry import model_set
+    from density_planner.density.validation import liouville_accuracy
+
+    car = model_set("road").make_system()
+    controller = CarTrackingController()
+    rep = liouville_accuracy(car, controller, n_references=2, samples=2, seed=0,
+                             schemes=(("rk4", 0.1), ("dopri5", 0.1)))
+    assert list(rep["schemes"]) == ["rk4 0.1", "dopri5 0.1", "default"]
+    assert rep["schemes"]["default"] is rep["schemes"]["dopri5 0.1"]
+    alone = liouville_accuracy(car, controller, n_references=2, samples=2, seed=0, schemes=(("rk4", 0.1),))
+    assert list(alone["schemes"]) == ["rk4 0.1", "default"]
+    assert alone["schemes"]["default"]["max_abs_log_density_error"] == pytest.approx(
+        rep["schemes"]["default"]["max_abs_log_density_error"], rel=1e-6)
+    assert all(r["by_top_speed"] for r in alone["schemes"].values())

@@ -171,12 +171,7 @@ class Reference:
         steps = torch.arange(n_steps, dtype=torch.float64, device=device)
         c = torch.tensor(stages, dtype=torch.float64, device=device)
         pos = (steps[:, None] + c[None, :]) * ratio  # fine-grid position of each stage time
-        k_max = self.n_steps
-        lo = torch.clamp(torch.floor(pos + 1e-9), 0, k_max - 1).long()
-        frac = (pos - lo).clamp(0.0, 1.0).to(self.x.dtype)
-        eps = 1e-9
-        u_idx = torch.where(c[None, :] > 0, torch.ceil(pos - eps) - 1, torch.floor(pos + eps))
-        u_idx = torch.clamp(u_idx, 0, k_max - 1).long()
+        lo, frac, u_idx = self._fine_grid_indices(pos, c[None, :] > 0)
         flat_lo, flat_u = lo.reshape(-1), u_idx.reshape(-1)
         x_lo = self.x.index_select(-2, flat_lo)
         x_hi = self.x.index_select(-2, flat_lo + 1)
@@ -200,14 +195,22 @@ class Reference:
         if self.x.ndim != 3:
             raise ValueError(f"values_at needs a batch flattened to one dimension, got x of shape "
                              f"{tuple(self.x.shape)}")
-        k_max = self.n_steps
-        pos = t / self.dt
-        lo = torch.clamp(torch.floor(pos + 1e-9), 0, k_max - 1).long()
-        frac = (pos - lo).clamp(0.0, 1.0).to(self.x.dtype).unsqueeze(-1)
+        lo, frac, u_idx = self._fine_grid_indices(t / self.dt, torch.as_tensor(left, device=t.device))
         x_lo = self.x[rows, lo]
-        x_ref = x_lo + frac * (self.x[rows, lo + 1] - x_lo)
-        u_idx = torch.where(torch.as_tensor(left, device=t.device), torch.ceil(pos - 1e-9) - 1, torch.floor(pos + 1e-9))
-        return x_ref, self.u[rows, torch.clamp(u_idx, 0, k_max - 1).long()]
+        x_ref = x_lo + frac.unsqueeze(-1) * (self.x[rows, lo + 1] - x_lo)
+        return x_ref, self.u[rows, u_idx]
+
+    def _fine_grid_indices(self, pos: Tensor, left: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """For fine-grid positions ``pos`` (time / dt, float64): the index of the fine-grid point below, the weight
+        of the point above (in the states' dtype), and the index of the input segment (its left limit where
+        ``left`` and ``pos`` lies on a switching instant, else its right limit); the convention of
+        :meth:`stage_values` and :meth:`values_at`."""
+        k_max = self.n_steps
+        eps = 1e-9
+        lo = torch.clamp(torch.floor(pos + eps), 0, k_max - 1).long()
+        frac = (pos - lo).clamp(0.0, 1.0).to(self.x.dtype)
+        u_idx = torch.where(left, torch.ceil(pos - eps) - 1, torch.floor(pos + eps))
+        return lo, frac, torch.clamp(u_idx, 0, k_max - 1).long()
 
 
 def _check_input_bounds(system: System, params: Tensor) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, cast
+from typing import Literal, cast, get_args
 
 import torch
 from torch import Tensor
@@ -60,7 +60,7 @@ class LiouvilleConfig:
 
     def __post_init__(self) -> None:
         if self.integrator is not None:
-            check_choice("integrator", self.integrator, ("euler", "rk4", "dopri5"))
+            check_choice("integrator", self.integrator, get_args(IntegratorName))
         check_choice("divergence", self.divergence, ("structured", "autodiff"))
         check_positive("dt", self.dt)
         check_positive("output_dt", self.output_dt)
@@ -80,7 +80,7 @@ class LiouvilleConfig:
         if system is None:
             return "rk4"
         scheme = system.liouville_integrator
-        check_choice("System.liouville_integrator", scheme, ("euler", "rk4", "dopri5"))
+        check_choice("System.liouville_integrator", scheme, get_args(IntegratorName))
         return cast(IntegratorName, scheme)
 
     def describe(self, system: System | None = None) -> str:
@@ -187,8 +187,7 @@ def _integrate_adaptive(
     batch, n_samples, nx = x0.shape[:-2], x0.shape[-2], x0.shape[-1]
     n_ref = math.prod(batch)
     horizon = reference.n_steps * reference.dt
-    _n_steps(horizon, config.dt, "dt")
-    n_out = _n_steps(horizon, config.output_dt, "output_dt")
+    n_out = _n_steps(horizon, config.output_dt, "output_dt")  # dt divides output_dt (LiouvilleConfig), hence this
     params, x_ref, u_ref = (v.expand(*batch, *v.shape[-2:]).reshape(n_ref, *v.shape[-2:])
                             for v in (reference.params, reference.x, reference.u))
     flat_ref = Reference(params, x_ref, u_ref, reference.parameterization)
