@@ -263,3 +263,32 @@ def test_tiny_road_training_round_trip(tmp_path):
     assert res2.history.epoch == [1, 2]
     with pytest.raises(ValueError, match="domain must be one of"):
         C3MTrainConfig(domain="moon")
+
+
+def test_tail_span_measures_a_sweep_through_the_bend_in_tail_widths():
+    """``tail_span``: the span of the raw input in widths of the tail ``d = ceiling - knee`` where it meets the
+    curved part ``[k, k + 3 d]`` (or its mirror), else 0; the largest over the channels; ``None`` without a smooth
+    saturation (the paper's hard clip)."""
+    car = CarConfig.road()
+    sat = SmoothSaturation.from_car(car)
+    assert sat is not None
+    x_hat = torch.zeros(6, 5, dtype=F64)
+    x_hat[:, 3] = 30.0
+    knee, ceiling = (float(b[0, 0]) for b in sat._limits(torch.zeros(1, 2, dtype=F64), x_hat[:1])[1:4:2])
+    k, d = knee, ceiling - knee  # the turn channel at 30 m/s: ~ a_lat / v, ~ twice that
+    assert k == pytest.approx(car.lateral_accel_max / 30.0, rel=1e-3) and d == pytest.approx(k, rel=1e-3)
+    a_knee, a_d = car.input_max[1], car.actuator_max[1] - car.input_max[1]
+    z_lo = torch.tensor([[-0.5 * k, 0.0], [0.5 * k, 0.0], [k + 3.5 * d, 0.0], [-0.5 * k, 0.0], [0.0, a_knee - 0.1],
+                         [0.0, -30.0]], dtype=F64)
+    z_hi = torch.tensor([[0.5 * k, 0.0], [k + d, 0.0], [k + 5 * d, 0.0], [0.0, 0.0], [0.0, a_knee + 2 * a_d],
+                         [0.0, 30.0]], dtype=F64)
+    z_lo[3, 0] = -(k + 2 * d)  # the mirror: from inside the lower tail's bend up to 0
+    span = sat.tail_span(z_lo, z_hi, x_hat)
+    expected = [0.0,                          # inside the linear band
+                (k + d - 0.5 * k) / d,        # into the upper bend
+                0.0,                          # beyond the bend, where the tanh is flat
+                (k + 2 * d) / d,              # out of the lower bend
+                (2 * a_d + 0.1) / a_d,        # the acceleration channel's upper bend
+                60.0 / a_d]                   # across both bends: the narrower tail's measure
+    torch.testing.assert_close(span, torch.tensor(expected, dtype=F64), atol=1e-9, rtol=0)
+    assert CarTrackingController().tail_span(z_lo, z_hi, x_hat) is None

@@ -72,11 +72,11 @@ def test_density_cli_writes_outputs(tmp_path, capsys):
 
 
 def test_density_cli_names_the_scheme(tmp_path, capsys):
-    """The road domain integrates with the error-controlled dopri5 and the command says so; the paper's box with
+    """The road domain integrates with the error-controlled rk43 and the command says so; the paper's box with
     RK4 at 0.1 s; ``--integrator`` / ``--tolerance`` choose."""
     assert main(["density", "--models", "road", "--start", "0", "0", "0", "30", "--samples", "4", "--params",
                  str(_zero_params(tmp_path)), "--out", str(tmp_path / "fast")]) == 0
-    assert "dopri5 (error-controlled, tolerance 5e-05, steps <= 0.1 s)" in capsys.readouterr().out
+    assert "rk43 (error-controlled, tolerance 0.003, steps <= 0.1 s, saturation step 2)" in capsys.readouterr().out
     assert main(["density", "--samples", "4", "--out", str(tmp_path / "slow")]) == 0
     assert "(rk4 at 0.1 s)" in capsys.readouterr().out
     assert main(["density", "--samples", "4", "--integrator", "dopri5", "--tolerance", "1e-6",

@@ -121,6 +121,35 @@ def test_structured_divergence_equals_autodiff(dtype):
     torch.testing.assert_close(d1, d2, atol=1e-10, rtol=0)
 
 
+@pytest.mark.parametrize("models", ["paper", "road"])
+def test_raw_input_comes_with_the_closed_loop_unchanged(models):
+    """``rhs_with_raw`` / ``rhs_divergence_with_raw`` give the same field and divergence as ``rhs`` /
+    ``rhs_and_divergence`` and, beside them, the controller's raw (unbounded) input, on both paths; the applied input
+    is its bound (here far off the reference, so that many inputs saturate)."""
+    from density_planner.control.registry import load_controller, model_set
+
+    car = model_set(models).make_system()
+    controller = load_controller(None, models=models).double()
+    g = torch.Generator().manual_seed(3)
+    x = torch.zeros(64, 5, dtype=torch.float64)
+    x[:, 3] = torch.linspace(0.5, car.speed_max - 0.5, 64, dtype=torch.float64)
+    x_ref = x + torch.randn(64, 5, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 0.4, 1.0, 0.0],
+                                                                                    dtype=torch.float64)
+    x_ref[:, 4] = 0.0
+    u_ref = torch.zeros(64, 2, dtype=torch.float64)
+    loop = ClosedLoop(car, controller)
+    raw = controller.raw(car.measure(x), x_ref, u_ref)
+    assert bool((controller.bound(raw, car.measure(x)) != raw).any())  # some saturate
+    f, r = loop.rhs_with_raw(x, x_ref, u_ref)
+    torch.testing.assert_close(f, loop.rhs(x, x_ref, u_ref), atol=1e-12, rtol=0)
+    torch.testing.assert_close(r, raw, atol=1e-12, rtol=0)
+    for method in ("structured", "autodiff"):
+        f2, div, r2 = loop.rhs_divergence_with_raw(x, x_ref, u_ref, method)
+        f3, div3 = loop.rhs_and_divergence(x, x_ref, u_ref, method)
+        torch.testing.assert_close(f2, f, atol=1e-12, rtol=0)
+        torch.testing.assert_close((div, r2), (div3, raw), atol=1e-10, rtol=0)
+
+
 def test_structured_divergence_with_saturated_inputs_matches_autodiff():
     car, controller, reference, x0 = _car_setup(n=50, seed=6)
     x0 = x0.clone()
@@ -264,26 +293,33 @@ def _road_references(speeds, dtype=torch.float64):
 
 
 def test_scheme_is_the_systems_own_unless_configured():
-    """The default scheme is the system's: the error-controlled "dopri5" for the car's road domain, RK4 for the
-    paper's box and KS (their fixed 0.1-s step is accurate); a configured scheme applies to every system."""
+    """The default scheme is the system's: the error-controlled "rk43" for the car's road domain, RK4 for the
+    paper's box and KS (their fixed 0.1-s step is accurate); a configured scheme applies to every system, and the
+    tolerance defaults to the scheme's own."""
     from density_planner.control.registry import model_set
 
     road, paper, ks = (model_set(name).make_system() for name in ("road", "paper", "ks"))
-    assert LiouvilleConfig().scheme(road) == "dopri5"
+    assert LiouvilleConfig().scheme(road) == "rk43"
     assert LiouvilleConfig().scheme(paper) == "rk4" and LiouvilleConfig().scheme(ks) == "rk4"
     assert LiouvilleConfig(integrator="rk4").scheme(road) == "rk4"
     assert LiouvilleConfig(integrator="dopri5").scheme(ks) == "dopri5"
-    assert "tolerance 5e-05" in LiouvilleConfig().describe(road) and LiouvilleConfig().describe(paper) == "rk4 at 0.1 s"
+    assert "tolerance 0.003" in LiouvilleConfig().describe(road) and LiouvilleConfig().describe(paper) == "rk4 at 0.1 s"
+    assert "tolerance 5e-05" in LiouvilleConfig("dopri5").describe(road)
+    assert "tolerance 1e-06" in LiouvilleConfig("dopri5", tolerance=1e-6).describe(road)
+    assert LiouvilleConfig("rk4").pair(road) is None
 
 
 @pytest.mark.parametrize("kwargs,match", [({"tolerance": 0.0}, "tolerance"), ({"tolerance": math.nan}, "tolerance"),
-                                          ({"integrator": "rk45"}, "integrator")])
+                                          ({"integrator": "rk45"}, "integrator"),
+                                          ({"saturation_step": -1.0}, "saturation_step"),
+                                          ({"saturation_step": math.nan}, "saturation_step")])
 def test_liouville_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LiouvilleConfig(**kwargs)
 
 
-def test_dopri5_converges_as_its_tolerance_shrinks():
+@pytest.mark.parametrize("scheme", ["rk43", "dopri5"])
+def test_error_control_converges_as_its_tolerance_shrinks(scheme):
     """Error control: on references of 5, 17 and 33 m/s tracked by the analytic controller (whose hard clip a
     fixed step resolves slowly: RK4 at 0.005 s is still 0.015 nats off), the states and log-densities approach the
     solution at a tolerance of 1e-10 as the tolerance shrinks."""
@@ -291,30 +327,33 @@ def test_dopri5_converges_as_its_tolerance_shrinks():
     best = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("dopri5", tolerance=1e-10))
     errors = []
     for tol in (1e-3, 1e-5, 1e-7):
-        out = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("dopri5", tolerance=tol))
+        out = propagate_density(car, controller, x0, reference, config=LiouvilleConfig(scheme, tolerance=tol))
         assert out.x.shape == best.x.shape == (3, 6, 101, 5) and torch.equal(out.t, best.t)
         errors.append(max(float((out.log_rho - best.log_rho).abs().max()), float((out.x - best.x).abs().max())))
     assert errors[0] > errors[1] > errors[2] and errors[2] < 1e-3
     torch.testing.assert_close(best.x[..., 0, :], x0)  # the first output is the initial state, exactly
 
 
-def test_dopri5_samples_keep_their_own_steps_independently():
+@pytest.mark.parametrize("scheme", ["rk43", "dopri5"])
+def test_error_control_samples_keep_their_own_steps_independently(scheme):
     """Every sample has its own clock: a batch of references gives each the result of integrating it alone (to
     float64 round-off)."""
     car, controller, reference, x0 = _road_references([5.0, 22.0, 33.0])
-    out = propagate_density(car, controller, x0, reference)
+    config = LiouvilleConfig(scheme)
+    out = propagate_density(car, controller, x0, reference, config=config)
     for b in range(3):
-        one = propagate_density(car, controller, x0[b], reference.select(b))
+        one = propagate_density(car, controller, x0[b], reference.select(b), config=config)
         torch.testing.assert_close(out.x[b], one.x, atol=1e-9, rtol=0)
         torch.testing.assert_close(out.log_rho[b], one.log_rho, atol=1e-9, rtol=0)
 
 
-def test_dopri5_gradient_matches_finite_differences():
+@pytest.mark.parametrize("scheme,tolerance", [("rk43", 1e-9), ("dopri5", 1e-10)])
+def test_error_control_gradient_matches_finite_differences(scheme, tolerance):
     """The solution is differentiable along its (gradient-free) steps: at a tight tolerance its gradient w.r.t. the
     reference parameters matches central differences of the solution."""
     car, controller, reference, x0 = _road_references([12.0, 30.0])
     x0 = x0[:, :2]
-    config = LiouvilleConfig("dopri5", tolerance=1e-10)
+    config = LiouvilleConfig(scheme, tolerance=tolerance)
 
     def loss(p):
         out = propagate_density(car, controller, x0, make_reference(car, reference.start, p), config=config)
@@ -331,18 +370,18 @@ def test_dopri5_gradient_matches_finite_differences():
         assert float(g[idx]) == pytest.approx(float(fd), rel=1e-4, abs=1e-5)
 
 
-def test_dopri5_refuses_what_needs_a_common_grid():
+def test_error_control_refuses_what_needs_a_common_grid():
     car, controller, reference, x0 = _road_references([5.0])
-    with pytest.raises(ValueError, match="dopri5.*fixed step"):
+    with pytest.raises(ValueError, match="rk43.*fixed step"):
         propagate_density(car, controller, x0, reference, all_steps=True)
-    with pytest.raises(ValueError, match="dopri5.*fixed step"):
+    with pytest.raises(ValueError, match="rk43.*fixed step"):
         simulate_closed_loop(car, controller, x0, reference, plant=True)
     # the executed vehicle with a fixed step still runs on the road domain
     simulate_closed_loop(car, controller, x0, reference, plant=True, config=LiouvilleConfig("rk4"))
 
 
 def test_liouville_accuracy_reports_the_default_from_the_run_of_the_same_scheme():
-    """The default scheme (the road domain's dopri5 at 0.1 s) is integrated once: when it is among the listed
+    """The default scheme (the road domain's rk43 at 0.1 s) is integrated once: when it is among the listed
     schemes its report is that run's; otherwise it is run on its own, and every report has its speed bands."""
     from density_planner.control.registry import model_set
     from density_planner.density.validation import liouville_accuracy
@@ -350,9 +389,9 @@ def test_liouville_accuracy_reports_the_default_from_the_run_of_the_same_scheme(
     car = model_set("road").make_system()
     controller = CarTrackingController()
     rep = liouville_accuracy(car, controller, n_references=2, samples=2, seed=0,
-                             schemes=(("rk4", 0.1), ("dopri5", 0.1)))
-    assert list(rep["schemes"]) == ["rk4 0.1", "dopri5 0.1", "default"]
-    assert rep["schemes"]["default"] is rep["schemes"]["dopri5 0.1"]
+                             schemes=(("rk4", 0.1), ("rk43", 0.1)))
+    assert list(rep["schemes"]) == ["rk4 0.1", "rk43 0.1", "default"]
+    assert rep["schemes"]["default"] is rep["schemes"]["rk43 0.1"]
     alone = liouville_accuracy(car, controller, n_references=2, samples=2, seed=0, schemes=(("rk4", 0.1),))
     assert list(alone["schemes"]) == ["rk4 0.1", "default"]
     assert alone["schemes"]["default"]["max_abs_log_density_error"] == pytest.approx(

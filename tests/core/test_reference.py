@@ -158,3 +158,33 @@ def test_bad_reference_input_names_the_argument(params, start, match):
 def test_bad_parameterization(kwargs, match):
     with pytest.raises(ValueError, match=match):
         PiecewiseConstantInputs(**kwargs)
+
+
+def test_switch_table_finds_every_input_switch():
+    """``next_switch`` gives the first instant after ``t`` where the applied input changes: the segment boundaries
+    of a moving reference, the stop inside a segment of a braking one (its input drops to 0 on the fine grid), and
+    the horizon after the last."""
+    car = KinematicCar()
+    start = torch.tensor([1.0, -2.0, 0.7, 4.0, 0.1], dtype=torch.float64)
+    params = torch.tensor(_STOPPING, dtype=torch.float64)[None]
+    moving = make_reference(car, start, params.abs())
+    stopping = make_reference(car, start, params)
+    flat = type(moving)(torch.cat([moving.params, stopping.params]), torch.cat([moving.x, stopping.x]),
+                        torch.cat([moving.u, stopping.u]), moving.parameterization)
+    table = flat.switch_table()
+    changes = (flat.u[:, 1:] != flat.u[:, :-1]).any(-1)
+    rows = torch.tensor([0, 0, 0, 0, 0], dtype=torch.long)
+    t = torch.tensor([0.0, 0.5, 0.999, 1.0, 9.5], dtype=torch.float64)
+    # the moving reference switches at the segment boundaries
+    got = flat.next_switch(table, rows, t)
+    torch.testing.assert_close(got, torch.tensor([1.0, 1.0, 1.0, 2.0, 10.0], dtype=torch.float64))
+    # every fine index: the next switch strictly after it, as a loop over the switches finds it
+    for r in range(2):
+        instants = [(j + 1) * flat.dt for j in torch.nonzero(changes[r]).squeeze(-1).tolist()]
+        for t0 in torch.linspace(0.0, 9.995, 400, dtype=torch.float64).tolist():
+            expected = next((s for s in instants if s > t0 + 1e-9), 10.0)
+            assert float(flat.next_switch(table, torch.tensor([r]), torch.tensor([t0], dtype=torch.float64))[0]) \
+                == pytest.approx(expected, abs=1e-9)
+    # the braking reference stops (and its input drops) off the segment boundaries
+    assert any(abs(s / 1.0 - round(s)) > 1e-6 for s in
+               [(j + 1) * flat.dt for j in torch.nonzero(changes[1]).squeeze(-1).tolist()])

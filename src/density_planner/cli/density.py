@@ -43,14 +43,15 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="reference parameters (nu x 10) as .json/.npy/.npz (default: a built-in S-curve)")
     p.add_argument("--start", type=float, nargs=4, default=DEFAULT_START, metavar="X",
                    help="start pose x y heading speed, mapped to the system's state (default: %(default)s)")
-    p.add_argument("--integrator", default=None, choices=("euler", "rk4", "dopri5"),
+    p.add_argument("--integrator", default=None, choices=("euler", "rk4", "rk43", "dopri5"),
                    help="integration scheme (default: the system's, rk4 or for the road domain the error-controlled "
-                   "dopri5)")
+                   "rk43)")
     p.add_argument("--dt", type=float, default=None,
-                   help="integration step [s] (default 0.1 for rk4 and dopri5, whose steps it bounds; 0.01 euler)")
+                   help="integration step [s] (default 0.1 for rk4 and the error-controlled rk43 and dopri5, whose "
+                   "steps it bounds; 0.01 euler)")
     p.add_argument("--tolerance", type=float, default=None,
-                   help="dopri5: largest local error per step of every state component and of the log-density "
-                   "(default: LiouvilleConfig.tolerance, 5e-5)")
+                   help="rk43 / dopri5: largest local error per step of every state component and of the "
+                   "log-density (default: the scheme's own, 3e-3 / 5e-5)")
     add_system(p, density=False)
     add_seed(p)
     add_device(p)

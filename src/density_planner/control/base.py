@@ -132,6 +132,25 @@ class SmoothSaturation:
         turn = u[..., i]
         return bool(((turn > k) | (turn < -k)).any())
 
+    def tail_span(self, z_lo: Tensor, z_hi: Tensor, x_hat: Tensor) -> Tensor:
+        """How far the raw input moves through the curved part of the saturation over a stretch of time.
+
+        ``z_lo, z_hi (*batch, nu)`` are the smallest and largest raw input seen (e.g. over the stages of an
+        integration step), ``x_hat`` the measured state that sets the bounds. The curved part of a channel is its
+        tail next to a knee, ``[k, k + 3 d]`` above (``d`` the tail's width, ceiling minus knee; ``tanh`` has bent
+        to within 2 % of its asymptote at ``3 d``) and its mirror below. Returns ``(*batch,)``: the largest
+        ``(z_hi - z_lo) / d`` over the channels whose span meets a curved part, zero where none does. An
+        integrator that keeps it below ~1 per step resolves the saturation's bend however fast the raw input
+        sweeps through it (docs/core.md)."""
+        k_lo, k_hi, c_lo, c_hi = self._limits(z_hi, x_hat)[:4]
+        d_hi, d_lo = c_hi - k_hi, k_lo - c_lo
+        span = z_hi - z_lo
+        hit_hi = (z_hi >= k_hi) & (z_lo <= k_hi + 3.0 * d_hi)
+        hit_lo = (z_lo <= k_lo) & (z_hi >= k_lo - 3.0 * d_lo)
+        zero = torch.zeros_like(span)
+        ratio = torch.maximum(torch.where(hit_hi, span / d_hi, zero), torch.where(hit_lo, span / d_lo, zero))
+        return ratio.amax(-1)
+
     def __call__(self, u: Tensor, x_hat: Tensor) -> Tensor:
         if not self.beyond_knees(u, x_hat):
             return u
@@ -219,10 +238,14 @@ class TrackingController(nn.Module):
         return self.input_min.to(like), self.input_max.to(like)
 
     def forward(self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor) -> Tensor:
+        return self.bound(self.raw(x_hat, x_ref, u_ref), x_hat)
+
+    def bound(self, u: Tensor, x_hat: Tensor) -> Tensor:
+        """The applied input from the raw law's ``u (*batch, nu)``: the smooth saturation, or the hard clip."""
         if self.saturation is not None:
-            return self.saturation(self.raw(x_hat, x_ref, u_ref), x_hat)
-        lo, hi = self._bounds(x_hat)
-        return torch.clamp(self.raw(x_hat, x_ref, u_ref), lo, hi)
+            return self.saturation(u, x_hat)
+        lo, hi = self._bounds(u)
+        return torch.clamp(u, lo, hi)
 
     def forward_with_tangents(
         self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor, dx_hat: Tensor
@@ -230,8 +253,19 @@ class TrackingController(nn.Module):
         """Bounded input and its directional derivatives (hard clip: zero in channels where it is active; smooth
         saturation: chain rule through :class:`SmoothSaturation`)."""
         u, du = self.raw_with_tangents(x_hat, x_ref, u_ref, dx_hat)
+        return self.bound_with_tangents(u, du, x_hat, dx_hat)
+
+    def bound_with_tangents(self, u: Tensor, du: Tensor, x_hat: Tensor, dx_hat: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`bound` and its tangents from the raw law's ``u``, ``du (K, *batch, nu)``."""
         if self.saturation is not None:
             return self.saturation.with_tangents(u, du, x_hat, dx_hat)
         lo, hi = self._bounds(u)
         inside = (u > lo) & (u < hi)
         return torch.clamp(u, lo, hi), du * inside.to(du.dtype)
+
+    def tail_span(self, z_lo: Tensor, z_hi: Tensor, x_hat: Tensor) -> Tensor | None:
+        """:meth:`SmoothSaturation.tail_span` of this controller's saturation; ``None`` for the hard clip (its
+        kink has no width to resolve: an error-controlled integrator meets it by its error estimate alone)."""
+        if self.saturation is None:
+            return None
+        return self.saturation.tail_span(z_lo, z_hi, x_hat)

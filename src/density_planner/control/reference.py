@@ -200,6 +200,24 @@ class Reference:
         x_ref = x_lo + frac.unsqueeze(-1) * (self.x[rows, lo + 1] - x_lo)
         return x_ref, self.u[rows, u_idx]
 
+    def switch_table(self) -> Tensor:
+        """For a batch flattened to one dimension (``u (B, K, nu)``): ``(B, K + 1)`` long, at every fine-grid index
+        ``j`` the first index ``j' >= j`` at which the input switches (``u[j'] != u[j' - 1]``), or ``K`` (the
+        horizon) where none follows; read by :meth:`next_switch`."""
+        b, k_max = self.u.shape[0], self.n_steps
+        index = torch.full((b, k_max + 1), k_max, dtype=torch.long, device=self.u.device)
+        changes = (self.u[:, 1:] != self.u[:, :-1]).any(-1)
+        steps = torch.arange(1, k_max, device=self.u.device).expand(b, -1)
+        index[:, 1:k_max] = torch.where(changes, steps, torch.full_like(steps, k_max))
+        return index.flip(-1).cummin(-1).values.flip(-1)
+
+    def next_switch(self, table: Tensor, rows: Tensor, t: Tensor) -> Tensor:
+        """Time [s] (float64) of the first input switch strictly after ``t (M,)`` for references ``rows (M,)``,
+        or the horizon where none follows; ``table`` from :meth:`switch_table`."""
+        k_max = self.n_steps
+        after = torch.clamp(torch.floor(t / self.dt + 1e-9).long() + 1, max=k_max)
+        return table[rows, after].to(torch.float64) * self.dt
+
     def _fine_grid_indices(self, pos: Tensor, left: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """For fine-grid positions ``pos`` (time / dt, float64): the index of the fine-grid point below, the weight
         of the point above (in the states' dtype), and the index of the input segment (its left limit where

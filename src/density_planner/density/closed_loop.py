@@ -52,16 +52,29 @@ class ClosedLoop:
         """``f_cl(x)``."""
         return self.system.f(x, self.inputs(x, x_ref, u_ref))
 
+    def rhs_with_raw(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor]:
+        """``(f_cl(x), u_raw)``: also the controller's raw (unbounded) input, at no extra cost."""
+        x_hat = self.system.measure(x)
+        raw = self.controller.raw(x_hat, x_ref, u_ref)
+        return self.system.f(x, self.controller.bound(raw, x_hat)), raw
+
     def rhs_and_divergence(
         self, x: Tensor, x_ref: Tensor, u_ref: Tensor, method: DivergenceMethod = "structured"
     ) -> tuple[Tensor, Tensor]:
         """``(f_cl(x), div f_cl(x))`` for ``x (*batch, nx)``; differentiable (usable inside an optimisation)."""
+        return self.rhs_divergence_with_raw(x, x_ref, u_ref, method)[:2]
+
+    def rhs_divergence_with_raw(
+        self, x: Tensor, x_ref: Tensor, u_ref: Tensor, method: DivergenceMethod = "structured"
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`rhs_and_divergence` and the controller's raw input (at no extra cost on the structured path)."""
         check_choice("divergence method", method, ("structured", "autodiff"))
         if method == "structured" and self._structure is not None:
             return self._structured(x, x_ref, u_ref)
-        return self._autodiff(x, x_ref, u_ref)
+        f, div = self._autodiff(x, x_ref, u_ref)
+        return f, div, self.controller.raw(self.system.measure(x), x_ref, u_ref).detach()
 
-    def _structured(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor]:
+    def _structured(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         assert self._structure is not None
         rows, b_rows = self._structure
         system = self.system
@@ -69,12 +82,13 @@ class ClosedLoop:
         tangents = eye.reshape(len(rows), *([1] * (x.ndim - 1)), system.nx)
         x_hat = system.measure(x)
         dx_hat = system.measure_jvp(x, tangents)
-        u, du = self.controller.forward_with_tangents(x_hat, x_ref, u_ref, dx_hat)  # du: (K, *batch, nu)
+        raw, du_raw = self.controller.raw_with_tangents(x_hat, x_ref, u_ref, dx_hat)
+        u, du = self.controller.bound_with_tangents(raw, du_raw, x_hat, dx_hat)  # du: (K, *batch, nu)
         b = b_rows.to(dtype=x.dtype, device=x.device)  # (K, nu)
         div_u = (du * b.reshape(len(rows), *([1] * (du.ndim - 2)), -1)).sum(dim=(0, -1))
         assert isinstance(system, ControlAffineSystem)
         div = system.drift_divergence(x) + div_u
-        return system.f(x, u), div
+        return system.f(x, u), div, raw
 
     def _autodiff(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor]:
         def fn(z: Tensor) -> Tensor:

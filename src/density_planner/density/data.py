@@ -304,11 +304,17 @@ def _config_key(config: DensityDataConfig) -> str:
 
     d = config.to_dict()
     d.pop("device")
-    # the scheme in force, whether configured or the system's own; the tolerance only where it acts (the keys of
-    # fixed-step data written before the error-controlled scheme existed stay as they were, hence resumable)
-    d["liouville"]["integrator"] = config.liouville.scheme(config.make_system())
-    if d["liouville"]["integrator"] != "dopri5":
+    # the scheme in force, whether configured or the system's own, and its tolerance; the error control's settings
+    # only where they act (the keys of fixed-step data written before error control existed stay as they were,
+    # hence resumable)
+    system = config.make_system()
+    d["liouville"]["integrator"] = config.liouville.scheme(system)
+    pair = config.liouville.pair(system)
+    if pair is None:
         d["liouville"].pop("tolerance", None)
+        d["liouville"].pop("saturation_step", None)
+    else:
+        d["liouville"]["tolerance"] = config.liouville.tolerance_of(pair)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

@@ -6,8 +6,15 @@ times, and the step size. Only time is looped over; every stage is evaluated on 
 
 :data:`DOPRI5` is the embedded pair of Dormand and Prince (1980), "A family of embedded Runge-Kutta formulae",
 J. Comput. Appl. Math. 6(1): a 5th-order solution, a 4th-order one from the same stages whose difference estimates
-the local error, and a last stage at the new state ("first same as last"). The error-controlled loop that uses it
-lives in :mod:`density_planner.density.liouville`.
+the local error, and a last stage at the new state ("first same as last"); its continuous extension of order 4
+(Shampine 1986, in Hairer, Norsett & Wanner, "Solving Ordinary Differential Equations I", section II.6) gives the
+solution anywhere inside a step from the same stages.
+
+:data:`RK43` is the classical RK4 with an embedded order-3 solution from its own four stages and the stage at the
+new state (``b_hat = (1/6, 1/3, 1/3, 0, 1/6)``, which meets the four order-3 conditions; the local error estimate is
+``h (k_4 - k_5) / 6``), and the cubic Hermite interpolant of the two ends as its continuous extension (order 3):
+RK4's four evaluations per step with error control. The error-controlled loop that uses both lives in
+:mod:`density_planner.density.liouville`.
 """
 
 from __future__ import annotations
@@ -19,7 +26,8 @@ from torch import Tensor
 
 from ..checks import check_choice
 
-__all__ = ["FixedStepIntegrator", "EmbeddedPair", "EULER", "RK4", "DOPRI5", "INTEGRATORS", "get_integrator"]
+__all__ = ["FixedStepIntegrator", "EmbeddedPair", "EULER", "RK4", "DOPRI5", "RK43", "INTEGRATORS", "PAIRS",
+           "get_integrator"]
 
 State = tuple[Tensor, ...]
 VectorField = Callable[[State, Tensor, Tensor], State]
@@ -68,9 +76,10 @@ INTEGRATORS = {"euler": EULER, "rk4": RK4}
 
 @dataclass(frozen=True)
 class EmbeddedPair:
-    """Explicit Runge-Kutta pair with an error estimate: ``b`` gives the propagated solution (order ``order``),
-    ``error`` = ``b - b_hat`` the difference to the embedded lower-order one. With ``fsal`` the last stage is
-    evaluated at the new solution (its row of ``a`` equals ``b``) and is the next step's first stage."""
+    """Explicit Runge-Kutta pair with an error estimate: ``b`` gives the propagated solution, ``error`` =
+    ``b - b_hat`` the difference to the embedded lower-order one, whose local error is ``O(h^order)`` (so a step
+    scales with ``err^(-1 / order)``). The last stage is evaluated at the new solution (its row of ``a`` equals
+    ``b``) and is the next step's first ("first same as last")."""
 
     name: str
     order: int
@@ -78,7 +87,27 @@ class EmbeddedPair:
     a: tuple[tuple[float, ...], ...]
     b: tuple[float, ...]
     error: tuple[float, ...]
-    fsal: bool
+    #: coefficients ``d_i`` of the continuous extension, see :meth:`interpolate` (all zero: the cubic Hermite)
+    dense: tuple[float, ...]
+    #: default tolerance of the error-controlled loop (``LiouvilleConfig.tolerance = None``), measured in
+    #: docs/core.md ("Error control")
+    tolerance: float
+
+    def interpolate(self, y0: Tensor, y1: Tensor, ks: Sequence[Tensor], h: Tensor, theta: Tensor) -> Tensor:
+        """The solution at ``t + theta h`` inside a step from ``y0`` to ``y1`` with stages ``ks`` (first and last
+        included); ``h``, ``theta`` per row, broadcast over the trailing dimensions::
+
+            y0 + theta (r2 + (1 - theta) (r3 + theta (r4 + (1 - theta) r5)))
+
+        with ``r2 = y1 - y0``, ``r3 = h k_1 - r2``, ``r4 = r2 - h k_last - r3``, ``r5 = h sum_i d_i k_i``: a Hermite
+        cubic through both ends and their slopes plus a correction that makes it order 4."""
+        shape = (-1, *([1] * (y0.ndim - 1)))
+        h, th = h.to(y0.dtype).reshape(shape), theta.to(y0.dtype).reshape(shape)
+        r2 = y1 - y0
+        r3 = h * ks[0] - r2
+        r4 = r2 - h * ks[-1] - r3
+        r5 = h * sum(d * k for d, k in zip(self.dense, ks) if d != 0.0)
+        return y0 + th * (r2 + (1 - th) * (r3 + th * (r4 + (1 - th) * r5)))
 
 
 _DP_B = (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0.0)
@@ -98,8 +127,23 @@ DOPRI5 = EmbeddedPair(
     ),
     _DP_B,
     tuple(b - bh for b, bh in zip(_DP_B, _DP_B_HAT)),
-    True,
+    (-12715105075 / 11282082432, 0.0, 87487479700 / 32700410799, -10690763975 / 1880347072,
+     701980252875 / 199316789632, -1453857185 / 822651844, 69997945 / 29380423),
+    5e-5,
 )
+
+
+RK43 = EmbeddedPair(
+    "rk43",
+    4,
+    (0.0, 0.5, 0.5, 1.0, 1.0),
+    ((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0), (1 / 6, 1 / 3, 1 / 3, 1 / 6)),
+    (1 / 6, 1 / 3, 1 / 3, 1 / 6, 0.0),
+    (0.0, 0.0, 0.0, 1 / 6, -1 / 6),
+    (0.0, 0.0, 0.0, 0.0, 0.0),
+    3e-3,
+)
+PAIRS = {"dopri5": DOPRI5, "rk43": RK43}
 
 
 def get_integrator(name: str) -> FixedStepIntegrator:

@@ -7,8 +7,8 @@ Along every closed-loop trajectory the Liouville equation reduces to the ODE (pa
 
 integrated here jointly, in log form (never NaN, unlike the Euler step ``log(1 - dt div f)`` of the paper's
 code), with the same explicit scheme and step for both components. The loop runs over time only. With a fixed
-step all samples (and all references of a batch) advance together; the error-controlled "dopri5" gives every
-sample its own step and evaluates, at each pass, the samples still running.
+step all samples (and all references of a batch) advance together; the error-controlled schemes ("rk43",
+"dopri5") give every sample its own step and evaluate, at each pass, the samples still running.
 """
 
 from __future__ import annotations
@@ -26,37 +26,45 @@ from ..control.reference import Reference
 from ..systems.base import System
 from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 from .closed_loop import ClosedLoop, DivergenceMethod
-from .integrators import DOPRI5, get_integrator
+from .integrators import PAIRS, EmbeddedPair, get_integrator
 
 __all__ = ["LiouvilleConfig", "simulate_closed_loop", "propagate_density", "ExactLiouville"]
 
-IntegratorName = Literal["euler", "rk4", "dopri5"]
+IntegratorName = Literal["euler", "rk4", "rk43", "dopri5"]
 
 
 @dataclass(frozen=True)
 class LiouvilleConfig:
     """Numerics of the exact density propagation.
 
-    ``"rk4"`` at 0.1 s is both faster and more accurate than Euler at 0.01 s (the paper's scheme); ``"dopri5"``
-    controls its error, per sample, where a closed loop turns fast (the car's road domain); see
-    ``benchmarks/bench_liouville.py`` and docs/core.md for the measured errors against a converged solution.
+    ``"rk4"`` at 0.1 s is both faster and more accurate than Euler at 0.01 s (the paper's scheme); ``"rk43"`` and
+    ``"dopri5"`` control their error, per sample, where a closed loop turns fast or sweeps through its input
+    saturation (the car's road domain); see ``benchmarks/bench_liouville.py`` and docs/core.md for the measured
+    errors against a converged solution.
     """
 
-    #: scheme: "euler" (order 1) or "rk4" (order 4) at the fixed step ``dt``; "dopri5": the Dormand-Prince 5(4) pair
-    #: with error control (every sample keeps its own step, at most ``dt``, so that the estimated local error of
-    #: every state component and of the log-density stays below ``tolerance``); ``None`` (default): the system's
-    #: own (:attr:`System.liouville_integrator`: "dopri5" for the car's road domain, whose learned controller
-    #: crosses its turn-rate saturation within hundredths of a second at highway speed; "rk4" elsewhere)
+    #: scheme: "euler" (order 1) or "rk4" (order 4) at the fixed step ``dt``; error-controlled (every sample keeps
+    #: its own step, at most ``dt``, so that the estimated local error of every state component and of the
+    #: log-density stays below ``tolerance`` and the controller's raw input crosses its saturation's bend in steps
+    #: of at most ``saturation_step``): "rk43" (RK4 with an embedded order-3 estimate, four evaluations per step)
+    #: or "dopri5" (the Dormand-Prince 5(4) pair, six); ``None`` (default): the system's own
+    #: (:attr:`System.liouville_integrator`: "rk43" for the car's road domain, whose learned controller sweeps
+    #: through its turn-rate saturation within hundredths of a second at highway speed; "rk4" elsewhere)
     integrator: IntegratorName | None = None
-    #: integration step [s] (with "dopri5" the largest and the first tried); must divide the output step
+    #: integration step [s] (error-controlled: the largest and the first tried); must divide the output step
     dt: float = 0.1
     #: divergence: "structured" (fast, for control-affine systems with constant B) or "autodiff" (any system)
     divergence: DivergenceMethod = "structured"
     #: time between saved points [s] (the planning grid)
     output_dt: float = 0.1
-    #: "dopri5": largest estimated local error per step, absolute, of every state component (in its unit) and of
-    #: the log-density [nats]
-    tolerance: float = 5e-5
+    #: error-controlled: largest estimated local error per step, absolute, of every state component (in its unit)
+    #: and of the log-density [nats]; ``None``: the scheme's own (:attr:`EmbeddedPair.tolerance`: 3e-3 for "rk43",
+    #: 5e-5 for "dopri5")
+    tolerance: float | None = None
+    #: error-controlled, with a smooth saturation: largest move of the controller's raw input through the
+    #: saturation's bend per step, in widths of its tail (:meth:`SmoothSaturation.tail_span`); 0 leaves the bend to
+    #: the error estimate alone, whose stages can straddle a fast sweep through it (docs/core.md, "Error control")
+    saturation_step: float = 2.0
 
     def __post_init__(self) -> None:
         if self.integrator is not None:
@@ -64,7 +72,10 @@ class LiouvilleConfig:
         check_choice("divergence", self.divergence, ("structured", "autodiff"))
         check_positive("dt", self.dt)
         check_positive("output_dt", self.output_dt)
-        check_positive("tolerance", self.tolerance)
+        if self.tolerance is not None:
+            check_positive("tolerance", self.tolerance)
+        if not self.saturation_step >= 0:
+            raise ValueError(f"saturation_step must be >= 0 (0: off), got {self.saturation_step}")
         r = self.output_dt / self.dt
         if abs(r - round(r)) > 1e-6 * max(1.0, r) or round(r) < 1:
             raise ValueError(f"output_dt ({self.output_dt}) must be an integer multiple of dt ({self.dt})")
@@ -83,11 +94,20 @@ class LiouvilleConfig:
         check_choice("System.liouville_integrator", scheme, get_args(IntegratorName))
         return cast(IntegratorName, scheme)
 
+    def pair(self, system: System | None = None) -> EmbeddedPair | None:
+        """The embedded pair of an error-controlled scheme in force (``None`` for a fixed step)."""
+        return PAIRS.get(self.scheme(system))
+
+    def tolerance_of(self, pair: EmbeddedPair) -> float:
+        """``tolerance``, or where it is ``None`` the pair's own."""
+        return pair.tolerance if self.tolerance is None else self.tolerance
+
     def describe(self, system: System | None = None) -> str:
         """One line naming the scheme and its step (or tolerance), e.g. for the CLI."""
-        scheme = self.scheme(system)
-        if scheme == "dopri5":
-            return f"dopri5 (error-controlled, tolerance {self.tolerance:g}, steps <= {self.dt:g} s)"
+        scheme, pair = self.scheme(system), self.pair(system)
+        if pair is not None:
+            return (f"{scheme} (error-controlled, tolerance {self.tolerance_of(pair):g}, steps <= {self.dt:g} s, "
+                    f"saturation step {self.saturation_step:g})")
         return f"{scheme} at {self.dt:g} s"
 
 
@@ -114,16 +134,17 @@ def _integrate(
 ) -> tuple[Tensor, list[list[Tensor]]]:
     """Integrate ``y0 = (x0, [log_rho0])`` over the reference horizon; returns the saved times and states.
     ``plant`` (states only): the executed vehicle, held at rest (:meth:`System.standstill`) at every stage and
-    after every step. The scheme is :meth:`LiouvilleConfig.scheme`; "dopri5" saves the output grid only and has no
-    plant mode (the hold is not a smooth flow): both need a fixed step."""
+    after every step. The scheme is :meth:`LiouvilleConfig.scheme`; an error-controlled one saves the output grid
+    only and has no plant mode (the hold is not a smooth flow): both need a fixed step."""
     if plant and with_density:
         raise ValueError("the plant's standstill is not a smooth flow: no density along it")
     scheme = config.scheme(closed_loop.system)
-    if scheme == "dopri5":
+    pair = config.pair(closed_loop.system)
+    if pair is not None:
         if all_steps or plant:
-            raise ValueError("LiouvilleConfig: the error-controlled 'dopri5' has no common time grid of all steps "
-                             "and no plant mode; choose a fixed step, e.g. LiouvilleConfig(integrator='rk4')")
-        return _integrate_adaptive(closed_loop, y0, reference, config, with_density)
+            raise ValueError(f"LiouvilleConfig: the error-controlled {scheme!r} has no common time grid of all "
+                             "steps and no plant mode; choose a fixed step, e.g. LiouvilleConfig(integrator='rk4')")
+        return _integrate_adaptive(closed_loop, y0, reference, config, with_density, pair)
     integrator = get_integrator(scheme)
     horizon = reference.n_steps * reference.dt
     n_steps = _n_steps(horizon, config.dt, "dt")
@@ -163,7 +184,7 @@ def _integrate(
     return t, saved
 
 
-#: step-size control of "dopri5": safety factor and the bounds of one change of the step
+#: step-size control of the error-controlled schemes: safety factor and the bounds of one change of the step
 _SAFETY, _SHRINK_MIN, _GROW_MAX = 0.9, 0.2, 5.0
 
 
@@ -173,16 +194,20 @@ def _integrate_adaptive(
     reference: Reference,
     config: LiouvilleConfig,
     with_density: bool,
+    pair: EmbeddedPair,
 ) -> tuple[Tensor, list[list[Tensor]]]:
-    """:func:`_integrate` with the error-controlled Dormand-Prince 5(4) pair (:data:`~.integrators.DOPRI5`).
+    """:func:`_integrate` with an error-controlled embedded pair (:data:`~.integrators.PAIRS`).
 
-    Every sample (row) keeps its own clock and step: a step is accepted where the estimated local error of every
-    component is at most ``config.tolerance`` (else retried shorter), the next step is ``h (0.9 / err)^(1/5)``
-    (at most 5x longer, 5x shorter, and ``config.dt``), and no step passes the next output time, where the row's
-    state is saved. Only rows still running are evaluated. The step sizes are chosen without gradient (as in any
-    error-controlled solver) and the solution is differentiable along them: every update is out of place.
+    Every sample (row) keeps its own clock and step. A step is accepted where the estimated local error of every
+    component is at most the tolerance and, with a smooth saturation, where the controller's raw input
+    moves by at most ``config.saturation_step`` tail widths through the saturation's bend
+    (:meth:`~density_planner.control.base.SmoothSaturation.tail_span`, over the stages); else it is retried
+    shorter. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
+    Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
+    output times inside a step are read from the pair's continuous extension. Only rows still running are evaluated. The
+    step sizes are chosen without gradient (as in any error-controlled solver) and the solution is
+    differentiable along them: every update is out of place.
     """
-    pair = DOPRI5
     x0 = y0[0]
     batch, n_samples, nx = x0.shape[:-2], x0.shape[-2], x0.shape[-1]
     n_ref = math.prod(batch)
@@ -191,23 +216,29 @@ def _integrate_adaptive(
     params, x_ref, u_ref = (v.expand(*batch, *v.shape[-2:]).reshape(n_ref, *v.shape[-2:])
                             for v in (reference.params, reference.x, reference.u))
     flat_ref = Reference(params, x_ref, u_ref, reference.parameterization)
+    switches = flat_ref.switch_table()
     m = n_ref * n_samples
     device = x0.device
     ref_rows = torch.arange(n_ref, device=device).repeat_interleave(n_samples)
     y = [x0.reshape(m, nx)] + ([y0[1].reshape(m)] if with_density else [])
     method = config.divergence
+    system, controller = closed_loop.system, closed_loop.controller
+    resolve = config.saturation_step > 0 and controller.saturation is not None
+    eps = 1e-9 * config.dt
+    tolerance = config.tolerance_of(pair)
 
     def func(ys, t, left, rows):
         x_ref, u_ref = flat_ref.values_at(rows, t, left)
         if with_density:
-            dx, div = closed_loop.rhs_and_divergence(ys[0], x_ref, u_ref, method)
-            return [dx, -div], u_ref
-        return [closed_loop.rhs(ys[0], x_ref, u_ref)], u_ref
+            dx, div, raw = closed_loop.rhs_divergence_with_raw(ys[0], x_ref, u_ref, method)
+            return [dx, -div], u_ref, raw.detach()
+        dx, raw = closed_loop.rhs_with_raw(ys[0], x_ref, u_ref)
+        return [dx], u_ref, raw.detach()
 
     t = torch.zeros(m, dtype=torch.float64, device=device)
     h = torch.full((m,), config.dt, dtype=torch.float64, device=device)
     k_next = torch.ones(m, dtype=torch.long, device=device)  # index of the next output time per row
-    k1, _ = func(y, t, False, ref_rows)
+    k1, _, z1 = func(y, t, False, ref_rows)
     out_rows: list[Tensor] = []
     out_k: list[Tensor] = []
     out_vals: list[list[Tensor]] = [[] for _ in y]
@@ -216,56 +247,75 @@ def _integrate_adaptive(
         rows = ref_rows[active]
         t_a = t[active]
         h_prop = h[active]
-        h_a = torch.minimum(h_prop, k_next[active].to(torch.float64) * config.output_dt - t_a)
+        t_stop = torch.clamp(flat_ref.next_switch(switches, rows, t_a), max=horizon)
+        # land on the stop in equal steps no longer than the proposal (no sliver of a step before a switch)
+        gap = t_stop - t_a
+        h_a = gap / torch.ceil(gap / h_prop - 1e-6).clamp(min=1.0)
         if bool((h_a < 1e-9 * config.dt).any()):
             raise FloatingPointError(
-                "exact Liouville ('dopri5'): the step size underflowed (the closed loop is not finite or not "
+                f"exact Liouville ({pair.name!r}): the step size underflowed (the closed loop is not finite or not "
                 "integrable there); check the initial states and the reference, or use a fixed step "
                 "(LiouvilleConfig(integrator='rk4'))")
         hd = h_a.to(x0.dtype)
         y_a = [v.index_select(0, active) for v in y]
         ks = [[k.index_select(0, active) for k in k1]]
+        z_lo = z_hi = z1.index_select(0, active)
         left = torch.ones_like(active, dtype=torch.bool)
-        u_last = None
+        u_last = z_last = None
         for i in range(1, len(pair.stages)):
             y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a)]
-            k_i, u_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows)
+            k_i, u_last, z_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows)
             ks.append(k_i)
-        y_new = y_i  # FSAL: the last stage is evaluated at the 5th-order solution
+            z_lo, z_hi = torch.minimum(z_lo, z_last), torch.maximum(z_hi, z_last)
+        y_new = y_i  # the last stage is evaluated at the propagated solution (its row of a is b)
         err = torch.stack([(_weighted(hd, pair.error, [k[c] for k in ks]).abs().reshape(len(active), -1)
-                            .amax(-1)) for c in range(len(y))]).amax(0).detach().to(torch.float64) / config.tolerance
+                            .amax(-1)) for c in range(len(y))]).amax(0).detach().to(torch.float64) / tolerance
+        if resolve:
+            span = controller.tail_span(z_lo, z_hi, system.measure(y_a[0]).detach())
+            assert span is not None
+            err = torch.maximum(err, (span.to(torch.float64) / config.saturation_step) ** pair.order)
         ok = err <= 1.0  # NaN is never accepted: the step then shrinks until it underflows (error above)
         factor = (_SAFETY * err.clamp(min=1e-12) ** (-1.0 / pair.order)).clamp(_SHRINK_MIN, _GROW_MAX)
         factor = torch.where(torch.isnan(factor), torch.full_like(factor, _SHRINK_MIN), factor)
         h_new = h_a * factor
-        # a step cut short by an output time, accepted, keeps the proposal it was cut from
+        # a step cut short by a switch or the horizon, accepted, keeps the proposal it was cut from
         h_new = torch.where(ok & (h_a < h_prop), torch.maximum(h_new, h_prop), h_new)
         h = h.index_put((active,), h_new.clamp(max=config.dt))
         acc = active[ok]
         if acc.numel():
-            t_acc = t_a[ok] + h_a[ok]
+            t0_acc, h_acc = t_a[ok], h_a[ok]
+            t_acc = t0_acc + h_acc
+            t_acc = torch.where((t_acc - t_stop[ok]).abs() <= eps, t_stop[ok], t_acc)
+            y0_acc, y1_acc = [v[ok] for v in y_a], [v[ok] for v in y_new]
+            # the output times inside (t0, t_acc], from the continuous extension
             k_acc = k_next[acc]
-            landed = (t_acc - k_acc.to(torch.float64) * config.output_dt).abs() <= 1e-9 * config.dt
-            t_acc = torch.where(landed, k_acc.to(torch.float64) * config.output_dt, t_acc)
+            while True:
+                t_k = k_acc.to(torch.float64) * config.output_dt
+                due = torch.nonzero((k_acc <= n_out) & (t_k <= t_acc + eps)).squeeze(-1)
+                if not due.numel():
+                    break
+                theta = ((t_k[due] - t0_acc[due]) / h_acc[due]).clamp(0.0, 1.0)
+                out_rows.append(acc[due])
+                out_k.append(k_acc[due])
+                for c, store in enumerate(out_vals):
+                    store.append(pair.interpolate(y0_acc[c][due], y1_acc[c][due], [k[c][ok][due] for k in ks],
+                                                  h_acc[due], theta))
+                k_acc = k_acc.index_put((due,), k_acc[due] + 1)
+            k_next = k_next.index_put((acc,), k_acc)
             t = t.index_put((acc,), t_acc)
-            y = [v.index_put((acc,), vn[ok]) for v, vn in zip(y, y_new)]
+            y = [v.index_put((acc,), vn) for v, vn in zip(y, y1_acc)]
             k1 = [k.index_put((acc,), kn[ok]) for k, kn in zip(k1, ks[-1])]
-            if bool(landed.any()):
-                rows_l = acc[landed]
-                out_rows.append(rows_l)
-                out_k.append(k_acc[landed])
-                for store, vn in zip(out_vals, y_new):
-                    store.append(vn[ok][landed])
-                k_next = k_next.index_put((rows_l,), k_acc[landed] + 1)
+            assert u_last is not None and z_last is not None
+            z1 = z1.index_put((acc,), z_last[ok])
             # where the input switches at the new time, the next step's first stage takes its right limit
-            assert u_last is not None
             _, u_right = flat_ref.values_at(ref_rows[acc], t_acc, False)
-            switched = acc[(u_right != u_last[ok]).any(-1) & (k_next[acc] <= n_out)]
+            switched = acc[(u_right != u_last[ok]).any(-1) & (t_acc < horizon - eps)]
             if switched.numel():
-                k_sw, _ = func([v.index_select(0, switched) for v in y], t.index_select(0, switched), False,
-                               ref_rows[switched])
+                k_sw, _, z_sw = func([v.index_select(0, switched) for v in y], t.index_select(0, switched), False,
+                                     ref_rows[switched])
                 k1 = [k.index_put((switched,), kn) for k, kn in zip(k1, k_sw)]
-        active = active[k_next[active] <= n_out]
+                z1 = z1.index_put((switched,), z_sw)
+        active = active[t[active] < horizon - eps]
     rows_all = torch.cat(out_rows) if out_rows else torch.zeros(0, dtype=torch.long, device=device)
     k_all = torch.cat(out_k) if out_k else torch.zeros(0, dtype=torch.long, device=device)
     saved: list[list[Tensor]] = []

@@ -212,10 +212,10 @@ def liouville_accuracy(
     The float64 reference uses ``reference_scheme``; its own convergence is reported as the largest difference to
     the same scheme at twice the step (``reference_self_error``). For every scheme (run in ``dtype``; each a fixed
     step) and, with ``default``, for the default :class:`~.liouville.LiouvilleConfig` (the system's scheme: for the
-    road domain the error-controlled "dopri5"; reported as ``"default"``): the largest and the median absolute
+    road domain the error-controlled "rk43"; reported as ``"default"``): the largest and the median absolute
     log-density error over samples and times [nats], its 99th percentile, the largest position error [m], the wall
     time [s], and per band of the references' highest speed the largest log-density error (``by_top_speed``). A
-    default equal to one of ``schemes`` (the road domain's dopri5 at 0.1 s) is reported from that scheme's run.
+    default equal to one of ``schemes`` is reported from that scheme's run.
     """
     import copy
 

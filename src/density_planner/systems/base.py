@@ -111,7 +111,7 @@ class System(ABC):
     def liouville_integrator(self) -> str:
         """The scheme of exact Liouville that this system's closed loop needs (the default of
         :attr:`~density_planner.density.liouville.LiouvilleConfig.integrator`): "rk4" (the default, a fixed step)
-        or "dopri5" (error-controlled, for closed loops that turn within hundredths of a second)."""
+        or "rk43" / "dopri5" (error-controlled, for closed loops that turn within hundredths of a second)."""
         return "rk4"
 
     @property

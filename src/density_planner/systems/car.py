@@ -71,8 +71,9 @@ class CarConfig:
     #: scheme of exact Liouville for this domain (the default of
     #: :attr:`~density_planner.density.liouville.LiouvilleConfig.integrator`): with the road domain's smooth
     #: saturation the turn-rate band between the reference's and the actuator's limits narrows as ``a_lat / v``, and
-    #: the learned controller crosses it within hundredths of a second at highway speed, which a fixed 0.1-s step
-    #: cannot resolve: "dopri5" refines its step there, per sample (docs/core.md, "Accuracy on random references")
+    #: the learned controller sweeps through it within hundredths of a second at highway speed, which a fixed 0.1-s
+    #: step cannot resolve: the error-controlled "rk43" refines its step there, per sample (docs/core.md, "Error
+    #: control")
     liouville_integrator: str = "rk4"
     #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
     length: float = 4.5
@@ -97,7 +98,7 @@ class CarConfig:
         for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
-        check_choice("CarConfig.liouville_integrator", self.liouville_integrator, ("euler", "rk4", "dopri5"))
+        check_choice("CarConfig.liouville_integrator", self.liouville_integrator, ("euler", "rk4", "rk43", "dopri5"))
         if (self.actuator_min is None) != (self.actuator_max is None):
             raise ValueError("CarConfig.actuator_min and actuator_max must both be set or both be None")
         if self.actuator_min is not None:
@@ -159,7 +160,7 @@ class CarConfig:
             actuator_max=(1.5, 4.5),
             actuator_lateral_accel_max=8.0,
             domain="road",
-            liouville_integrator="dopri5",
+            liouville_integrator="rk43",
         )
 
 
@@ -227,7 +228,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
 
     @property
     def liouville_integrator(self) -> str:
-        """:attr:`CarConfig.liouville_integrator` (the road domain's: "dopri5")."""
+        """:attr:`CarConfig.liouville_integrator` (the road domain's: "rk43")."""
         return self.config.liouville_integrator
 
     def planning_bounds(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
