@@ -273,13 +273,14 @@ def test_gradcheck_of_exact_liouville(controller_kind, divergence, one_thread):
 
 
 # --------------------------------------------------------------------------- the step schedule for fast references
-def _road_references(speeds, dtype=torch.float64):
-    """The road model set's car and analytic controller; references at constant ``speeds`` [m/s] (one per batch
-    element), with 0.2 rad/s turns, and 6 initial states around each start."""
-    from density_planner.control.registry import model_set
+def _road_references(speeds, dtype=torch.float64, learned=False):
+    """The road model set's car and analytic controller (``learned``: its C3M controller, whose smooth saturation
+    the error control resolves by ``LiouvilleConfig.saturation_step``); references at constant ``speeds`` [m/s] (one
+    per batch element), with 0.2 rad/s turns, and 6 initial states around each start."""
+    from density_planner.control.registry import load_controller, model_set
 
     car = model_set("road").make_system()
-    controller = CarTrackingController().to(dtype)
+    controller = (load_controller(None, models="road") if learned else CarTrackingController()).to(dtype)
     g = torch.Generator().manual_seed(4)
     n = len(speeds)
     starts = torch.zeros(n, 5, dtype=dtype)
@@ -318,12 +319,14 @@ def test_liouville_config_rejects_bad_values(kwargs, match):
         LiouvilleConfig(**kwargs)
 
 
-@pytest.mark.parametrize("scheme", ["rk43", "dopri5"])
-def test_error_control_converges_as_its_tolerance_shrinks(scheme):
-    """Error control: on references of 5, 17 and 33 m/s tracked by the analytic controller (whose hard clip a
-    fixed step resolves slowly: RK4 at 0.005 s is still 0.015 nats off), the states and log-densities approach the
-    solution at a tolerance of 1e-10 as the tolerance shrinks."""
-    car, controller, reference, x0 = _road_references([5.0, 17.0, 33.0])
+@pytest.mark.parametrize("scheme,learned", [("rk43", True), ("dopri5", False)])
+def test_error_control_converges_as_its_tolerance_shrinks(scheme, learned):
+    """Error control: on references of 5, 17 and 33 m/s the states and log-densities approach the solution at a
+    tolerance of 1e-10 as the tolerance shrinks: "dopri5" with the analytic controller, whose hard clip a fixed step
+    resolves slowly (RK4 at 0.005 s is still 0.015 nats off); "rk43" with the learned controller and its smooth
+    saturation (rk43's estimate compares two evaluations at the step's end, blind to a kink inside a step: a hard
+    clip is dopri5's, docs/core.md)."""
+    car, controller, reference, x0 = _road_references([5.0, 17.0, 33.0], learned=learned)
     best = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("dopri5", tolerance=1e-10))
     errors = []
     for tol in (1e-3, 1e-5, 1e-7):
@@ -347,13 +350,13 @@ def test_error_control_samples_keep_their_own_steps_independently(scheme):
         torch.testing.assert_close(out.log_rho[b], one.log_rho, atol=1e-9, rtol=0)
 
 
-@pytest.mark.parametrize("scheme,tolerance", [("rk43", 1e-9), ("dopri5", 1e-10)])
-def test_error_control_gradient_matches_finite_differences(scheme, tolerance):
+def test_error_control_gradient_matches_finite_differences():
     """The solution is differentiable along its (gradient-free) steps: at a tight tolerance its gradient w.r.t. the
-    reference parameters matches central differences of the solution."""
+    reference parameters matches central differences of the solution (dopri5 with the analytic controller; rk43
+    shares the loop)."""
     car, controller, reference, x0 = _road_references([12.0, 30.0])
     x0 = x0[:, :2]
-    config = LiouvilleConfig(scheme, tolerance=tolerance)
+    config = LiouvilleConfig("dopri5", tolerance=1e-10)
 
     def loss(p):
         out = propagate_density(car, controller, x0, make_reference(car, reference.start, p), config=config)
@@ -368,6 +371,33 @@ def test_error_control_gradient_matches_finite_differences(scheme, tolerance):
         with torch.no_grad():
             fd = (loss(reference.params + d) - loss(reference.params - d)) / (2 * eps)
         assert float(g[idx]) == pytest.approx(float(fd), rel=1e-4, abs=1e-5)
+
+
+def test_saturation_step_resolves_a_fast_sweep_through_the_bend():
+    """A highway reference (31.8 m/s, one of the random road references of docs/core.md) on which the learned
+    controller's raw turn rate sweeps from deep in one tail through the linear band into the other within ~0.15 s:
+    the divergence jumps from 6 to 14.5 /s and back within 50-ms bends. With ``saturation_step`` the default
+    "rk43" follows it to 0.02 nats; without, its error estimate sees no stage inside the bends and errs by > 0.2
+    nats, the fixed RK4 step by > 0.5."""
+    from density_planner.control.registry import load_controller, model_set
+
+    car = model_set("road").make_system()
+    controller = load_controller(None, models="road").double()
+    start = torch.tensor([-1.1797, -5.358, -0.7799, 31.801, 0.0], dtype=torch.float64)
+    params = torch.tensor([[0.0334, 0.0725, -0.0272, 0.0677, -0.0912, -0.0939, 0.026, -0.0098, -0.0192, 0.083],
+                           [2.2552, -0.6339, 0.3768, -0.347, 1.1616, -3.7474, 3.0, 2.0814, -0.1776, -1.6596]],
+                          dtype=torch.float64)
+    reference = make_reference(car, start, params)
+    x0 = (start + torch.tensor([0.769, -0.9531, 0.3107, -0.1042, 0.1338], dtype=torch.float64))[None]
+
+    def error(config):
+        out = propagate_density(car, controller, x0, reference, config=config)
+        return float((out.log_rho - best.log_rho).abs().max())
+
+    best = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("rk4", 0.01))
+    assert error(LiouvilleConfig()) < 0.02
+    assert error(LiouvilleConfig(saturation_step=0.0)) > 0.2
+    assert error(LiouvilleConfig("rk4")) > 0.5
 
 
 def test_error_control_refuses_what_needs_a_common_grid():
