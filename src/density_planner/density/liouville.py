@@ -64,7 +64,7 @@ class LiouvilleConfig:
     #: error-controlled, with a smooth saturation: largest move of the controller's raw input through the
     #: saturation's bend per step, in widths of its tail (:meth:`SmoothSaturation.tail_span`); 0 leaves the bend to
     #: the error estimate alone, whose stages can straddle a fast sweep through it (docs/core.md, "Error control")
-    saturation_step: float = 2.0
+    saturation_step: float = 1.0
 
     def __post_init__(self) -> None:
         if self.integrator is not None:
