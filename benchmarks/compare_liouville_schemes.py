@@ -46,7 +46,7 @@ def main() -> None:
     r32 = type(ref64)(ref64.params.float(), ref64.x.float(), ref64.u.float(), ref64.parameterization)
     c32 = copy.deepcopy(controller).float()
     extra = {} if args.saturation_step is None else {"saturation_step": args.saturation_step}
-    configs = {name: LiouvilleConfig(name, tolerance=None if name in ("rk4", "euler") else args.tolerance, **extra)
+    configs = {name: LiouvilleConfig(name, tolerance=args.tolerance, **extra)
                for name in args.schemes.split(",")}
 
     def run(sel, config):

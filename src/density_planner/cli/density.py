@@ -99,8 +99,7 @@ def run(args: argparse.Namespace) -> int:
 
     integrator: IntegratorName = args.integrator or LiouvilleConfig().scheme(car)
     dt = args.dt if args.dt is not None else (0.01 if integrator == "euler" else 0.1)
-    config = LiouvilleConfig(integrator=integrator, dt=dt,
-                             **({} if args.tolerance is None else {"tolerance": args.tolerance}))
+    config = LiouvilleConfig(integrator=integrator, dt=dt, tolerance=args.tolerance)
 
     out = out_dir(args.out)  # every input is valid: create the output directory
     gen = torch.Generator().manual_seed(args.seed)

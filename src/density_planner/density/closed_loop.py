@@ -50,7 +50,7 @@ class ClosedLoop:
 
     def rhs(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> Tensor:
         """``f_cl(x)``."""
-        return self.system.f(x, self.inputs(x, x_ref, u_ref))
+        return self.rhs_with_raw(x, x_ref, u_ref)[0]
 
     def rhs_with_raw(self, x: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor]:
         """``(f_cl(x), u_raw)``: also the controller's raw (unbounded) input, at no extra cost."""

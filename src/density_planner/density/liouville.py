@@ -204,8 +204,8 @@ def _integrate_adaptive(
     (:meth:`~density_planner.control.base.SmoothSaturation.tail_span`, over the stages); else it is retried
     shorter. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
     Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
-    output times inside a step are read from the pair's continuous extension. Only rows still running are evaluated. The
-    step sizes are chosen without gradient (as in any error-controlled solver) and the solution is
+    output times inside a step are read from the pair's continuous extension. Only rows still running are
+    evaluated. The step sizes are chosen without gradient (as in any error-controlled solver) and the solution is
     differentiable along them: every update is out of place.
     """
     x0 = y0[0]
@@ -251,7 +251,7 @@ def _integrate_adaptive(
         # land on the stop in equal steps no longer than the proposal (no sliver of a step before a switch)
         gap = t_stop - t_a
         h_a = gap / torch.ceil(gap / h_prop - 1e-6).clamp(min=1.0)
-        if bool((h_a < 1e-9 * config.dt).any()):
+        if bool((h_a < eps).any()):
             raise FloatingPointError(
                 f"exact Liouville ({pair.name!r}): the step size underflowed (the closed loop is not finite or not "
                 "integrable there); check the initial states and the reference, or use a fixed step "
