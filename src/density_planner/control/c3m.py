@@ -164,6 +164,13 @@ class TanhMLP(nn.Module):
         return y, d
 
 
+def _apply(m: Tensor, v: Tensor) -> Tensor:
+    """Matrices ``m (..., r, c)`` times vectors ``v (..., c)`` (batch dimensions broadcast): ``(..., r)``. A batched
+    matrix product: half the time of the element-wise product and sum over ``(..., r, c)`` on the closed loop's
+    small matrices (``12 x 4``, ``2 x 12``)."""
+    return torch.matmul(m, v.unsqueeze(-1)).squeeze(-1)
+
+
 class _StateFeatures:
     """Network inputs from ``(theta, v)`` pairs and their tangents (see ``C3MArchitecture.angle_encoding``)."""
 
@@ -239,8 +246,8 @@ class C3MController(TrackingController):
         z, e, _ = self._inputs(x_hat, x_ref)
         w1 = self.w1(z).unflatten(-1, (self.rank, N_ERR))
         w2 = self.w2(z).unflatten(-1, (N_U, self.rank))
-        h = torch.tanh((w1 * e.unsqueeze(-2)).sum(-1))
-        return u_ref + (w2 * h.unsqueeze(-2)).sum(-1)
+        h = torch.tanh(_apply(w1, e))
+        return u_ref + _apply(w2, h)
 
     def raw_with_tangents(
         self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor, dx_hat: Tensor
@@ -260,12 +267,11 @@ class C3MController(TrackingController):
         o2, d2 = self.w2.forward_with_tangents(z, dz)
         w1, dw1 = o1.unflatten(-1, (self.rank, N_ERR)), d1.unflatten(-1, (self.rank, N_ERR))
         w2, dw2 = o2.unflatten(-1, (N_U, self.rank)), d2.unflatten(-1, (N_U, self.rank))
-        e_ = e.unsqueeze(-2)
-        h = torch.tanh((w1 * e_).sum(-1))
-        ds = (dw1 * e_).sum(-1) + (w1 * de.unsqueeze(-2)).sum(-1)
+        h = torch.tanh(_apply(w1, e))
+        ds = _apply(dw1, e) + _apply(w1, de)
         dh = (1.0 - h * h) * ds
-        u = u_ref + (w2 * h.unsqueeze(-2)).sum(-1)
-        du = (dw2 * h.unsqueeze(-2)).sum(-1) + (w2 * dh.unsqueeze(-2)).sum(-1)
+        u = u_ref + _apply(w2, h)
+        du = _apply(dw2, h) + _apply(w2, dh)
         return u, du.expand(dx_hat.shape[0], *u.shape)
 
     def jacobian(self, x_hat: Tensor, x_ref: Tensor, u_ref: Tensor) -> tuple[Tensor, Tensor]:

@@ -281,35 +281,41 @@ def _integrate_adaptive(
         # a step cut short by a switch or the horizon, accepted, keeps the proposal it was cut from
         h_new = torch.where(ok & (h_a < h_prop), torch.maximum(h_new, h_prop), h_new)
         h = h.index_put((active,), h_new.clamp(max=config.dt))
-        acc = active[ok]
+        ok_i = torch.nonzero(ok).squeeze(-1)  # indices into the active rows (one mask-to-index for all reads)
+        acc = active.index_select(0, ok_i)
         if acc.numel():
-            t0_acc, h_acc = t_a[ok], h_a[ok]
+            def pick(v: Tensor, index: Tensor = ok_i) -> Tensor:
+                return v.index_select(0, index)
+
+            t0_acc, h_acc, t_stop_acc = pick(t_a), pick(h_a), pick(t_stop)
             t_acc = t0_acc + h_acc
-            t_acc = torch.where((t_acc - t_stop[ok]).abs() <= eps, t_stop[ok], t_acc)
-            y0_acc, y1_acc = [v[ok] for v in y_a], [v[ok] for v in y_new]
+            t_acc = torch.where((t_acc - t_stop_acc).abs() <= eps, t_stop_acc, t_acc)
+            y0_acc, y1_acc = [pick(v) for v in y_a], [pick(v) for v in y_new]
+            ks_acc = [[pick(k[c]) for k in ks] for c in range(len(y))]  # per component, the stages
             # the output times inside (t0, t_acc], from the continuous extension
-            k_acc = k_next[acc]
+            k_acc = k_next.index_select(0, acc)
             while True:
                 t_k = k_acc.to(torch.float64) * config.output_dt
                 due = torch.nonzero((k_acc <= n_out) & (t_k <= t_acc + eps)).squeeze(-1)
                 if not due.numel():
                     break
-                theta = ((t_k[due] - t0_acc[due]) / h_acc[due]).clamp(0.0, 1.0)
-                out_rows.append(acc[due])
-                out_k.append(k_acc[due])
+                theta = ((pick(t_k, due) - pick(t0_acc, due)) / pick(h_acc, due)).clamp(0.0, 1.0)
+                out_rows.append(pick(acc, due))
+                k_due = pick(k_acc, due)
+                out_k.append(k_due)
                 for c, store in enumerate(out_vals):
-                    store.append(pair.interpolate(y0_acc[c][due], y1_acc[c][due], [k[c][ok][due] for k in ks],
-                                                  h_acc[due], theta))
-                k_acc = k_acc.index_put((due,), k_acc[due] + 1)
+                    store.append(pair.interpolate(pick(y0_acc[c], due), pick(y1_acc[c], due),
+                                                  [pick(k, due) for k in ks_acc[c]], pick(h_acc, due), theta))
+                k_acc = k_acc.index_put((due,), k_due + 1)
             k_next = k_next.index_put((acc,), k_acc)
             t = t.index_put((acc,), t_acc)
             y = [v.index_put((acc,), vn) for v, vn in zip(y, y1_acc)]
-            k1 = [k.index_put((acc,), kn[ok]) for k, kn in zip(k1, ks[-1])]
+            k1 = [k.index_put((acc,), stages[-1]) for k, stages in zip(k1, ks_acc)]
             assert u_last is not None and z_last is not None
-            z1 = z1.index_put((acc,), z_last[ok])
+            z1 = z1.index_put((acc,), pick(z_last))
             # where the input switches at the new time, the next step's first stage takes its right limit
-            _, u_right = flat_ref.values_at(ref_rows[acc], t_acc, False)
-            switched = acc[(u_right != u_last[ok]).any(-1) & (t_acc < horizon - eps)]
+            _, u_right = flat_ref.values_at(ref_rows.index_select(0, acc), t_acc, False)
+            switched = acc[(u_right != pick(u_last)).any(-1) & (t_acc < horizon - eps)]
             if switched.numel():
                 k_sw, _, z_sw = func([v.index_select(0, switched) for v in y], t.index_select(0, switched), False,
                                      ref_rows[switched])
