@@ -292,3 +292,43 @@ def test_tail_span_measures_a_sweep_through_the_bend_in_tail_widths():
                 60.0 / a_d]                   # across both bends: the narrower tail's measure
     torch.testing.assert_close(span, torch.tensor(expected, dtype=F64), atol=1e-9, rtol=0)
     assert CarTrackingController().tail_span(z_lo, z_hi, x_hat) is None
+
+
+def test_segment_turn_rate_limits_take_the_fastest_instant_of_each_segment(gen):
+    car = KinematicCar(CarConfig.road())
+    ref = sample_feasible_references(car, 50, gen, dtype=F64)
+    m = ref.parameterization.steps_per_segment
+    limits = car.segment_turn_rate_limits(ref.x, m)
+    assert limits.shape == ref.params[:, 0].shape
+    v = ref.x[..., 3].abs()
+    for k in range(limits.shape[-1]):  # a loop over the 10 segments as the independent check
+        fastest = v[:, k * m:(k + 1) * m + 1].amax(-1)
+        torch.testing.assert_close(limits[:, k], car.turn_rate_limit(fastest))
+    # the sampler's references respect the bound of every segment
+    assert bool((ref.params[:, 0].abs() <= limits + 1e-9).all())
+    with pytest.raises(ValueError, match="not whole segments"):
+        car.segment_turn_rate_limits(ref.x[..., :-1, :], m)
+
+
+def test_density_command_keeps_its_default_curve_within_the_lateral_limit(tmp_path, capsys):
+    import numpy as np
+
+    from density_planner.cli import main
+
+    car = KinematicCar(CarConfig.road())
+    rc = main(["density", "--models", "road", "--start", "0", "0", "0", "25", "--samples", "20", "--integrator",
+               "rk4", "--out", str(tmp_path / "default")])
+    assert rc == 0
+    out = np.load(tmp_path / "default" / "density.npz")
+    limits = car.segment_turn_rate_limits(torch.as_tensor(out["x_ref"]), 10)
+    omega = torch.as_tensor(out["params"])[0]
+    assert bool((omega.abs() <= limits + 1e-6).all()) and float(omega.abs().max()) > 0.05  # scaled, not dropped
+    assert "warning" not in capsys.readouterr().err
+    params = tmp_path / "p.json"  # the same curve given explicitly: planned as given, with one warning line
+    params.write_text("[[0.3,0.3,0,-0.3,-0.3,0,0.2,0.2,0,0],[0.8,0.5,0.3,0,0,0,0,-0.3,-0.5,-0.5]]")
+    rc = main(["density", "--models", "road", "--start", "0", "0", "0", "25", "--samples", "20", "--integrator",
+               "rk4", "--params", str(params), "--out", str(tmp_path / "given")])
+    assert rc == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lateral-acceleration limit" in err[0] and "--params" in err[0]
+    assert float(np.load(tmp_path / "given" / "density.npz")["params"][0].max()) == pytest.approx(0.3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import numpy as np
@@ -59,6 +60,33 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     p.set_defaults(func=run)
 
 
+def _within_lateral_limit(car, reference, *, start_speed: float, default: bool):
+    """A car with a lateral-acceleration limit (the road domain) bounds its references' turn rate by the speed
+    (:meth:`~density_planner.systems.car.KinematicCar.segment_turn_rate_limits`). The built-in S-curve's turn rates
+    are scaled into that bound (the speed profile, hence the bound, is unchanged); a reference from ``--params``
+    beyond it is planned as given with a one-line warning on stderr (the controller's saturation then bends it)."""
+    limits_of = getattr(car, "segment_turn_rate_limits", None)
+    i = car.turn_rate_input
+    if limits_of is None or i is None:
+        return reference
+    from ..control.reference import make_reference
+
+    limit = limits_of(reference.x, reference.parameterization.steps_per_segment)  # (S,)
+    omega = reference.params[i]
+    excess = omega.abs() - limit
+    if not bool((excess > 1e-6 * (1.0 + limit)).any()):
+        return reference
+    if default:
+        params = reference.params.clone()
+        params[i] = torch.maximum(torch.minimum(omega, limit), -limit)
+        return make_reference(car, reference.x[0], params, reference.parameterization)
+    k = int(excess.argmax())
+    print(f"density-planner: warning: --params turns at {float(omega[k].abs()):.3g} rad/s on segment {k} where the "
+          f"car's lateral-acceleration limit allows {float(limit[k]):.3g} rad/s at the reference's speed (start "
+          f"{start_speed:g} m/s); the controller saturates there: lower the turn rates or the speed", file=sys.stderr)
+    return reference
+
+
 def run(args: argparse.Namespace) -> int:
     from ..config import update
     from ..control.reference import make_reference
@@ -108,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
     log_rho0 = dist.log_prob(x0)
     ref_start = car.nominal_state(start.clone())  # the reference is the nominal (unbiased) trajectory
     reference = make_reference(car, ref_start, torch.as_tensor(params, dtype=dtype, device=device))
+    reference = _within_lateral_limit(car, reference, start_speed=args.start[3], default=args.params is None)
 
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -120,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         "log_rho": traj.log_rho.cpu().numpy(),
         "log_rho0": traj.log_rho0.cpu().numpy(),
         "x_ref": reference.x_plan.cpu().numpy(),
-        "params": params,
+        "params": reference.params.cpu().numpy(),  # as integrated (the built-in curve within the lateral limit)
     }
     atomic_save_npz(out / "density.npz", **arrays)
     from ..viz.density import plot_density_snapshots

@@ -241,6 +241,18 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         """``|omega|`` bound of the references at speed ``v`` (``config.turn_rate_limit``) [rad/s]."""
         return self.config.turn_rate_limit(v)
 
+    def segment_turn_rate_limits(self, x_ref: Tensor, steps_per_segment: int) -> Tensor:
+        """The turn-rate bound of each input segment of a reference roll-out ``x_ref (..., K + 1, nx)`` whose
+        segments last ``steps_per_segment`` fine steps: :meth:`turn_rate_limit` at the largest ``|v|`` over the
+        segment, its ends included (the bound falls with the speed), ``(..., K / steps_per_segment)`` [rad/s]. A
+        reference within it has ``|omega| <= turn_rate_limit(|v|)`` at every instant."""
+        m = int(steps_per_segment)
+        if m < 1 or (x_ref.shape[-2] - 1) % m:
+            raise ValueError(f"segment_turn_rate_limits: {x_ref.shape[-2] - 1} fine steps are not whole segments "
+                             f"of {steps_per_segment}")
+        v_seg = x_ref[..., V].abs().unfold(-1, m + 1, m).amax(-1)
+        return self.turn_rate_limit(v_seg)
+
     # ---------------------------------------------------------------- dynamics
     def drift(self, x: Tensor) -> Tensor:
         theta, v = x[..., THETA], x[..., V]
