@@ -313,7 +313,8 @@ def test_scheme_is_the_systems_own_unless_configured():
 @pytest.mark.parametrize("kwargs,match", [({"tolerance": 0.0}, "tolerance"), ({"tolerance": math.nan}, "tolerance"),
                                           ({"integrator": "rk45"}, "integrator"),
                                           ({"saturation_step": -1.0}, "saturation_step"),
-                                          ({"saturation_step": math.nan}, "saturation_step")])
+                                          ({"saturation_step": math.nan}, "saturation_step"),
+                                          ({"log_density_rule": "trapezoid"}, "log_density_rule")])
 def test_liouville_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LiouvilleConfig(**kwargs)
@@ -377,8 +378,10 @@ def test_saturation_step_resolves_a_fast_sweep_through_the_bend():
     """A highway reference (31.8 m/s, one of the random road references of docs/core.md) on which the learned
     controller's raw turn rate sweeps from deep in one tail through the linear band into the other within ~0.15 s:
     the divergence jumps from 6 to 14.5 /s and back within 50-ms bends. With ``saturation_step`` the default
-    "rk43" follows it to 0.02 nats; without, its error estimate sees no stage inside the bends and errs by > 0.2
-    nats, the fixed RK4 step by > 0.5."""
+    "rk43" follows it to 0.02 nats; without, the coupled rule's error estimate sees no stage inside the bends and
+    errs by > 0.2 nats, the fixed RK4 step by > 0.5. (Without the saturation step the quadrature rule controls
+    its own Simpson-against-trapezoid estimate, which catches these bends; on random draws it misses others,
+    docs/core.md.)"""
     from density_planner.control.registry import load_controller, model_set
 
     car = model_set("road").make_system()
@@ -396,8 +399,63 @@ def test_saturation_step_resolves_a_fast_sweep_through_the_bend():
 
     best = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("rk4", 0.01))
     assert error(LiouvilleConfig()) < 0.02
-    assert error(LiouvilleConfig(saturation_step=0.0)) > 0.2
+    assert error(LiouvilleConfig(log_density_rule="coupled")) < 0.02
+    assert error(LiouvilleConfig(saturation_step=0.0, log_density_rule="coupled")) > 0.2
+    assert error(LiouvilleConfig(saturation_step=0.0)) < 0.02
     assert error(LiouvilleConfig("rk4")) > 0.5
+
+
+def test_simpson_interpolation_integrates_a_quadratic_rate_exactly():
+    """The quadrature rule's output inside a step is the integral of the quadratic through the rates at theta =
+    0, 1/2, 1: exact for a quadratic rate (closed form), Simpson's value at theta = 1."""
+    from density_planner.density.liouville import _simpson_interpolate
+
+    a, b, c = 0.7, -2.0, 3.0  # rate r(s) = a + b s + c s^2 on [0, h]
+    h = torch.tensor([0.1, 0.05], dtype=torch.float64)
+    y0 = torch.tensor([1.5, -0.5], dtype=torch.float64)
+    rates = [a + b * f * h + c * (f * h) ** 2 for f in (0.0, 0.5, 1.0)]
+    for th in (0.0, 0.3, 0.5, 1.0):
+        theta = torch.full((2,), th, dtype=torch.float64)
+        s = th * h
+        exact = y0 + a * s + b * s ** 2 / 2 + c * s ** 3 / 3
+        torch.testing.assert_close(_simpson_interpolate(y0, None, rates, h, theta), exact)
+
+
+@pytest.mark.parametrize("speeds", [[5.0], [17.0, 33.0]])
+def test_quadrature_rule_agrees_with_the_coupled_rule_and_costs_fewer_tangents(speeds, monkeypatch):
+    """The default quadrature rule (divergence at the ends and the middle of a step only) and the coupled rule
+    (divergence at every stage) reach the same log-densities within their tolerance on the learned road closed
+    loop, while the quadrature evaluates the divergence (its two tangents) on fewer rows: per accepted step 2
+    instead of 4."""
+    from density_planner.density.closed_loop import ClosedLoop
+
+    car, controller, reference, x0 = _road_references(speeds, learned=True)
+    counts = {"div": 0, "field": 0}
+    with_div, field = ClosedLoop.rhs_divergence_with_raw, ClosedLoop.rhs_with_raw
+
+    def count_div(self, x, *args, **kwargs):
+        counts["div"] += x.shape[0]
+        return with_div(self, x, *args, **kwargs)
+
+    def count_field(self, x, *args, **kwargs):
+        counts["field"] += x.shape[0]
+        return field(self, x, *args, **kwargs)
+
+    monkeypatch.setattr(ClosedLoop, "rhs_divergence_with_raw", count_div)
+    monkeypatch.setattr(ClosedLoop, "rhs_with_raw", count_field)
+    fine = propagate_density(car, controller, x0, reference, config=LiouvilleConfig("rk4", 0.005))
+    runs = {}
+    for rule in ("quadrature", "coupled"):
+        counts.update(div=0, field=0)
+        runs[rule] = (propagate_density(car, controller, x0, reference,
+                                        config=LiouvilleConfig(log_density_rule=rule)), dict(counts))
+    (quad, n_quad), (coupled, n_coupled) = runs["quadrature"], runs["coupled"]
+    for out in (quad, coupled):
+        assert float((out.log_rho - fine.log_rho).abs().max()) < 0.03
+        assert float((out.x - fine.x).abs().max()) < 1e-2
+    torch.testing.assert_close(quad.x, coupled.x, atol=1e-3, rtol=0)  # the states' steps are alike
+    assert n_coupled["field"] == 0 and n_quad["field"] > 0
+    assert n_quad["div"] < 0.7 * n_coupled["div"]
 
 
 def test_error_control_refuses_what_needs_a_common_grid():

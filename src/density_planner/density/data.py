@@ -313,6 +313,7 @@ def _config_key(config: DensityDataConfig) -> str:
     if pair is None:
         d["liouville"].pop("tolerance", None)
         d["liouville"].pop("saturation_step", None)
+        d["liouville"].pop("log_density_rule", None)
     else:
         d["liouville"]["tolerance"] = config.liouville.tolerance_of(pair)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
