@@ -4,7 +4,11 @@ largest log-density error [nats] and wall time [s] (float32, one thread, inferen
 one batch; the table in docs/core.md, "Error control").
 
     python benchmarks/compare_liouville_schemes.py [--seed 0] [--schemes rk4,rk43,dopri5] [--saturation-step 2]
-                                                   [--tolerance TOL]
+                                                   [--tolerance TOL] [--rules quadrature,coupled]
+
+A scheme ``NAME:RULE`` (e.g. ``rk43:coupled``) names the error-controlled scheme's log-density rule
+(``LiouvilleConfig.log_density_rule``; default the configuration's, "quadrature"); ``--rules`` runs every
+error-controlled scheme with each rule.
 """
 
 from __future__ import annotations
@@ -31,7 +35,10 @@ def main() -> None:
     p.add_argument("--tolerance", type=float, default=None,
                    help="tolerance of the error-controlled schemes (default: each scheme's own)")
     p.add_argument("--saturation-step", type=float, default=None,
-                   help="LiouvilleConfig.saturation_step (default: the configuration's, 2; 0 turns it off)")
+                   help="LiouvilleConfig.saturation_step (default: the configuration's, 1; 0 turns it off)")
+    p.add_argument("--rules", default=None,
+                   help="comma-separated log-density rules run for every error-controlled scheme (default: the "
+                   "configuration's, quadrature)")
     args = p.parse_args()
     torch.set_num_threads(1)
     system = model_set("road").make_system()
@@ -46,8 +53,14 @@ def main() -> None:
     r32 = type(ref64)(ref64.params.float(), ref64.x.float(), ref64.u.float(), ref64.parameterization)
     c32 = copy.deepcopy(controller).float()
     extra = {} if args.saturation_step is None else {"saturation_step": args.saturation_step}
-    configs = {name: LiouvilleConfig(name, tolerance=args.tolerance, **extra)
-               for name in args.schemes.split(",")}
+    configs = {}
+    for spec in args.schemes.split(","):
+        name, _, rule = spec.partition(":")
+        fixed = name in ("euler", "rk4")
+        rules = [rule] if rule else (args.rules.split(",") if args.rules and not fixed else [None])
+        for r in rules:
+            kw = dict(extra, **({} if r is None else {"log_density_rule": r}))
+            configs[name if r is None else f"{name}:{r}"] = LiouvilleConfig(name, tolerance=args.tolerance, **kw)
 
     def run(sel, config):
         t0 = time.perf_counter()
@@ -67,7 +80,7 @@ def main() -> None:
             w, e = run(sel, config)
             totals[name] += w
             worst[name] = max(worst[name], e)
-            line += f" | {config.describe(system).split(' (')[0]} {e:.3f} nats {w:.2f} s"
+            line += f" | {name} {e:.3f} nats {w:.2f} s"
         print(line, flush=True)
     print(f"seed {args.seed} all: " + " | ".join(f"{n} {worst[n]:.3f} nats {totals[n]:.2f} s" for n in configs))
 

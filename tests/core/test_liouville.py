@@ -456,6 +456,10 @@ def test_quadrature_rule_agrees_with_the_coupled_rule_and_costs_fewer_tangents(s
     torch.testing.assert_close(quad.x, coupled.x, atol=1e-3, rtol=0)  # the states' steps are alike
     assert n_coupled["field"] == 0 and n_quad["field"] > 0
     assert n_quad["div"] < 0.7 * n_coupled["div"]
+    counts.update(div=0, field=0)  # the states alone (the planner's exact re-check): no divergence at all
+    _, x = simulate_closed_loop(car, controller, x0, reference)
+    assert counts["div"] == 0 and counts["field"] > 0
+    torch.testing.assert_close(x, quad.x)
 
 
 def test_error_control_refuses_what_needs_a_common_grid():

@@ -72,8 +72,10 @@ class LiouvilleConfig:
     #: step's two ends (the last stage, shared with the next step) and at its middle (the state there from the
     #: pair's continuous extension), so the other stages need the closed loop's field only, not its divergence
     #: (the divergence's two tangents are ~2/3 of an evaluation's cost); the step is controlled by the states'
-    #: error estimate and the saturation step. "coupled": the log-density as one more component of the pair,
-    #: with the divergence at every stage and its own error estimate (stop 55's scheme)
+    #: error estimate and the saturation step (without one, e.g. a hard clip, also by the log-density's own
+    #: estimate, Simpson's rule against the trapezoid's). "coupled": the log-density as one more component of the
+    #: pair, with the divergence at every stage and its own error estimate (stop 55's scheme). docs/core.md,
+    #: "Error control"
     log_density_rule: LogDensityRule = "quadrature"
 
     def __post_init__(self) -> None:
@@ -215,7 +217,10 @@ def _integrate_adaptive(
     (:meth:`~density_planner.control.base.SmoothSaturation.tail_span`, over the stages); else it is retried
     shorter. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
     Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
-    output times inside a step are read from the pair's continuous extension. Only rows still running are
+    output times inside a step are read from the pair's continuous extension. With ``config.log_density_rule =
+    "quadrature"`` the log-density follows Simpson's rule along each step (its divergence at the step's ends and
+    middle; the other stages evaluate the field only) and its values inside a step the integral of the quadratic
+    through those three rates (:func:`_simpson_interpolate`). Only rows still running are
     evaluated. The step sizes are chosen without gradient (as in any error-controlled solver) and the solution is
     differentiable along them: every update is out of place.
     """
@@ -282,7 +287,7 @@ def _integrate_adaptive(
             inner = quadrature and i < n_stages - 1
             y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a[:1] if quadrature
                                                                                               else y_a)]
-            k_i, u_last, z_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows, not inner)
+            k_i, u_last, z_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows, with_density and not inner)
             ks.append(k_i)
             z_lo, z_hi = torch.minimum(z_lo, z_last), torch.maximum(z_hi, z_last)
         y_new = y_i  # the last stage is evaluated at the propagated solution (its row of a is b)
