@@ -89,3 +89,18 @@ def test_continuous_extension_has_its_order(pair: EmbeddedPair, order: int):
     expected = 2.0 ** (order + 1)
     assert all(0.7 * expected < r < 1.4 * expected for r in ratios), (errors, ratios)
     assert math.isfinite(errors[-1]) and errors[-1] < 1e-6
+
+
+def test_midpoint_weights_are_a_continuous_extension_of_order_3():
+    """RK43's ``midpoint`` weights (RK4's stage-only extension at theta = 1/2, without the last stage) err by
+    ``O(h^4)`` at the step's middle: halving the step divides the error by about 16; the weights sum to 1/2."""
+    assert math.isclose(sum(RK43.midpoint), 0.5) and len(RK43.midpoint) == len(RK43.stages) - 1
+    assert DOPRI5.midpoint == ()  # its extension needs the last stage: the loop evaluates the middle after it
+    y0 = torch.tensor([1.0, 0.2], dtype=torch.float64)
+    errors = []
+    for h in (0.4, 0.2, 0.1):
+        _, ks = _step(RK43, y0, h)
+        mid = y0 + h * sum(w * k for w, k in zip(RK43.midpoint, ks))
+        errors.append(float((mid - _fine(y0, 0.5 * h)).abs().max()))
+    ratios = [errors[0] / errors[1], errors[1] / errors[2]]
+    assert all(0.7 * 16 < r < 1.4 * 16 for r in ratios), (errors, ratios)

@@ -92,6 +92,10 @@ class EmbeddedPair:
     #: default tolerance of the error-controlled loop (``LiouvilleConfig.tolerance = None``), measured in
     #: docs/core.md ("Error control")
     tolerance: float
+    #: weights ``w_i`` of a continuous extension at the step's middle from the stages before the last,
+    #: ``y(t + h / 2) = y + h sum_i w_i k_i`` (empty: none; the loop then uses :meth:`interpolate`, which needs the
+    #: last stage): the log-density's quadrature then evaluates the middle together with the last stage
+    midpoint: tuple[float, ...] = ()
 
     def interpolate(self, y0: Tensor, y1: Tensor, ks: Sequence[Tensor], h: Tensor, theta: Tensor) -> Tensor:
         """The solution at ``t + theta h`` inside a step from ``y0`` to ``y1`` with stages ``ks`` (first and last
@@ -142,6 +146,9 @@ RK43 = EmbeddedPair(
     (0.0, 0.0, 0.0, 1 / 6, -1 / 6),
     (0.0, 0.0, 0.0, 0.0, 0.0),
     3e-3,
+    # RK4's order-3 continuous extension at theta = 1/2 (Hairer, Norsett & Wanner I, II.6): b_1 = theta - 3
+    # theta^2 / 2 + 2 theta^3 / 3, b_2 = b_3 = theta^2 - 2 theta^3 / 3, b_4 = -theta^2 / 2 + 2 theta^3 / 3
+    (5 / 24, 1 / 6, 1 / 6, -1 / 24),
 )
 PAIRS = {"dopri5": DOPRI5, "rk43": RK43}
 

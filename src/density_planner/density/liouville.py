@@ -287,14 +287,25 @@ def _integrate_adaptive(
             inner = quadrature and i < n_stages - 1
             y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a[:1] if quadrature
                                                                                               else y_a)]
-            k_i, u_last, z_last = func(y_i, t_a + pair.stages[i] * h_a, left, rows, with_density and not inner)
+            t_i = t_a + pair.stages[i] * h_a
+            if quadrature and pair.midpoint and i == n_stages - 1:
+                # the step's middle from the stages so far, evaluated in one call with the last stage
+                x_mid = y_a[0] + _weighted(hd, pair.midpoint, [k[0] for k in ks])
+                n_a = len(active)
+                both, u_both, z_both = func([torch.cat([y_i[0], x_mid])], torch.cat([t_i, t_a + 0.5 * h_a]),
+                                            torch.cat([left, left]), torch.cat([rows, rows]), True)
+                k_i, k_mid = [k[:n_a] for k in both], [k[n_a:] for k in both]
+                u_last, z_last, z_mid = u_both[:n_a], z_both[:n_a], z_both[n_a:]
+            else:
+                k_i, u_last, z_last = func(y_i, t_i, left, rows, with_density and not inner)
             ks.append(k_i)
             z_lo, z_hi = torch.minimum(z_lo, z_last), torch.maximum(z_hi, z_last)
         y_new = y_i  # the last stage is evaluated at the propagated solution (its row of a is b)
         if quadrature:  # the divergence in the middle of the step, at the continuous extension's state there
-            half = torch.full_like(h_a, 0.5)
-            x_mid = pair.interpolate(y_a[0], y_new[0], [k[0] for k in ks], h_a, half)
-            k_mid, _, z_mid = func([x_mid], t_a + 0.5 * h_a, left, rows, True)
+            if not pair.midpoint:
+                half = torch.full_like(h_a, 0.5)
+                x_mid = pair.interpolate(y_a[0], y_new[0], [k[0] for k in ks], h_a, half)
+                k_mid, _, z_mid = func([x_mid], t_a + 0.5 * h_a, left, rows, True)
             z_lo, z_hi = torch.minimum(z_lo, z_mid), torch.maximum(z_hi, z_mid)
             d_ends = (ks[0][1], k_mid[1], ks[-1][1])  # d log rho / dt = -div at theta = 0, 1/2, 1
             y_new = [y_new[0], y_a[1] + _weighted(hd, (1 / 6, 2 / 3, 1 / 6), list(d_ends))]
