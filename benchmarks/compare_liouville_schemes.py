@@ -21,6 +21,7 @@ import torch
 
 from density_planner.control.registry import load_controller, model_set
 from density_planner.control.sampling import sample_feasible_references, sample_initial_errors
+from density_planner.density.integrators import PAIRS
 from density_planner.density.liouville import LiouvilleConfig, propagate_density
 
 #: bands of the references' top speed [m/s]
@@ -56,8 +57,7 @@ def main() -> None:
     configs = {}
     for spec in args.schemes.split(","):
         name, _, rule = spec.partition(":")
-        fixed = name in ("euler", "rk4")
-        rules = [rule] if rule else (args.rules.split(",") if args.rules and not fixed else [None])
+        rules = [rule] if rule else (args.rules.split(",") if args.rules and name in PAIRS else [None])
         for r in rules:
             kw = dict(extra, **({} if r is None else {"log_density_rule": r}))
             configs[name if r is None else f"{name}:{r}"] = LiouvilleConfig(name, tolerance=args.tolerance, **kw)

@@ -78,7 +78,7 @@ def _within_lateral_limit(car, reference, *, start_speed: float, default: bool):
         return reference
     if default:
         params = reference.params.clone()
-        params[i] = torch.maximum(torch.minimum(omega, limit), -limit)
+        params[i] = torch.clamp(omega, -limit, limit)
         return make_reference(car, reference.x[0], params, reference.parameterization)
     k = int(excess.argmax())
     print(f"density-planner: warning: --params turns at {float(omega[k].abs()):.3g} rad/s on segment {k} where the "
