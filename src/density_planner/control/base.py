@@ -12,6 +12,7 @@ default uses ``torch.func.jvp`` and learned controllers override it with a hand-
 
 from __future__ import annotations
 
+import functools
 import math
 from abc import abstractmethod
 from collections.abc import Sequence
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-__all__ = ["TrackingController", "SmoothSaturation", "soft_clip"]
+__all__ = ["TrackingController", "SmoothSaturation", "soft_clip", "soft_clip_value"]
 
 
 def soft_clip(z: Tensor, knee_lo: Tensor, knee_hi: Tensor, ceil_lo: Tensor, ceil_hi: Tensor
@@ -35,19 +36,44 @@ def soft_clip(z: Tensor, knee_lo: Tensor, knee_hi: Tensor, ceil_lo: Tensor, ceil
     Returns ``(s, ds/dz, ds/dknee, ds/dceil)``: the last two are the derivatives with respect to the bound that is
     active on each side (``knee_hi`` / ``ceil_hi`` above, ``knee_lo`` / ``ceil_lo`` below, zero inside).
     """
-    above, below = z > knee_hi, z < knee_lo
-    d_hi, d_lo = ceil_hi - knee_hi, knee_lo - ceil_lo
-    w_hi = torch.where(above, (z - knee_hi) / d_hi, torch.zeros_like(z))
-    w_lo = torch.where(below, (knee_lo - z) / d_lo, torch.zeros_like(z))
-    t_hi, t_lo = torch.tanh(w_hi), torch.tanh(w_lo)
-    g_hi, g_lo = 1.0 - t_hi * t_hi, 1.0 - t_lo * t_lo
-    s = torch.where(above, knee_hi + d_hi * t_hi, torch.where(below, knee_lo - d_lo * t_lo, z))
-    ds = torch.where(above, g_hi, torch.where(below, g_lo, torch.ones_like(z)))
-    # s = k + d tanh((z - k) / d) with d = c - k: ds/dk = 1 - t + g (w - 1), ds/dc = t - g w (both 0 at the knee)
-    dk = torch.where(above, 1.0 - t_hi + g_hi * (w_hi - 1.0),
-                     torch.where(below, 1.0 - t_lo + g_lo * (w_lo - 1.0), torch.zeros_like(z)))
-    dc = torch.where(above, t_hi - g_hi * w_hi, torch.where(below, t_lo - g_lo * w_lo, torch.zeros_like(z)))
+    s, (d_hi, w_hi, t_hi), (d_lo, w_lo, t_lo) = _soft_clip_parts(z, knee_lo, knee_hi, ceil_lo, ceil_hi)
+    q_hi, q_lo = t_hi * t_hi, t_lo * t_lo
+    g_hi, g_lo = 1.0 - q_hi, 1.0 - q_lo
+    ds = g_hi - q_lo  # 1 - tanh^2 of the side beyond its knee (one of t_hi, t_lo is zero), 1 inside
+    # s = k + d tanh((z - k) / d) with d = c - k: ds/dk = 1 - t + g (w - 1), ds/dc = t - g w; each side's terms are
+    # exactly zero where it is not beyond its knee (t = w = 0, g = 1), so their sum is the active side's
+    dk = (1.0 - t_hi + g_hi * (w_hi - 1.0)) + (1.0 - t_lo + g_lo * (w_lo - 1.0))
+    dc = (t_hi - g_hi * w_hi) + (t_lo - g_lo * w_lo)
     return s, ds, dk, dc
+
+
+def soft_clip_value(z: Tensor, knee_lo: Tensor, knee_hi: Tensor, ceil_lo: Tensor, ceil_hi: Tensor) -> Tensor:
+    """The value of :func:`soft_clip` alone (the same bits; a third of its operations)."""
+    return _soft_clip_parts(z, knee_lo, knee_hi, ceil_lo, ceil_hi)[0]
+
+
+def _soft_clip_parts(z: Tensor, knee_lo: Tensor, knee_hi: Tensor, ceil_lo: Tensor, ceil_hi: Tensor
+                     ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+    """``s`` of :func:`soft_clip` and, per side, its tail's width ``d``, the scaled excess ``w`` over the knee (zero
+    where the side is not beyond it) and ``tanh(w)``: branch-free, the clamp's identity inside plus each side's
+    tail (zero where the side is not beyond its knee)."""
+    d_hi, d_lo = ceil_hi - knee_hi, knee_lo - ceil_lo
+    w_hi, w_lo = torch.relu((z - knee_hi) / d_hi), torch.relu((knee_lo - z) / d_lo)
+    t_hi, t_lo = torch.tanh(w_hi), torch.tanh(w_lo)
+    s = torch.clamp(z, knee_lo, knee_hi) + d_hi * t_hi - d_lo * t_lo
+    return s, (d_hi, w_hi, t_hi), (d_lo, w_lo, t_lo)
+
+
+@functools.lru_cache(maxsize=64)
+def _box_tensors(bounds: tuple[tuple[float, ...], ...], turn_index: int | None, dtype: torch.dtype,
+                 device: torch.device) -> tuple[Tensor, ...]:
+    """The constant bounds as tensors ``(nu,)`` of a dtype and device, and the turn channel's mask (cached: the
+    closed loop asks for them at every evaluation)."""
+    out = tuple(torch.tensor(b, dtype=dtype, device=device) for b in bounds)
+    mask = torch.zeros(len(bounds[0]), dtype=torch.bool, device=device)
+    if turn_index is not None:
+        mask[turn_index] = True
+    return (*out, mask)
 
 
 @dataclass(frozen=True)
@@ -86,51 +112,50 @@ class SmoothSaturation:
     def speed_dependent(self) -> bool:
         return math.isfinite(self.lateral_accel_max)
 
+    def _box(self, like: Tensor) -> tuple[Tensor, ...]:
+        """The constant bounds ``(k_lo, k_hi, c_lo, c_hi)`` as ``(nu,)`` tensors and the turn channel's mask."""
+        return _box_tensors((self.input_min, self.input_max, self.actuator_min, self.actuator_max),
+                            self.turn_index if self.speed_dependent else None, like.dtype, like.device)
+
+    def _bounds_pair(self, lo: Tensor, hi: Tensor, turn: Tensor, x_hat: Tensor, omega_max: float, a_lat: float
+                     ) -> tuple[Tensor, Tensor]:
+        """One pair of bounds (knees or ceilings), the turn channel's from the speed: ``+-L(v)``."""
+        if not self.speed_dependent:
+            return lo, hi
+        lim = _turn_limit(x_hat[..., self.speed_index].unsqueeze(-1), omega_max, a_lat)[0]
+        return torch.where(turn, -lim, lo), torch.where(turn, lim, hi)
+
+    def _knees(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, Tensor]:
+        k_lo, k_hi, _, _, turn = self._box(u)
+        return self._bounds_pair(k_lo, k_hi, turn, x_hat, self.input_max[self.turn_index], self.lateral_accel_max)
+
+    def _ceilings(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, Tensor]:
+        _, _, c_lo, c_hi, turn = self._box(u)
+        return self._bounds_pair(c_lo, c_hi, turn, x_hat, self.actuator_max[self.turn_index],
+                                 self.actuator_lateral_accel_max)
+
     def _limits(self, u: Tensor, x_hat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
-        """Knee and ceiling bounds ``(*batch, nu)`` and their derivatives w.r.t. the speed (turn channel)."""
-        def vec(values):
-            return torch.as_tensor(values, dtype=u.dtype, device=u.device)
+        """Knee and ceiling bounds (broadcasting with ``u (*batch, nu)``) and their derivatives w.r.t. the speed
+        (turn channel; ``None`` without a speed dependence)."""
+        k_lo, k_hi, c_lo, c_hi, turn = self._box(u)
+        if not self.speed_dependent:
+            return k_lo, k_hi, c_lo, c_hi, None, None
+        v = x_hat[..., self.speed_index].unsqueeze(-1)
+        i = self.turn_index
+        k, dk = _turn_limit_and_slope(v, self.input_max[i], self.lateral_accel_max)
+        c, dc = _turn_limit_and_slope(v, self.actuator_max[i], self.actuator_lateral_accel_max)
+        # the turn channel is symmetric: its lower bounds are the negated upper ones
+        return (torch.where(turn, -k, k_lo), torch.where(turn, k, k_hi), torch.where(turn, -c, c_lo),
+                torch.where(turn, c, c_hi), dk[..., 0], dc[..., 0])
 
-        k_lo, k_hi, c_lo, c_hi = (vec(b) for b in (self.input_min, self.input_max, self.actuator_min,
-                                                   self.actuator_max))
-        shape = u.shape
-        k_hi, c_hi = k_hi.expand(shape), c_hi.expand(shape)
-        dk = dc = None
-        if self.speed_dependent:
-            v = x_hat[..., self.speed_index]
-            v = v.expand(shape[:-1]) if v.shape != shape[:-1] else v
-            k, dk = _turn_limit_and_slope(v, self.input_max[self.turn_index], self.lateral_accel_max)
-            c, dc = _turn_limit_and_slope(v, self.actuator_max[self.turn_index], self.actuator_lateral_accel_max)
-            i = self.turn_index
-            k_hi = torch.cat([k_hi[..., :i], k.unsqueeze(-1), k_hi[..., i + 1:]], dim=-1)
-            c_hi = torch.cat([c_hi[..., :i], c.unsqueeze(-1), c_hi[..., i + 1:]], dim=-1)
-            mirror = torch.zeros(shape[-1], dtype=u.dtype, device=u.device)
-            mirror[i] = 1.0
-            # the turn channel is symmetric: lower bounds are the negated upper ones
-            k_lo = torch.where(mirror.bool(), -k_hi, k_lo.expand(shape))
-            c_lo = torch.where(mirror.bool(), -c_hi, c_lo.expand(shape))
-        else:
-            k_lo, c_lo = k_lo.expand(shape), c_lo.expand(shape)
-        return k_lo, k_hi, c_lo, c_hi, dk, dc
-
-    def beyond_knees(self, u: Tensor, x_hat: Tensor) -> bool:
-        """Whether any input of ``u (*batch, nu)`` lies outside the reference box (the knees :meth:`_limits` gives,
+    def beyond_knees(self, u: Tensor, x_hat: Tensor, knees: tuple[Tensor, Tensor] | None = None) -> bool:
+        """Whether any input of ``u (*batch, nu)`` lies outside the reference box (the knees ``(k_lo, k_hi)``,
         compared as :func:`soft_clip` compares them). Where none does, the saturation is the identity with unit
         derivative and zero derivatives with respect to the bounds: :meth:`__call__` and :meth:`with_tangents` then
-        return their inputs (the same values as the whole computation), skipping its ~60 tensor operations (most
-        steps of a closed loop that tracks its reference; the exact Liouville's time is mostly such operations)."""
-        lo = torch.as_tensor(self.input_min, dtype=u.dtype, device=u.device)
-        hi = torch.as_tensor(self.input_max, dtype=u.dtype, device=u.device)
-        # the constant box first: on a speed-dependent turn channel its bounds lie beyond the knee (+-L(v), L(v) <=
-        # input_max; exact for the symmetric box the knee mirrors), and a crossing reported where the knee is not
-        # crossed only sends the batch to the whole computation, which is always exact
-        outside = bool(((u > hi) | (u < lo)).any())
-        if outside or not self.speed_dependent:
-            return outside
-        i = self.turn_index
-        k = _turn_limit(x_hat[..., self.speed_index], self.input_max[i], self.lateral_accel_max)[0]
-        turn = u[..., i]
-        return bool(((turn > k) | (turn < -k)).any())
+        return their inputs (the same values as the whole computation), skipping its tensor operations (most
+        steps of a closed loop that tracks its reference)."""
+        k_lo, k_hi = self._knees(u, x_hat) if knees is None else knees
+        return bool(((u > k_hi) | (u < k_lo)).any())
 
     def tail_span(self, z_lo: Tensor, z_hi: Tensor, x_hat: Tensor) -> Tensor:
         """How far the raw input moves through the curved part of the saturation over a stretch of time.
@@ -142,7 +167,7 @@ class SmoothSaturation:
         ``(z_hi - z_lo) / d`` over the channels whose span meets a curved part, zero where none does. An
         integrator that keeps it below ~1 per step resolves the saturation's bend however fast the raw input
         sweeps through it (docs/core.md)."""
-        k_lo, k_hi, c_lo, c_hi = self._limits(z_hi, x_hat)[:4]
+        (k_lo, k_hi), (c_lo, c_hi) = self._knees(z_hi, x_hat), self._ceilings(z_hi, x_hat)
         d_hi, d_lo = c_hi - k_hi, k_lo - c_lo
         span = z_hi - z_lo
         hit_hi = (z_hi >= k_hi) & (z_lo <= k_hi + 3.0 * d_hi)
@@ -152,29 +177,28 @@ class SmoothSaturation:
         return ratio.amax(-1)
 
     def __call__(self, u: Tensor, x_hat: Tensor) -> Tensor:
-        if not self.beyond_knees(u, x_hat):
+        knees = self._knees(u, x_hat)
+        if not self.beyond_knees(u, x_hat, knees):  # the identity
             return u
-        return soft_clip(u, *self._limits(u, x_hat)[:4])[0]
+        return soft_clip_value(u, *knees, *self._ceilings(u, x_hat))
 
     def with_tangents(self, u: Tensor, du: Tensor, x_hat: Tensor, dx_hat: Tensor) -> tuple[Tensor, Tensor]:
         """Saturated ``u`` and its tangents from those of the raw law ``du (K, *batch, nu)`` and of the measured
         state ``dx_hat (K, *batch, nx)`` (through the speed-dependent turn-rate box)."""
-        if not self.beyond_knees(u, x_hat):  # the identity: du as the whole computation shapes it (a view)
-            return u, du.expand(torch.broadcast_shapes(du.shape, u.shape))
         k_lo, k_hi, c_lo, c_hi, dk, dc = self._limits(u, x_hat)
+        if not self.beyond_knees(u, x_hat, (k_lo, k_hi)):  # the identity: du as the whole computation shapes it
+            return u, du.expand(torch.broadcast_shapes(du.shape, u.shape))
         s, ds, dsk, dsc = soft_clip(u, k_lo, k_hi, c_lo, c_hi)
         out = ds * du
         if dk is not None:
             assert dc is not None  # both turn-rate slopes exist together (_limits)
             i = self.turn_index
             # bounds of the turn channel: +-k(v), +-c(v); above the knee d s / d v = dsk k' + dsc c', below the
-            # mirrored bounds move with -k', -c'
-            sign = torch.where(u[..., i] < 0, -torch.ones_like(dk), torch.ones_like(dk))
-            slope = sign * (dsk[..., i] * dk + dsc[..., i] * dc)
-            dv = dx_hat[..., self.speed_index]
-            extra = torch.zeros_like(out)
-            extra[..., i] = slope * dv
-            out = out + extra
+            # mirrored bounds move with -k', -c' (dsk = dsc = 0 inside)
+            slope = dsk[..., i] * dk + dsc[..., i] * dc
+            slope = torch.where(u[..., i] < 0, -slope, slope)
+            turn = self._box(u)[-1]
+            out = out + torch.where(turn, (slope * dx_hat[..., self.speed_index]).unsqueeze(-1), 0.0)
         return s, out
 
 

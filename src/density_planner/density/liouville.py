@@ -246,18 +246,18 @@ def _integrate_adaptive(
     # the log-density by Simpson's rule along the states' steps: the divergence at the ends and the middle only
     quadrature = with_density and config.log_density_rule == "quadrature"
 
-    def func(ys, t, left, rows, divergence=with_density):
-        x_ref, u_ref = flat_ref.values_at(rows, t, left)
+    def func(ys, refs, divergence=with_density):
+        x_ref, u_ref = refs
         if divergence:
             dx, div, raw = closed_loop.rhs_divergence_with_raw(ys[0], x_ref, u_ref, method)
-            return [dx, -div], u_ref, raw.detach()
+            return [dx, -div], raw.detach()
         dx, raw = closed_loop.rhs_with_raw(ys[0], x_ref, u_ref)
-        return [dx], u_ref, raw.detach()
+        return [dx], raw.detach()
 
     t = torch.zeros(m, dtype=torch.float64, device=device)
     h = torch.full((m,), config.dt, dtype=torch.float64, device=device)
     k_next = torch.ones(m, dtype=torch.long, device=device)  # index of the next output time per row
-    k1, _, z1 = func(y, t, False, ref_rows)
+    k1, z1 = func(y, flat_ref.values_at(ref_rows, t, False))
     out_rows: list[Tensor] = []
     out_k: list[Tensor] = []
     out_vals: list[list[Tensor]] = [[] for _ in y]
@@ -280,24 +280,31 @@ def _integrate_adaptive(
         ks = [[k.index_select(0, active) for k in k1]]
         z_lo = z_hi = z1.index_select(0, active)
         left = torch.ones_like(active, dtype=torch.bool)
-        u_last = z_last = None
+        refs_at: dict[float, tuple[Tensor, Tensor]] = {}
+
+        def refs(c: float) -> tuple[Tensor, Tensor]:
+            """The reference at the step's fraction ``c`` (its left limit), once per fraction (stages share them)."""
+            if c not in refs_at:
+                refs_at[c] = flat_ref.values_at(rows, t_a + c * h_a, left)
+            return refs_at[c]
+
+        z_last = None
         n_stages = len(pair.stages)
         for i in range(1, n_stages):
             # with the quadrature the stages before the last propagate the states only (no divergence)
             inner = quadrature and i < n_stages - 1
             y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a[:1] if quadrature
                                                                                               else y_a)]
-            t_i = t_a + pair.stages[i] * h_a
             if quadrature and pair.midpoint and i == n_stages - 1:
                 # the step's middle from the stages so far, evaluated in one call with the last stage
                 x_mid = y_a[0] + _weighted(hd, pair.midpoint, [k[0] for k in ks])
                 n_a = len(active)
-                both, u_both, z_both = func([torch.cat([y_i[0], x_mid])], torch.cat([t_i, t_a + 0.5 * h_a]),
-                                            torch.cat([left, left]), torch.cat([rows, rows]), True)
+                both, z_both = func([torch.cat([y_i[0], x_mid])],
+                                    [torch.cat(v) for v in zip(refs(pair.stages[i]), refs(0.5))], True)
                 k_i, k_mid = [k[:n_a] for k in both], [k[n_a:] for k in both]
-                u_last, z_last, z_mid = u_both[:n_a], z_both[:n_a], z_both[n_a:]
+                z_last, z_mid = z_both[:n_a], z_both[n_a:]
             else:
-                k_i, u_last, z_last = func(y_i, t_i, left, rows, with_density and not inner)
+                k_i, z_last = func(y_i, refs(pair.stages[i]), with_density and not inner)
             ks.append(k_i)
             z_lo, z_hi = torch.minimum(z_lo, z_last), torch.maximum(z_hi, z_last)
         y_new = y_i  # the last stage is evaluated at the propagated solution (its row of a is b)
@@ -305,7 +312,7 @@ def _integrate_adaptive(
             if not pair.midpoint:
                 half = torch.full_like(h_a, 0.5)
                 x_mid = pair.interpolate(y_a[0], y_new[0], [k[0] for k in ks], h_a, half)
-                k_mid, _, z_mid = func([x_mid], t_a + 0.5 * h_a, left, rows, True)
+                k_mid, z_mid = func([x_mid], refs(0.5), True)
             z_lo, z_hi = torch.minimum(z_lo, z_mid), torch.maximum(z_hi, z_mid)
             d_ends = (ks[0][1], k_mid[1], ks[-1][1])  # d log rho / dt = -div at theta = 0, 1/2, 1
             y_new = [y_new[0], y_a[1] + _weighted(hd, (1 / 6, 2 / 3, 1 / 6), list(d_ends))]
@@ -361,14 +368,14 @@ def _integrate_adaptive(
             t = t.index_put((acc,), t_acc)
             y = [v.index_put((acc,), vn) for v, vn in zip(y, y1_acc)]
             k1 = [k.index_put((acc,), stages[-1]) for k, stages in zip(k1, ks_acc)]
-            assert u_last is not None and z_last is not None
+            assert z_last is not None
             z1 = z1.index_put((acc,), pick(z_last))
-            # where the input switches at the new time, the next step's first stage takes its right limit
-            _, u_right = flat_ref.values_at(ref_rows.index_select(0, acc), t_acc, False)
-            switched = acc[(u_right != pick(u_last)).any(-1) & (t_acc < horizon - eps)]
+            # where the input switches at the new time (the step landed on its stop, a switch of the table short of
+            # the horizon), the next step's first stage takes its right limit
+            switched = acc[(t_acc == t_stop_acc) & (t_acc < horizon - eps)]
             if switched.numel():
-                k_sw, _, z_sw = func([v.index_select(0, switched) for v in y], t.index_select(0, switched), False,
-                                     ref_rows[switched])
+                k_sw, z_sw = func([v.index_select(0, switched) for v in y],
+                                  flat_ref.values_at(ref_rows[switched], t.index_select(0, switched), False))
                 k1 = [k.index_put((switched,), kn) for k, kn in zip(k1, k_sw)]
                 z1 = z1.index_put((switched,), z_sw)
         active = active[t[active] < horizon - eps]
