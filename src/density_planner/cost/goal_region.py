@@ -25,9 +25,10 @@ clock as the collision term), so the term needs no extra inputs. Like :class:`~d
 it takes a ``far_factor`` applied while ``J_G >= close_threshold`` during optimisation.
 
 ``margin`` shrinks the region for the cost (not for the verdict): shapes are eroded by up to ``margin`` [m] (less
-where a shape is too thin to keep a core), and speed / heading intervals by up to a quarter of their width (at
-most ``margin`` m/s and ``margin / 10`` rad), so that a plan the optimiser brings to zero cost lies inside the
-true region with room for the vehicle's tracking error rather than on its boundary. ``time_margin`` [s] does the
+where a shape is too thin to keep a core), a speed interval at each end by up to a quarter of its width (at most
+``margin`` m/s) and a heading interval at each end by up to an eighth of its width (at most ``margin / 10`` rad), so
+that a plan the optimiser brings to zero cost lies inside the true region with room for the vehicle's tracking
+error rather than on its boundary. ``time_margin`` [s] does the
 same for the time interval: ``[t_lo + m, t_hi - m]`` with ``m = min(time_margin, (t_hi - t_lo) / 4)`` (an instant
 stays an instant), so that an execution that arrives a little late or leaves a little early is still inside it.
 

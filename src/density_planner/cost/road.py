@@ -89,8 +89,9 @@ class RoadCostConfig:
     #: verdict found colliding had P_coll max ~1 (32 of 34). Measured on the suite (docs/history.md, stop 22):
     #: 0.1 / 1 / 10 gave 25 / 26 / 26 successes, 35 / 37 / 46 collision-free runs, mean P_coll max 0.51 / 0.48 / 0.36
     collision_weight: float | None = 10.0
-    #: the region is shrunk by up to this much for the cost [m] (speed / heading by a quarter of their width at
-    #: most), so that plans end inside with room for tracking errors
+    #: the region is shrunk by up to this much for the cost [m] (a speed interval at each end by a quarter of its
+    #: width at most, a heading interval by an eighth and at most a tenth of this in rad), so that plans end inside
+    #: with room for tracking errors
     goal_margin: float = 0.5
     #: the goal's time interval is shrunk by up to this much at both ends for the cost [s] (a quarter of its width at
     #: most; an instant stays an instant), so that executions a little early or late still meet it
