@@ -280,13 +280,10 @@ def _integrate_adaptive(
         ks = [[k.index_select(0, active) for k in k1]]
         z_lo = z_hi = z1.index_select(0, active)
         left = torch.ones_like(active, dtype=torch.bool)
-        refs_at: dict[float, tuple[Tensor, Tensor]] = {}
-
-        def refs(c: float) -> tuple[Tensor, Tensor]:
-            """The reference at the step's fraction ``c`` (its left limit), once per fraction (stages share them)."""
-            if c not in refs_at:
-                refs_at[c] = flat_ref.values_at(rows, t_a + c * h_a, left)
-            return refs_at[c]
+        # the reference (its left limits) once per fraction of the step at which a stage or the middle is evaluated
+        # (RK4's second and third stages and the middle share t + h/2, its last two stages t + h)
+        refs = {c: flat_ref.values_at(rows, t_a + c * h_a, left)
+                for c in sorted(set(pair.stages[1:]) | ({0.5} if quadrature else set()))}
 
         z_last = None
         n_stages = len(pair.stages)
@@ -300,11 +297,11 @@ def _integrate_adaptive(
                 x_mid = y_a[0] + _weighted(hd, pair.midpoint, [k[0] for k in ks])
                 n_a = len(active)
                 both, z_both = func([torch.cat([y_i[0], x_mid])],
-                                    [torch.cat(v) for v in zip(refs(pair.stages[i]), refs(0.5))], True)
+                                    [torch.cat(v) for v in zip(refs[pair.stages[i]], refs[0.5])], True)
                 k_i, k_mid = [k[:n_a] for k in both], [k[n_a:] for k in both]
                 z_last, z_mid = z_both[:n_a], z_both[n_a:]
             else:
-                k_i, z_last = func(y_i, refs(pair.stages[i]), with_density and not inner)
+                k_i, z_last = func(y_i, refs[pair.stages[i]], with_density and not inner)
             ks.append(k_i)
             z_lo, z_hi = torch.minimum(z_lo, z_last), torch.maximum(z_hi, z_last)
         y_new = y_i  # the last stage is evaluated at the propagated solution (its row of a is b)
@@ -312,7 +309,7 @@ def _integrate_adaptive(
             if not pair.midpoint:
                 half = torch.full_like(h_a, 0.5)
                 x_mid = pair.interpolate(y_a[0], y_new[0], [k[0] for k in ks], h_a, half)
-                k_mid, z_mid = func([x_mid], refs(0.5), True)
+                k_mid, z_mid = func([x_mid], refs[0.5], True)
             z_lo, z_hi = torch.minimum(z_lo, z_mid), torch.maximum(z_hi, z_mid)
             d_ends = (ks[0][1], k_mid[1], ks[-1][1])  # d log rho / dt = -div at theta = 0, 1/2, 1
             y_new = [y_new[0], y_a[1] + _weighted(hd, (1 / 6, 2 / 3, 1 / 6), list(d_ends))]
