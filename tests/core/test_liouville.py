@@ -453,7 +453,8 @@ def test_quadrature_rule_agrees_with_the_coupled_rule_and_costs_fewer_tangents(s
     for out in (quad, coupled):
         assert float((out.log_rho - fine.log_rho).abs().max()) < 0.03
         assert float((out.x - fine.x).abs().max()) < 1e-2
-    torch.testing.assert_close(quad.x, coupled.x, atol=1e-3, rtol=0)  # the states' steps are alike
+    # the states' steps are alike (not equal: the coupled rule's error estimate also controls the log-density)
+    torch.testing.assert_close(quad.x, coupled.x, atol=2e-3, rtol=0)
     assert n_coupled["field"] == 0 and n_quad["field"] > 0
     assert n_quad["div"] < 0.7 * n_coupled["div"]
     counts.update(div=0, field=0)  # the states alone (the planner's exact re-check): no divergence at all

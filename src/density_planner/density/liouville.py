@@ -64,9 +64,11 @@ class LiouvilleConfig:
     #: 5e-5 for "dopri5")
     tolerance: float | None = None
     #: error-controlled, with a smooth saturation: largest move of the controller's raw input through the
-    #: saturation's bend per step, in widths of its tail (:meth:`SmoothSaturation.tail_span`); 0 leaves the bend to
-    #: the error estimate alone, whose stages can straddle a fast sweep through it (docs/core.md, "Error control")
-    saturation_step: float = 1.0
+    #: saturation's bend per step, in widths of its tail (:meth:`SmoothSaturation.tail_span`), checked over the
+    #: step's stages and, before the step, on the move extrapolated at the last step's rate (a step shortened before
+    #: a bend rather than rejected in it); 0 leaves the bend to the error estimate alone, whose stages can straddle
+    #: a fast sweep through it (docs/core.md, "Error control"; 1 until stop 56, when steps were only rejected)
+    saturation_step: float = 2.0
     #: error-controlled, with the log-density: how it is integrated. "quadrature" (default): as the integral it is,
     #: ``log rho(t + h) = log rho(t) - h (d_0 + 4 d_m + d_1) / 6`` (Simpson's rule) with the divergence ``d`` at the
     #: step's two ends (the last stage, shared with the next step) and at its middle (the state there from the
@@ -215,7 +217,8 @@ def _integrate_adaptive(
     component is at most the tolerance and, with a smooth saturation, where the controller's raw input
     moves by at most ``config.saturation_step`` tail widths through the saturation's bend
     (:meth:`~density_planner.control.base.SmoothSaturation.tail_span`, over the stages); else it is retried
-    shorter. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
+    shorter. A proposed step whose raw input, extrapolated at the last accepted step's rate, would move further
+    through the bend is shortened before it is tried. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
     Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
     output times inside a step are read from the pair's continuous extension. With ``config.log_density_rule =
     "quadrature"`` the log-density follows Simpson's rule along each step (its divergence at the step's ends and
@@ -258,6 +261,7 @@ def _integrate_adaptive(
     h = torch.full((m,), config.dt, dtype=torch.float64, device=device)
     k_next = torch.ones(m, dtype=torch.long, device=device)  # index of the next output time per row
     k1, z1 = func(y, flat_ref.values_at(ref_rows, t, False))
+    z_rate = torch.zeros_like(z1)
     out_rows: list[Tensor] = []
     out_k: list[Tensor] = []
     out_vals: list[list[Tensor]] = [[] for _ in y]
@@ -266,6 +270,17 @@ def _integrate_adaptive(
         rows = ref_rows[active]
         t_a = t[active]
         h_prop = h[active]
+        y_a = [v.index_select(0, active) for v in y]
+        if resolve:
+            # the saturation step, looking ahead: the raw input's move over the proposed step, extrapolated at the last
+            # accepted step's rate, may cross the saturation's bend by at most saturation_step tail widths (a step
+            # shortened before it reaches a bend instead of rejected in it)
+            z0 = z1.index_select(0, active)
+            z_end = z0 + z_rate.index_select(0, active) * h_prop.to(z0.dtype).unsqueeze(-1)
+            ahead = controller.tail_span(torch.minimum(z0, z_end), torch.maximum(z0, z_end),
+                                         system.measure(y_a[0]).detach()).to(torch.float64)
+            h_prop = torch.where(ahead > config.saturation_step,
+                                 h_prop * (_SAFETY * config.saturation_step / ahead.clamp(min=1e-12)), h_prop)
         t_stop = torch.clamp(flat_ref.next_switch(switches, rows, t_a), max=horizon)
         # land on the stop in equal steps no longer than the proposal (no sliver of a step before a switch)
         gap = t_stop - t_a
@@ -276,7 +291,6 @@ def _integrate_adaptive(
                 "integrable there); check the initial states and the reference, or use a fixed step "
                 "(LiouvilleConfig(integrator='rk4'))")
         hd = h_a.to(x0.dtype)
-        y_a = [v.index_select(0, active) for v in y]
         ks = [[k.index_select(0, active) for k in k1]]
         z_lo = z_hi = z1.index_select(0, active)
         left = torch.ones_like(active, dtype=torch.bool)
@@ -366,6 +380,9 @@ def _integrate_adaptive(
             y = [v.index_put((acc,), vn) for v, vn in zip(y, y1_acc)]
             k1 = [k.index_put((acc,), stages[-1]) for k, stages in zip(k1, ks_acc)]
             assert z_last is not None
+            if resolve:  # the raw input's rate over the accepted step, for the next step's look ahead
+                z_rate = z_rate.index_put((acc,), (pick(z_last) - z1.index_select(0, acc))
+                                          / h_acc.to(z1.dtype).unsqueeze(-1))
             z1 = z1.index_put((acc,), pick(z_last))
             # where the input switches at the new time (the step landed on its stop, a switch of the table short of
             # the horizon), the next step's first stage takes its right limit
