@@ -218,7 +218,8 @@ def _integrate_adaptive(
     moves by at most ``config.saturation_step`` tail widths through the saturation's bend
     (:meth:`~density_planner.control.base.SmoothSaturation.tail_span`, over the stages); else it is retried
     shorter. A proposed step whose raw input, extrapolated at the last accepted step's rate, would move further
-    through the bend is shortened before it is tried. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x longer, 5x shorter, and ``config.dt``).
+    through the bend is shortened before it is tried. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x
+    longer, 5x shorter, and ``config.dt``).
     Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
     output times inside a step are read from the pair's continuous extension. With ``config.log_density_rule =
     "quadrature"`` the log-density follows Simpson's rule along each step (its divergence at the step's ends and
