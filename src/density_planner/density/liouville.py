@@ -279,7 +279,9 @@ def _integrate_adaptive(
             z0 = z1.index_select(0, active)
             z_end = z0 + z_rate.index_select(0, active) * h_prop.to(z0.dtype).unsqueeze(-1)
             ahead = controller.tail_span(torch.minimum(z0, z_end), torch.maximum(z0, z_end),
-                                         system.measure(y_a[0]).detach()).to(torch.float64)
+                                         system.measure(y_a[0]).detach())
+            assert ahead is not None  # resolve: the controller has a smooth saturation
+            ahead = ahead.to(torch.float64)
             h_prop = torch.where(ahead > config.saturation_step,
                                  h_prop * (_SAFETY * config.saturation_step / ahead.clamp(min=1e-12)), h_prop)
         t_stop = torch.clamp(flat_ref.next_switch(switches, rows, t_a), max=horizon)
