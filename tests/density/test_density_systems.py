@@ -141,8 +141,9 @@ def test_ks_data_config_uses_the_systems_boxes():
     assert _config_key(DensityDataConfig()) == "03e6519196587f80"
     road = DensityDataConfig(domain="road", start_low=(-10, -10, -3.14159, 0.5, 0), start_high=(10, 10, 3.14159, 38, 0))
     # the road set is integrated with the error-controlled rk43 (its domain's scheme): other data, another key;
-    # with RK4 named, the key of the fixed-step data written before (stop 55's coupled rule: 68cfce0803b3b2a0)
-    assert _config_key(road) == "161842d135d777e6"
+    # with RK4 named, the key of the fixed-step data written before (stop 55's coupled rule: 68cfce0803b3b2a0, stop
+    # 56's saturation step of 1 tail width: 161842d135d777e6)
+    assert _config_key(road) == "593e77e11ac2c50c"
     coupled = replace(road, liouville=LiouvilleConfig(log_density_rule="coupled"))
     assert _config_key(coupled) != _config_key(road)
     fixed = replace(road, liouville=LiouvilleConfig(integrator="rk4"))
