@@ -76,7 +76,7 @@ def test_density_cli_names_the_scheme(tmp_path, capsys):
     RK4 at 0.1 s; ``--integrator`` / ``--tolerance`` choose."""
     assert main(["density", "--models", "road", "--start", "0", "0", "0", "30", "--samples", "4", "--params",
                  str(_zero_params(tmp_path)), "--out", str(tmp_path / "fast")]) == 0
-    assert "rk43 (error-controlled, tolerance 0.003, steps <= 0.1 s, saturation step 1)" in capsys.readouterr().out
+    assert "rk43 (error-controlled, tolerance 0.003, steps <= 0.1 s, saturation step 2)" in capsys.readouterr().out
     assert main(["density", "--samples", "4", "--out", str(tmp_path / "slow")]) == 0
     assert "(rk4 at 0.1 s)" in capsys.readouterr().out
     assert main(["density", "--samples", "4", "--integrator", "dopri5", "--tolerance", "1e-6",
