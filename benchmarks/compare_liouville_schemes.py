@@ -36,7 +36,7 @@ def main() -> None:
     p.add_argument("--tolerance", type=float, default=None,
                    help="tolerance of the error-controlled schemes (default: each scheme's own)")
     p.add_argument("--saturation-step", type=float, default=None,
-                   help="LiouvilleConfig.saturation_step (default: the configuration's, 1; 0 turns it off)")
+                   help="LiouvilleConfig.saturation_step (default: the configuration's, 2; 0 turns it off)")
     p.add_argument("--rules", default=None,
                    help="comma-separated log-density rules run for every error-controlled scheme (default: the "
                    "configuration's, quadrature)")

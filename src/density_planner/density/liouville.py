@@ -272,14 +272,14 @@ def _integrate_adaptive(
         t_a = t[active]
         h_prop = h[active]
         y_a = [v.index_select(0, active) for v in y]
+        z0 = z1.index_select(0, active)
         if resolve:
+            x_hat_a = system.measure(y_a[0]).detach()  # sets the saturation's bounds (look-ahead and span)
             # the saturation step, looking ahead: the raw input's move over the proposed step, extrapolated at the last
             # accepted step's rate, may cross the saturation's bend by at most saturation_step tail widths (a step
             # shortened before it reaches a bend instead of rejected in it)
-            z0 = z1.index_select(0, active)
             z_end = z0 + z_rate.index_select(0, active) * h_prop.to(z0.dtype).unsqueeze(-1)
-            ahead = controller.tail_span(torch.minimum(z0, z_end), torch.maximum(z0, z_end),
-                                         system.measure(y_a[0]).detach())
+            ahead = controller.tail_span(torch.minimum(z0, z_end), torch.maximum(z0, z_end), x_hat_a)
             assert ahead is not None  # resolve: the controller has a smooth saturation
             ahead = ahead.to(torch.float64)
             h_prop = torch.where(ahead > config.saturation_step,
@@ -295,13 +295,12 @@ def _integrate_adaptive(
                 "(LiouvilleConfig(integrator='rk4'))")
         hd = h_a.to(x0.dtype)
         ks = [[k.index_select(0, active) for k in k1]]
-        z_lo = z_hi = z1.index_select(0, active)
+        z_lo = z_hi = z0
         left = torch.ones_like(active, dtype=torch.bool)
         # the reference (its left limits) once per fraction of the step at which a stage or the middle is evaluated
         # (RK4's second and third stages and the middle share t + h/2, its last two stages t + h)
         refs = {c: flat_ref.values_at(rows, t_a + c * h_a, left)
                 for c in sorted(set(pair.stages[1:]) | ({0.5} if quadrature else set()))}
-
         z_last = None
         n_stages = len(pair.stages)
         for i in range(1, n_stages):
@@ -339,7 +338,7 @@ def _integrate_adaptive(
             gap = _weighted(hd, (1 / 3, -2 / 3, 1 / 3), list(d_ends)).abs().detach().to(torch.float64)
             err = torch.maximum(err, gap / tolerance)
         if resolve:
-            span = controller.tail_span(z_lo, z_hi, system.measure(y_a[0]).detach())
+            span = controller.tail_span(z_lo, z_hi, x_hat_a)
             assert span is not None
             err = torch.maximum(err, (span.to(torch.float64) / config.saturation_step) ** pair.order)
         ok = err <= 1.0  # NaN is never accepted: the step then shrinks until it underflows (error above)
