@@ -294,6 +294,11 @@ def _integrate_adaptive(
                 "integrable there); check the initial states and the reference, or use a fixed step "
                 "(LiouvilleConfig(integrator='rk4'))")
         hd = h_a.to(x0.dtype)
+        # rows whose step lands on an input switch short of the horizon: the next step's first stage is the field
+        # there with the reference's right limit, evaluated in the last stage's call (the same state; wasted only
+        # where the step is rejected)
+        lands = ((t_a + h_a - t_stop).abs() <= eps) & (t_stop < horizon - eps)
+        sw_i = torch.nonzero(lands).squeeze(-1)  # indices into the active rows
         ks = [[k.index_select(0, active) for k in k1]]
         z_lo = z_hi = z0
         left = torch.ones_like(active, dtype=torch.bool)
@@ -308,14 +313,28 @@ def _integrate_adaptive(
             inner = quadrature and i < n_stages - 1
             y_i = [v + _weighted(hd, pair.a[i], [k[c] for k in ks]) for c, v in enumerate(y_a[:1] if quadrature
                                                                                               else y_a)]
-            if quadrature and pair.midpoint and i == n_stages - 1:
-                # the step's middle from the stages so far, evaluated in one call with the last stage
-                x_mid = y_a[0] + _weighted(hd, pair.midpoint, [k[0] for k in ks])
-                n_a = len(active)
-                both, z_both = func([torch.cat([y_i[0], x_mid])],
-                                    [torch.cat(v) for v in zip(refs[pair.stages[i]], refs[0.5])], True)
-                k_i, k_mid = [k[:n_a] for k in both], [k[n_a:] for k in both]
-                z_last, z_mid = z_both[:n_a], z_both[n_a:]
+            if i == n_stages - 1:
+                # the last stage, in one call with the step's middle from the stages so far (quadrature) and the
+                # next step's first stage where the step lands on a switch
+                xs, rs = [y_i[0]], [refs[pair.stages[i]]]
+                if quadrature and pair.midpoint:
+                    xs.append(y_a[0] + _weighted(hd, pair.midpoint, [k[0] for k in ks]))
+                    rs.append(refs[0.5])
+                if sw_i.numel():
+                    xs.append(y_i[0].index_select(0, sw_i))
+                    rs.append(flat_ref.values_at(rows.index_select(0, sw_i), t_stop.index_select(0, sw_i), False))
+                if len(xs) == 1:
+                    k_i, z_last = func(y_i, rs[0], with_density)
+                    parts, z_parts = [k_i], [z_last]
+                else:
+                    sizes = [len(x) for x in xs]
+                    k_all, z_all = func([torch.cat(xs)], [torch.cat(v) for v in zip(*rs)], with_density)
+                    parts = [list(c) for c in zip(*(k.split(sizes) for k in k_all))]
+                    z_parts = list(z_all.split(sizes))
+                    k_i, z_last = parts[0], z_parts[0]
+                if quadrature and pair.midpoint:
+                    k_mid, z_mid = parts[1], z_parts[1]
+                k_sw, z_sw = parts[-1], z_parts[-1]  # used only where sw_i is not empty
             else:
                 k_i, z_last = func(y_i, refs[pair.stages[i]], with_density and not inner)
             ks.append(k_i)
@@ -387,13 +406,13 @@ def _integrate_adaptive(
                                           / h_acc.to(z1.dtype).unsqueeze(-1))
             z1 = z1.index_put((acc,), pick(z_last))
             # where the input switches at the new time (the step landed on its stop, a switch of the table short of
-            # the horizon), the next step's first stage takes its right limit
-            switched = acc[(t_acc == t_stop_acc) & (t_acc < horizon - eps)]
-            if switched.numel():
-                k_sw, z_sw = func([v.index_select(0, switched) for v in y],
-                                  flat_ref.values_at(ref_rows[switched], t.index_select(0, switched), False))
-                k1 = [k.index_put((switched,), kn) for k, kn in zip(k1, k_sw)]
-                z1 = z1.index_put((switched,), z_sw)
+            # the horizon), the next step's first stage takes its right limit (evaluated with the last stage)
+            if sw_i.numel():
+                taken = torch.nonzero(ok.index_select(0, sw_i)).squeeze(-1)  # the landing rows accepted
+                if taken.numel():
+                    switched = active.index_select(0, sw_i.index_select(0, taken))
+                    k1 = [k.index_put((switched,), kn.index_select(0, taken)) for k, kn in zip(k1, k_sw)]
+                    z1 = z1.index_put((switched,), z_sw.index_select(0, taken))
         active = active[t[active] < horizon - eps]
     rows_all = torch.cat(out_rows) if out_rows else torch.zeros(0, dtype=torch.long, device=device)
     k_all = torch.cat(out_k) if out_k else torch.zeros(0, dtype=torch.long, device=device)
