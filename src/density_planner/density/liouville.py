@@ -220,7 +220,9 @@ def _integrate_adaptive(
     shorter. A proposed step whose raw input, extrapolated at the last accepted step's rate, would move further
     through the bend is shortened before it is tried. The next step is ``h (0.9 / err)^(1/order)`` (at most 5x
     longer, 5x shorter, and ``config.dt``).
-    Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps;
+    Steps land on the reference's input switches (:meth:`Reference.next_switch`) and on the horizon in equal steps
+    (the next step's first stage at a switch, the field with the input's right limit, is evaluated in the call of the
+    last stage of the step that lands there);
     output times inside a step are read from the pair's continuous extension. With ``config.log_density_rule =
     "quadrature"`` the log-density follows Simpson's rule along each step (its divergence at the step's ends and
     middle; the other stages evaluate the field only) and its values inside a step the integral of the quadratic
