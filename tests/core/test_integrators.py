@@ -104,3 +104,15 @@ def test_midpoint_weights_are_a_continuous_extension_of_order_3():
         errors.append(float((mid - _fine(y0, 0.5 * h)).abs().max()))
     ratios = [errors[0] / errors[1], errors[1] / errors[2]]
     assert all(0.7 * 16 < r < 1.4 * 16 for r in ratios), (errors, ratios)
+
+
+def test_scheme_names_are_the_integrators():
+    """The one list of scheme names (``systems.base.LiouvilleScheme``, which configurations, the CLI and the systems
+    check against) names exactly the fixed steps and the embedded pairs that exist."""
+    from typing import get_args
+
+    from density_planner.density.integrators import INTEGRATORS, PAIRS
+    from density_planner.systems.base import LiouvilleScheme
+
+    assert set(get_args(LiouvilleScheme)) == set(INTEGRATORS) | set(PAIRS)
+    assert not set(INTEGRATORS) & set(PAIRS)

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import get_args
 
 import numpy as np
 import torch
 
+from ..systems.base import LiouvilleScheme
 from ._common import (
     add_device,
     add_out,
@@ -44,7 +46,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
                    help="reference parameters (nu x 10) as .json/.npy/.npz (default: a built-in S-curve)")
     p.add_argument("--start", type=float, nargs=4, default=DEFAULT_START, metavar="X",
                    help="start pose x y heading speed, mapped to the system's state (default: %(default)s)")
-    p.add_argument("--integrator", default=None, choices=("euler", "rk4", "rk43", "dopri5"),
+    p.add_argument("--integrator", default=None, choices=get_args(LiouvilleScheme),
                    help="integration scheme (default: the system's, rk4 or for the road domain the error-controlled "
                    "rk43)")
     p.add_argument("--dt", type=float, default=None,

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, cast, get_args
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor
@@ -24,14 +24,14 @@ from torch import Tensor
 from ..checks import check_choice, check_positive
 from ..control.base import TrackingController
 from ..control.reference import Reference
-from ..systems.base import System
+from ..systems.base import LiouvilleScheme, System
 from .base import DensityPredictor, DensityTrajectory, expand_log_rho0, expand_samples
 from .closed_loop import ClosedLoop, DivergenceMethod
 from .integrators import PAIRS, EmbeddedPair, get_integrator
 
 __all__ = ["LiouvilleConfig", "simulate_closed_loop", "propagate_density", "ExactLiouville"]
 
-IntegratorName = Literal["euler", "rk4", "rk43", "dopri5"]
+IntegratorName = LiouvilleScheme  # the schemes by name (one list, the systems')
 LogDensityRule = Literal["quadrature", "coupled"]
 
 
@@ -106,8 +106,8 @@ class LiouvilleConfig:
         if system is None:
             return "rk4"
         scheme = system.liouville_integrator
-        check_choice("System.liouville_integrator", scheme, get_args(IntegratorName))
-        return cast(IntegratorName, scheme)
+        check_choice("System.liouville_integrator", scheme, get_args(IntegratorName))  # a system's own may err
+        return scheme
 
     def pair(self, system: System | None = None) -> EmbeddedPair | None:
         """The embedded pair of an error-controlled scheme in force (``None`` for a fixed step)."""

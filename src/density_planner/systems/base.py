@@ -10,12 +10,17 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 
-__all__ = ["System", "ControlAffineSystem", "Footprint", "ConfigBoxes", "hold_speeds"]
+#: the exact Liouville schemes by name (:mod:`density_planner.density.integrators`: the fixed steps "euler" and
+#: "rk4", the error-controlled pairs "rk43" and "dopri5"); a system names the one its closed loop needs
+#: (:attr:`System.liouville_integrator`)
+LiouvilleScheme = Literal["euler", "rk4", "rk43", "dopri5"]
+
+__all__ = ["System", "ControlAffineSystem", "Footprint", "ConfigBoxes", "hold_speeds", "LiouvilleScheme"]
 
 
 def hold_speeds(v: Tensor) -> Tensor:
@@ -108,7 +113,7 @@ class System(ABC):
         return None if self.speed_index is None else x[..., self.speed_index]
 
     @property
-    def liouville_integrator(self) -> str:
+    def liouville_integrator(self) -> LiouvilleScheme:
         """The scheme of exact Liouville that this system's closed loop needs (the default of
         :attr:`~density_planner.density.liouville.LiouvilleConfig.integrator`): "rk4" (the default, a fixed step)
         or "rk43" / "dopri5" (error-controlled, for closed loops that turn within hundredths of a second)."""

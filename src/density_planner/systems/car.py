@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import get_args
 
 import torch
 from torch import Tensor
 
 from ..checks import broadcast_shape, check_choice
-from .base import ConfigBoxes, ControlAffineSystem, Footprint
+from .base import ConfigBoxes, ControlAffineSystem, Footprint, LiouvilleScheme
 from .registry import register_system
 
 __all__ = ["KinematicCar", "CarConfig", "CAR_DOMAINS", "car_domain", "turn_rate_limit", "wrap_heading", "PX",
@@ -74,7 +75,7 @@ class CarConfig:
     #: the learned controller sweeps through it within hundredths of a second at highway speed, which a fixed 0.1-s
     #: step cannot resolve: the error-controlled "rk43" refines its step there, per sample (docs/core.md, "Error
     #: control")
-    liouville_integrator: str = "rk4"
+    liouville_integrator: LiouvilleScheme = "rk4"
     #: body length along the heading [m] (rectangle centred on (p_x, p_y)); 0 with width 0 = point vehicle
     length: float = 4.5
     #: body width [m]
@@ -98,7 +99,7 @@ class CarConfig:
         for name in ("lateral_accel_max", "actuator_lateral_accel_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"CarConfig.{name} must be > 0 (inf for no limit), got {getattr(self, name)!r}")
-        check_choice("CarConfig.liouville_integrator", self.liouville_integrator, ("euler", "rk4", "rk43", "dopri5"))
+        check_choice("CarConfig.liouville_integrator", self.liouville_integrator, get_args(LiouvilleScheme))
         if (self.actuator_min is None) != (self.actuator_max is None):
             raise ValueError("CarConfig.actuator_min and actuator_max must both be set or both be None")
         if self.actuator_min is not None:
@@ -227,7 +228,7 @@ class KinematicCar(ConfigBoxes, ControlAffineSystem):
         return (float(x), float(y), wrap_heading(float(heading)), float(speed), 0.0)
 
     @property
-    def liouville_integrator(self) -> str:
+    def liouville_integrator(self) -> LiouvilleScheme:
         """:attr:`CarConfig.liouville_integrator` (the road domain's: "rk43")."""
         return self.config.liouville_integrator
 
