@@ -269,7 +269,11 @@ class C3MController(TrackingController):
         w1, dw1 = o1.unflatten(-1, (self.rank, N_ERR)), d1.unflatten(-1, (self.rank, N_ERR))
         w2, dw2 = o2.unflatten(-1, (N_U, self.rank)), d2.unflatten(-1, (N_U, self.rank))
         h = torch.tanh(_apply(w1, e))
-        ds = _apply(dw1, e) + _apply(w1, de)
+        if all(n == 1 for n in de.shape[1:-1]):  # tangents alike over the batch (the closed loop's): one product
+            w1_de = torch.matmul(w1, de.reshape(-1, N_ERR).t()).movedim(-1, 0)
+        else:
+            w1_de = _apply(w1, de)
+        ds = _apply(dw1, e) + w1_de
         dh = (1.0 - h * h) * ds
         u = u_ref + _apply(w2, h)
         du = _apply(dw2, h) + _apply(w2, dh)
