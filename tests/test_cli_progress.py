@@ -42,5 +42,7 @@ def test_every_long_command_has_the_switch():
     parser = build_parser()
     for argv in (["plan", "--env", "random", "--out", "x"], ["bench", "artificial", "--out", "x"],
                  ["train", "controller", "--out", "x"], ["data", "density", "--out", "x"],
-                 ["train", "density", "--data", "d", "--out", "x"]):
+                 ["train", "density", "--data", "d", "--out", "x"], ["drive", "--env", "random", "--out", "x"],
+                 ["bench", "commonroad", "--scenarios", "d", "--out", "x"],
+                 ["validate", "risk", "--env", "random", "--out", "x"]):
         assert parser.parse_args([*argv, "--no-progress"]).progress is False

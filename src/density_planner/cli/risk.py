@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import add_config, add_device, add_out, add_system, apply_system_args, out_dir
+from ._common import (
+    add_config,
+    add_device,
+    add_out,
+    add_progress,
+    add_system,
+    apply_system_args,
+    out_dir,
+    show_progress,
+)
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -39,7 +48,7 @@ def register(sub: argparse._SubParsersAction, groups: dict) -> None:
     add_system(p)
     add_config(p)
     add_device(p)
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_progress(p)
     add_out(p)
     p.set_defaults(func=run)
 
@@ -72,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if mode != ExecutionMode.TRACK:
         raise ValueError(f"validate risk needs a planner whose reference is tracked (density, search, sampling); "
                          f"{args.planner!r} executes {mode.value}")
-    ctx = context_from_args(args, run_config, progress=not args.quiet, system=system)
+    ctx = context_from_args(args, run_config, progress=show_progress(args), system=system)
     planner = make_planner(args.planner, ctx)
     t0 = time.perf_counter()
     plan = planner.plan(problem)
