@@ -5,16 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._common import (
-    add_config,
-    add_device,
-    add_out,
-    add_progress,
-    add_system,
-    apply_system_args,
-    out_dir,
-    show_progress,
-)
+from ._common import add_config, add_device, add_out, add_progress, add_system, apply_system_args, out_dir
 from ._scenes import add_scene_args, scene_from_args
 
 
@@ -63,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from ..planners.registry import ExecutionMode, make_planner, planner_info
     from ..settings import RunConfig
     from ..viz.risk import plot_risk_validation
-    from ._common import context_from_args
+    from ._common import context_from_args, show_progress
     from .plan import versions
 
     if args.samples < 2:
