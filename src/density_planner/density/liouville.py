@@ -296,11 +296,13 @@ def _integrate_adaptive(
                 "integrable there); check the initial states and the reference, or use a fixed step "
                 "(LiouvilleConfig(integrator='rk4'))")
         hd = h_a.to(x0.dtype)
+        # where the step ends: on its stop where it lands within eps of it
+        on_stop = (t_a + h_a - t_stop).abs() <= eps
+        t_end = torch.where(on_stop, t_stop, t_a + h_a)
         # rows whose step lands on an input switch short of the horizon: the next step's first stage is the field
         # there with the reference's right limit, evaluated in the last stage's call (the same state; wasted only
         # where the step is rejected)
-        lands = ((t_a + h_a - t_stop).abs() <= eps) & (t_stop < horizon - eps)
-        sw_i = torch.nonzero(lands).squeeze(-1)  # indices into the active rows
+        sw_i = torch.nonzero(on_stop & (t_stop < horizon - eps)).squeeze(-1)  # indices into the active rows
         ks = [[k.index_select(0, active) for k in k1]]
         z_lo = z_hi = z0
         left = torch.ones_like(active, dtype=torch.bool)
@@ -325,15 +327,13 @@ def _integrate_adaptive(
                 if sw_i.numel():
                     xs.append(y_i[0].index_select(0, sw_i))
                     rs.append(flat_ref.values_at(rows.index_select(0, sw_i), t_stop.index_select(0, sw_i), False))
-                if len(xs) == 1:
-                    k_i, z_last = func(y_i, rs[0], with_density)
-                    parts, z_parts = [k_i], [z_last]
-                else:
-                    sizes = [len(x) for x in xs]
-                    k_all, z_all = func([torch.cat(xs)], [torch.cat(v) for v in zip(*rs)], with_density)
-                    parts = [list(c) for c in zip(*(k.split(sizes) for k in k_all))]
-                    z_parts = list(z_all.split(sizes))
-                    k_i, z_last = parts[0], z_parts[0]
+                one = len(xs) == 1
+                k_all, z_all = func([xs[0] if one else torch.cat(xs)],
+                                    rs[0] if one else [torch.cat(v) for v in zip(*rs)], with_density)
+                sizes = [len(x) for x in xs]
+                parts = [list(c) for c in zip(*(k.split(sizes) for k in k_all))]
+                z_parts = list(z_all.split(sizes))
+                k_i, z_last = parts[0], z_parts[0]
                 if quadrature and pair.midpoint:
                     k_mid, z_mid = parts[1], z_parts[1]
                 k_sw, z_sw = parts[-1], z_parts[-1]  # used only where sw_i is not empty
@@ -375,9 +375,7 @@ def _integrate_adaptive(
             def pick(v: Tensor, index: Tensor = ok_i) -> Tensor:
                 return v.index_select(0, index)
 
-            t0_acc, h_acc, t_stop_acc = pick(t_a), pick(h_a), pick(t_stop)
-            t_acc = t0_acc + h_acc
-            t_acc = torch.where((t_acc - t_stop_acc).abs() <= eps, t_stop_acc, t_acc)
+            t0_acc, h_acc, t_acc = pick(t_a), pick(h_a), pick(t_end)
             y0_acc, y1_acc = [pick(v) for v in y_a], [pick(v) for v in y_new]
             ks_acc = [[pick(k[c]) for k in ks] for c in range(controlled)]  # per component, the stages
             if quadrature:  # the log-density's: its rate at theta = 0, 1/2, 1
