@@ -107,6 +107,10 @@ def test_plan_off_the_road_fails():
     v = judge(road_scene(), x, u, system=CAR, dt=DT)
     assert not v.on_road and v.goal_reached and v.collision_free
     assert v.details["off_road_steps"] == 101 and "drivable area" in v.reasons[0]
+    # how much and how far beyond the edge (the tolerance not subtracted): a 4 x 0.3-m strip, corners 0.3 m out
+    assert v.details["off_road_max_depth"] == pytest.approx(0.3, abs=1e-9)
+    assert v.details["off_road_max_area"] == pytest.approx(4.0 * 0.3, abs=1e-9)
+    assert v.reasons[0].endswith("(101 of 101 steps, up to 1.2 m^2 and 0.3 m beyond the road's edge)")
     # a tolerance that covers the overhang accepts it
     assert judge(road_scene(), x, u, system=CAR, dt=DT, config=VerdictConfig(road_tolerance=0.35)).on_road
 

@@ -9,7 +9,9 @@ of the scene, never against the blurred occupancy the planner optimised:
   orientation intervals where given);
 * ``collision_free``: the vehicle rectangle (:func:`vehicle_footprints`) intersects no recorded obstacle's true
   shape at any time step (shapely 2, vectorised over time steps and obstacles);
-* ``on_road``: the rectangle stays inside the drivable area (up to :attr:`VerdictConfig.road_tolerance`);
+* ``on_road``: the rectangle stays inside the drivable area (up to :attr:`VerdictConfig.road_tolerance`); where it
+  does not, the reason and ``details`` give the first time, the number of steps, and the largest area beyond the
+  road's edge [m^2] and depth of a corner beyond it [m];
 * ``within_model``: the states (apart from the position, which ``on_road`` covers) and the inputs stay inside the
   system's bounds (up to :attr:`VerdictConfig.model_tolerance`);
 * ``p_coll_max``: the planner's own risk figure, reported next to them (not part of the status).
@@ -304,12 +306,17 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
     off = ~np.asarray(covered, dtype=bool)
     road_ok = not off.any()
     if not road_ok:
-        outside = shapely.area(shapely.difference(boxes[off], drivable))
+        # how much of the rectangle lies beyond the road's edge and how far its corners reach (the tolerance only
+        # decides whether a step is off the road)
+        outside = shapely.area(shapely.difference(boxes[off], road.drivable))
+        corners = shapely.points(shapely.get_coordinates(boxes[off]))
+        depth = float(np.max(shapely.distance(corners, road.drivable)))
         k = _first(off)
         details.update(off_road_first_time=float(t_rel[k]), off_road_steps=int(off.sum()),
-                       off_road_max_area=float(np.max(outside)))
+                       off_road_max_area=float(np.max(outside)), off_road_max_depth=depth)
         reasons.append(f"off road: the vehicle leaves the drivable area at t = {float(t_rel[k]):.1f} s "
-                       f"({int(off.sum())} of {len(off)} steps, up to {float(np.max(outside)):.1f} m^2 outside)")
+                       f"({int(off.sum())} of {len(off)} steps, up to {float(np.max(outside)):.2g} m^2 and "
+                       f"{depth:.2g} m beyond the road's edge)")
     return goal_ok, collision_ok, road_ok
 
 
