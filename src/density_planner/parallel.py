@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import traceback
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -314,15 +315,26 @@ class _Marked:
         return self.call(index, task)
 
 
+#: loky's warning when it replaces a worker that ended between tasks (joblib/externals/loky/process_executor.py)
+_LOKY_REPLACED_WORKER = "A worker stopped while some jobs were given to the executor"
+
+
 def _joblib(call: _Call, tasks: list, workers: int) -> Iterator[TaskOutcome]:
     """Local worker processes. When a worker process dies (killed, out of memory, ``os._exit``), joblib aborts the
-    whole batch: the tasks that had started and not returned are reported as failed, the others run again."""
+    whole batch: the tasks that had started and not returned are reported as failed, the others run again.
+
+    loky (joblib's executor) ends a worker whose memory grew by more than 300 MB over its size after its first task,
+    once the task's result is sent, and starts another, warning "A worker stopped while some jobs were given to the
+    executor ... memory leak". A CommonRoad plan's grids (up to 1 GiB) leave such growth in the allocator of a worker
+    that planned a large scene; no task is lost or run twice and the new worker starts small, so that warning (once
+    or twice per suite sweep) is not shown."""
     import shutil
     import tempfile
     from concurrent.futures.process import BrokenProcessPool
 
     from joblib import Parallel, delayed
 
+    warnings.filterwarnings("ignore", message=_LOKY_REPLACED_WORKER, category=UserWarning)
     pending = dict(enumerate(tasks))
     folder = tempfile.mkdtemp(prefix="density-planner-tasks-")
     marked = _Marked(call, folder)

@@ -24,3 +24,24 @@ def test_outcomes_and_captured_errors(workers):
 def test_bad_worker_count():
     with pytest.raises(ValueError, match="workers"):
         list(run_tasks(_square_or_fail, range(3), workers=0))
+
+
+def test_loky_replacing_a_grown_worker_is_not_shown():
+    """loky's warning on a worker it replaced between tasks (after a large plan) is filtered while joblib runs; the
+    filter matches loky's own text."""
+    import inspect
+    import warnings
+
+    from joblib.externals.loky import process_executor
+
+    from density_planner.parallel import _LOKY_REPLACED_WORKER
+
+    source = "".join(inspect.getsource(process_executor).replace('"', "").split())
+    assert "".join(_LOKY_REPLACED_WORKER.split()) in source
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert sorted(o.value for o in run_tasks(_square_or_fail, range(3), workers=2)) == [0, 1, 4]
+        warnings.warn(_LOKY_REPLACED_WORKER + ". This can be caused by a too short worker timeout or by a memory "
+                      "leak.", UserWarning, stacklevel=1)
+        warnings.warn("another warning", UserWarning, stacklevel=1)
+    assert [str(w.message) for w in caught] == ["another warning"]
