@@ -308,15 +308,16 @@ def _judge_road(road: Any, xy, theta, v, t_rel, boxes, config: VerdictConfig, de
     if not road_ok:
         # how much of the rectangle lies beyond the road's edge and how far its corners reach (the tolerance only
         # decides whether a step is off the road)
-        outside = shapely.area(shapely.difference(boxes[off], road.drivable))
-        corners = shapely.points(shapely.get_coordinates(boxes[off]))
+        off_boxes = boxes[off]
+        area = float(np.max(shapely.area(shapely.difference(off_boxes, road.drivable))))
+        corners = shapely.points(shapely.get_coordinates(off_boxes))
         depth = float(np.max(shapely.distance(corners, road.drivable)))
         k = _first(off)
         details.update(off_road_first_time=float(t_rel[k]), off_road_steps=int(off.sum()),
-                       off_road_max_area=float(np.max(outside)), off_road_max_depth=depth)
+                       off_road_max_area=area, off_road_max_depth=depth)
         reasons.append(f"off road: the vehicle leaves the drivable area at t = {float(t_rel[k]):.1f} s "
-                       f"({int(off.sum())} of {len(off)} steps, up to {float(np.max(outside)):.2g} m^2 and "
-                       f"{depth:.2g} m beyond the road's edge)")
+                       f"({int(off.sum())} of {len(off)} steps, up to {area:.2g} m^2 and {depth:.2g} m beyond the "
+                       "road's edge)")
     return goal_ok, collision_ok, road_ok
 
 
