@@ -238,7 +238,7 @@ def normalised_targets(model: DensityNetwork, data: DensityData, chunk: int = 32
 
 
 # -------------------------------------------------------------------------------------------------------- loss
-def _loss(pred: Tensor, target: Tensor, w_log: float, kind: str = "mse") -> tuple[Tensor, Tensor, Tensor]:
+def _loss(pred: Tensor, target: Tensor, w_log: float, kind: str) -> tuple[Tensor, Tensor, Tensor]:
     d = _LOSSES[kind](pred - target)  # error channels, then the log-density ratio (the last channel)
     err = d[..., :-1].mean()
     log = d[..., -1].mean()
