@@ -72,7 +72,7 @@ class DensityTrainConfig:
     #: "trajectory" (whole horizon per evaluation) or "pointwise" (the paper's per-time MLP)
     arch: Literal["trajectory", "pointwise"] = "trajectory"
     #: hidden width / number of hidden layers / activation; ``None``: the architecture's default
-    #: (trajectory 3 x 256 SiLU, pointwise 7 x 150 ReLU); the road set's shipped head is 3 x 512 (``hidden = 512``)
+    #: (trajectory 3 x 256 SiLU, pointwise 7 x 150 ReLU); the road set's shipped head is 6 x 256 (``layers = 6``)
     hidden: int | None = None
     layers: int | None = None
     activation: Literal["relu", "silu", "tanh"] | None = None
