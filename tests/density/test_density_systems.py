@@ -213,8 +213,8 @@ def test_shipped_car_networks_predict_as_before(models, arch):
     """The car's shipped networks load (the paper files have no ``system`` entry in their JSON: the car) and
     predict what they predicted before the layout became the system's (outputs stored from that code; equal up to
     float32 rounding). The road entries were stored again whenever the road networks were re-trained (stops 36,
-    49, 52, 60, 61, 62), with this test's own call: new weights need new outputs; the paper entries are still the pre-layout
-    code's."""
+    49, 52, 60, 61, 62), with this test's own call: new weights need new outputs; the paper entries are still the
+    pre-layout code's."""
     snap = torch.load(SNAPSHOT, weights_only=True)
     inputs, expected = snap[f"{models}/inputs"], snap[f"{models}/{arch}"]
     model, meta = load_density_model(shipped_density_path(arch, models))
