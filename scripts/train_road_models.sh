@@ -16,12 +16,13 @@
 # JSON files and docs/density.md, which are what this script's data phase (32768 references, 2 workers) and
 #   RES=results/road DEVICE=cpu DENSITY_TIME=3600 TRAJ_EPOCHS=120 bash scripts/train_road_models.sh density
 # run (stop 49: data 5.2 min; trajectory head 16.2 min, pointwise 14.5 min, side by side, one thread each). The
-# shipped trajectory head is stop 61's, on four times the references (DATA_REFS=131072 with the fixed-step data of
-# `--set liouville.integrator=rk4`: data 11.4 min with 2 workers; then the head alone, 6 x 256 deep with the absolute
-# loss (`--set layers=6 --set loss=l1`), 120 epochs on 2 threads, 34.4 min, with the train command in
+# shipped trajectory head is stop 62's, on four times the references (DATA_REFS=131072 with the fixed-step data of
+# `--set liouville.integrator=rk4`: data 11.4-13.9 min with 2 workers; then the head alone, 6 x 256 deep with the
+# absolute loss and a lighter log-density weight (`--set layers=6 --set loss=l1 --set log_density_weight=0.3`), 120
+# epochs on 2 threads, 45.6 min, with the train command in
 # docs/density.md: this script's density phase trains both networks side by side under DENSITY_TIME and would stop
 # it early on a 2-core CPU);
-# the shipped pointwise net is stop 60's too, on 32768 references (this script's data phase with
+# the shipped pointwise net is stop 60's, on 32768 references (this script's data phase with
 # --set liouville.integrator=rk4), 20 epochs on 1 thread with --set loss=l1, 7.3 min.
 # docs/controller.md and docs/density.md record the exact commands and times.
 set -eo pipefail
@@ -78,7 +79,7 @@ if [ "$PHASE" = density ] || [ "$PHASE" = all ]; then
   DENSITY_TIME=${DENSITY_TIME:-170}
   log "density networks: both in parallel, at most $DENSITY_TIME s of training each"
   $DP train density --arch trajectory --data "$RES/density_data" --out "$RES/train_trajectory" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
-    --set layers=6 --set loss=l1 ${TRAJ_EPOCHS:+--epochs "$TRAJ_EPOCHS"} --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
+    --set layers=6 --set loss=l1 --set log_density_weight=0.3 ${TRAJ_EPOCHS:+--epochs "$TRAJ_EPOCHS"} --time-limit "$DENSITY_TIME" --export $W/density_trajectory_road.pt --quiet > "$OUT/train_trajectory.log" 2>&1 &
   p1=$!
   $DP train density --arch pointwise --data "$RES/density_data" --out "$RES/train_pointwise" --set device=$DEVICE --threads "${DENSITY_THREADS:-1}" \
     --epochs 20 --set batch_size=1024 --set loss=l1 --time-limit "$DENSITY_TIME" --export $W/density_pointwise_road.pt --quiet \
