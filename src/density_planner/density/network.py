@@ -195,7 +195,7 @@ class DensityNetArchitecture:
     @classmethod
     def default(cls, arch: Arch) -> DensityNetArchitecture:
         """The default sizes: pointwise 7 x 150 ReLU (the paper), trajectory head 3 x 256 SiLU (the paper set's;
-        the road set ships a 6 x 256 head, trained with ``layers = 6`` and ``log_density_weight = 0.3``)."""
+        a shipped model set may differ: its JSON file records the architecture and the training command)."""
         if arch == "pointwise":
             return cls(arch="pointwise", hidden=150, layers=7, activation="relu")
         return cls(arch=arch)

@@ -8,8 +8,9 @@ with ``l(d) = d^2`` (``loss = "mse"``, the default and the paper's) or ``l(d) = 
 are in units of the per-time residual standard deviation, so ``w_L = 1`` would weigh a typical log-density error
 like a typical error of one state component; the default ``log_density_weight = 3`` puts more weight on the
 log-density, the harder output (the paper used 5e-4 on raw, unnormalised outputs, where the log-density error is
-~10^3 times larger). The road set's head uses ``w_L = 0.3``: there the position error's tail is the harder target
-(docs/density.md, "The weight of the log-density").
+~10^3 times larger). Where the position error's tail is the harder target, as on the road set, a weight below
+one does better (docs/density.md, "The weight of the log-density"; the shipped road head's JSON file records its
+weight).
 
 The absolute loss is for heavy-tailed targets. On the road set's data, a few closed loops leave their reference by
 metres at highway speed (true position errors: median 0.5 m, p95 8.7 m over all times). A squared loss spends the
@@ -73,7 +74,7 @@ class DensityTrainConfig:
     #: "trajectory" (whole horizon per evaluation) or "pointwise" (the paper's per-time MLP)
     arch: Literal["trajectory", "pointwise"] = "trajectory"
     #: hidden width / number of hidden layers / activation; ``None``: the architecture's default
-    #: (trajectory 3 x 256 SiLU, pointwise 7 x 150 ReLU); the road set's shipped head is 6 x 256 (``layers = 6``)
+    #: (trajectory 3 x 256 SiLU, pointwise 7 x 150 ReLU); a shipped head's JSON file records its own settings
     hidden: int | None = None
     layers: int | None = None
     activation: Literal["relu", "silu", "tanh"] | None = None
@@ -87,8 +88,7 @@ class DensityTrainConfig:
     #: Adam weight decay
     weight_decay: float = 0.0
     #: weight of the log-density part of the loss (see the module docstring); above one because the log-density
-    #: is the harder output (its error, not the position error, is far from the paper's figure); the road set's
-    #: shipped head uses 0.3, where the position error is the harder target (docs/density.md)
+    #: is the harder output (its error, not the position error, is far from the paper's figure)
     log_density_weight: float = 3.0
     #: per-element loss on the normalised residuals: "mse" (squared, the paper's) or "l1" (absolute, for
     #: heavy-tailed targets such as the road set's; see the module docstring)
