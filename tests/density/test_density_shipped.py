@@ -121,3 +121,24 @@ def test_shipped_road_predictor_on_a_shorter_horizon_stays_close_to_exact():
     assert a.x.shape == b.x.shape
     err = (a.x[..., :2] - b.x[..., :2]).norm(dim=-1).flatten()
     assert err.median() < 0.35 and err.quantile(0.95) < 1.5, (err.median(), err.quantile(0.95))
+
+
+def test_shipped_road_predictor_serves_stopped_starts_close_to_exact():
+    """Starts below the road head's training range (0.5 m/s), which STANDSTILL_EXTENSION lets it serve: against exact
+    Liouville its position error is of the size it has inside the range. Measured by
+    benchmarks/bench_standstill_density.py (24 references x 50 samples, stop 62's head): median / p95 0.031 / 0.166 m
+    below 0.5 m/s, 0.022 / 0.127 m at 1-2 m/s (docs/planner.md); the tolerances catch a head that extrapolates."""
+    import math
+
+    from density_planner.control.registry import model_set
+    from density_planner.density.validation import compare_with_exact, fresh_references
+
+    system = model_set("road").make_system()
+    ctrl = load_controller("c3m", models="road")
+    ref, x0 = fresh_references(6, 30, 13, domain="road", start_low=[-10.0, -10.0, -math.pi, 0.0, 0.0],
+                               start_high=[10.0, 10.0, math.pi, 0.5, 0.0])
+    assert float(ref.x[:, 0, 3].max()) < 0.5
+    pred = load_predictor("trajectory", system, ctrl, models="road")
+    assert isinstance(pred, LearnedDensity) and pred.domain_problem(ref) is None  # the network serves them
+    err = compare_with_exact(pred, ExactLiouville(system, ctrl), ref, x0).position_error.flatten()
+    assert err.median() < 0.1 and err.quantile(0.95) < 0.5, (err.median(), err.quantile(0.95))

@@ -672,11 +672,9 @@ class LearnedDensity(DensityPredictor):
 _SPEED_TOLERANCE = 0.05
 
 #: a predictor trained from start speeds of at most this much [m/s] also serves starts down to standstill (v = 0).
-#: Measured for the road car's shipped trajectory network against exact Liouville (24 references x 50 samples per
-#: band, the paper's XE0 errors): position error median / p95 0.21 / 0.65 m for v0 in [0, 0.5), 0.21 / 0.68 m in
-#: [0.5, 1), 0.19 / 0.59 m in [1, 2); |log-density| median 1.10 against 0.83 (stage 2's "mass" weights do not read
-#: it, and the reported risk is re-checked with exact Liouville). Stopped starts otherwise planned with exact
-#: Liouville (3-6 min instead of seconds).
+#: ``benchmarks/bench_standstill_density.py`` measures the road car's shipped trajectory head against exact Liouville
+#: per band of start speed (figures in docs/planner.md, "Stopped starts"): below 0.5 m/s its position error is of
+#: the same size as at 0.5-2 m/s. Stopped starts otherwise planned with exact Liouville (3-6 min instead of seconds).
 STANDSTILL_EXTENSION = 0.5
 
 
