@@ -188,3 +188,32 @@ def test_switch_table_finds_every_input_switch():
     # the braking reference stops (and its input drops) off the segment boundaries
     assert any(abs(s / 1.0 - round(s)) > 1e-6 for s in
                [(j + 1) * flat.dt for j in torch.nonzero(changes[1]).squeeze(-1).tolist()])
+
+
+def test_reference_start_is_the_given_start_without_the_roll_out_graph():
+    """``Reference.start`` equals the first state; it carries the start's own gradient only (none for a start that
+    needs none), through ``select`` and ``detach`` too; the learned density predictor's gradient in the parameters is
+    the same as when it reads the first state off the roll-out (``origin`` unset)."""
+    from density_planner.control.reference import Reference
+    from density_planner.control.registry import load_controller
+    from density_planner.density.registry import load_predictor
+
+    car = KinematicCar()
+    params = (0.3 * torch.randn(2, 2, 10, generator=torch.Generator().manual_seed(5))).requires_grad_(True)
+    start = torch.tensor([0.5, -1.0, 0.2, 4.0, 0.0])
+    ref = make_reference(car, start, params)
+    assert torch.equal(ref.start, ref.x[..., 0, :]) and ref.start.shape == (2, 5) and not ref.start.requires_grad
+    assert torch.equal(ref.select(1).start, ref.x[1, 0]) and ref.detach().origin is not None
+    s = start.clone().requires_grad_(True)
+    (g,) = torch.autograd.grad(make_reference(car, s, params).start.sum(), s)
+    torch.testing.assert_close(g, torch.full((5,), 2.0))  # two references from the one start
+    pred = load_predictor(None, car, load_controller(None))
+    x0 = start + 0.1 * torch.randn(2, 30, 5, generator=torch.Generator().manual_seed(6))
+    lr0 = torch.zeros(2, 30)
+    grads = []
+    for origin in (True, False):
+        r = make_reference(car, start, params)  # a fresh graph each
+        out = pred.predict(x0, lr0, r if origin else Reference(r.params, r.x, r.u, r.parameterization))
+        grads.append(torch.autograd.grad(out.x.square().sum() + out.log_rho.sum(), params)[0])
+    assert float(grads[0].abs().max()) > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-6)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
@@ -50,6 +51,42 @@ def test_bounds_cost_hand_value():
     term = BoundsCost((-10.0, -10.0, -1.0, 0.0, -math.inf), (10.0, 10.0, 1.0, 5.0, math.inf))
     w = torch.tensor([[[0.5, 1.0]]], dtype=torch.float64)[0]
     assert float(term(_inputs(x, w))) == pytest.approx(0.5 * (1.0 + 0.25) + 1.0 * 4.0)
+
+
+def _weighted(term, x, w):
+    """``term`` on states ``x (..., N, T, nx)`` with weights ``w``."""
+    return term(CostInputs(x=x, weights=w, u_ref=torch.zeros(x.shape[-2] - 1, 2, dtype=x.dtype),
+                           slices=torch.arange(x.shape[-2])))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bounds_cost_gradients_in_closed_form_equal_autograd(dtype):
+    """The bounds term's closed-form gradients (states and weights, weights broadcast over a batch of candidates,
+    bounds shorter than the state, infinite bounds) equal autograd's through the clamp; float64 passes gradcheck."""
+    g = torch.Generator().manual_seed(4)
+    x = (6.0 * torch.randn(3, 7, 11, 5, generator=g, dtype=torch.float64)).to(dtype)
+    w = torch.rand(1, 7, 11, generator=g, dtype=torch.float64).to(dtype)
+    scale = torch.tensor([1.0, -0.5, 2.0], dtype=dtype)
+    tol = {"rtol": 1e-5, "atol": 1e-4} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    for low, high in (((-5.0, -4.0, -1.0, 0.0, -math.inf), (5.0, 4.0, 1.0, 5.0, math.inf)), ((-3.0, -2.0), (3.0, 2.0))):
+        term, n = BoundsCost(low, high), len(low)
+        lo, hi = torch.tensor(low, dtype=dtype), torch.tensor(high, dtype=dtype)
+        xa, wa = x.clone().requires_grad_(True), w.clone().requires_grad_(True)
+        ja = _weighted(term, xa, wa)
+        xb, wb = x.clone().requires_grad_(True), w.clone().requires_grad_(True)
+        jb = (wb * (xb[..., :n] - torch.clamp(xb[..., :n], lo, hi)).square().sum(-1)).sum(dim=(-1, -2))
+        assert float(jb.detach().min()) > 0
+        torch.testing.assert_close(ja, jb, **tol)
+        grads_a = torch.autograd.grad((ja * scale).sum(), (xa, wa))
+        grads_b = torch.autograd.grad((jb * scale).sum(), (xb, wb))
+        for u, v in zip(grads_a, grads_b):
+            assert u.shape == v.shape and u.dtype == v.dtype
+            torch.testing.assert_close(u, v, **tol)
+        if dtype == torch.float64:
+            small = (x[:, :2, :3].clone().requires_grad_(True), w[:, :2, :3].clone().requires_grad_(True))
+            assert torch.autograd.gradcheck(functools.partial(_weighted, term), small)
+        with torch.no_grad():  # no graph: the plain expression, the same value
+            torch.testing.assert_close(_weighted(term, x, w), (w * term.violation(x)).sum(dim=(-1, -2)))
 
 
 def test_desired_position_moves_down_the_gradient_and_collision_cost_decreases():

@@ -89,12 +89,15 @@ class Reference:
         x: ``(*batch, K + 1, nx)`` reference states at ``t = k dt``.
         u: ``(*batch, K, nu)`` reference inputs, ``u[k]`` applied on ``[k dt, (k + 1) dt)``.
         parameterization: the :class:`PiecewiseConstantInputs` that produced them.
+        origin: ``(*batch, nx)``, the start state as given to :func:`make_reference` (equal to ``x[..., 0, :]``,
+            without the roll-out's autograd graph: a start that needs no gradient has none); ``None``: read ``x``.
     """
 
     params: Tensor
     x: Tensor
     u: Tensor
     parameterization: PiecewiseConstantInputs
+    origin: Tensor | None = None
 
     @property
     def dt(self) -> float:
@@ -130,7 +133,9 @@ class Reference:
 
     @property
     def start(self) -> Tensor:
-        return self.x[..., 0, :]
+        """``(*batch, nx)``: the first state. Its gradient in the parameters is zero; read from :attr:`origin` where
+        known, a backward pass skips the roll-out's graph there (the learned density predictors' sample features)."""
+        return self.x[..., 0, :] if self.origin is None else self.origin
 
     @property
     def segment_inputs(self) -> Tensor:
@@ -145,11 +150,13 @@ class Reference:
         return self.params + applied.unflatten(-2, (par.n_segments, par.steps_per_segment)).mean(-2).transpose(-1, -2)
 
     def detach(self) -> Reference:
-        return Reference(self.params.detach(), self.x.detach(), self.u.detach(), self.parameterization)
+        return Reference(self.params.detach(), self.x.detach(), self.u.detach(), self.parameterization,
+                         None if self.origin is None else self.origin.detach())
 
     def select(self, index) -> Reference:
         """Sub-batch ``reference.select(i)`` (indexing over the leading batch dimensions)."""
-        return Reference(self.params[index], self.x[index], self.u[index], self.parameterization)
+        return Reference(self.params[index], self.x[index], self.u[index], self.parameterization,
+                         None if self.origin is None else self.origin[index])
 
     def stage_values(self, step_dt: float, n_steps: int, stages: tuple[float, ...]) -> tuple[Tensor, Tensor]:
         """Reference states and inputs at the stage times ``n * step_dt + c * step_dt`` of an integrator.
@@ -274,7 +281,7 @@ def make_reference(
     x = system.rollout(start, u, par.dt)
     batch = x.shape[:-2]
     u = system.held_inputs(x, u.expand(*batch, *u.shape[-2:]), par.dt)
-    return Reference(params.expand(*batch, *params.shape[-2:]), x, u, par)
+    return Reference(params.expand(*batch, *params.shape[-2:]), x, u, par, start.expand(*batch, system.nx))
 
 
 def plan_grid_reference(

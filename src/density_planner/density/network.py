@@ -629,7 +629,8 @@ class LearnedDensity(DensityPredictor):
                 px, plog, pk0 = prev
                 x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
             ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
-            xe, lr = self._window(x_start, ref_x[..., 0, :], inputs[..., first:first + size], ref_x)
+            ref_start = reference.start if prev is None else ref_x[..., 0, :]  # the first: no roll-out graph
+            xe, lr = self._window(x_start, ref_start, inputs[..., first:first + size], ref_x)
             wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
             keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
             xs.append(wx[..., keep:, :])
@@ -655,7 +656,7 @@ class LearnedDensity(DensityPredictor):
         pad = params.new_zeros(*params.shape[:-1], size - par.n_segments)
         x_plan = reference.x_plan
         tail = x_plan[..., -1:, :].expand(*x_plan.shape[:-2], size * per_seg + 1 - n, x_plan.shape[-1])
-        xe, lr = self._window(x0, x_plan[..., 0, :], torch.cat([params, pad], dim=-1), torch.cat([x_plan, tail], -2))
+        xe, lr = self._window(x0, reference.start, torch.cat([params, pad], dim=-1), torch.cat([x_plan, tail], -2))
         return xe[..., :n, :], lr[..., :n]
 
     def _window(self, x0: Tensor, start: Tensor, params: Tensor, x_plan: Tensor) -> tuple[Tensor, Tensor]:
