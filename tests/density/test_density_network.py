@@ -336,3 +336,38 @@ def test_chained_windows_continue_from_the_predicted_state(n_segments):
     p = params.clone().requires_grad_(True)
     pred.predict(x0, log_rho0, make_reference(car, start, p, long)).x[..., -1, :2].sum().backward()
     assert torch.isfinite(p.grad).all() and p.grad[..., -1].abs().sum() > 0
+
+
+@pytest.mark.parametrize("n_segments", [4, 10, 17])
+def test_trajectory_head_states_only_skips_the_log_density_with_the_same_states_and_gradient(n_segments):
+    """``predict_states`` of the trajectory head (one window, a padded one, chained windows): the same states and
+    the same gradient in the parameters as ``predict`` (float64 rounding); the log-densities after ``t = 0`` are NaN
+    (left out, so that any use shows), ``log_rho0`` kept. The pointwise net predicts them anyway."""
+    from density_planner.control.reference import PiecewiseConstantInputs
+
+    car = KinematicCar()
+    g = torch.Generator().manual_seed(9)
+    par = PiecewiseConstantInputs(n_segments=n_segments)
+    start = torch.tensor(START, dtype=torch.float64).expand(2, 5)
+    params = torch.rand(2, 2, n_segments, generator=g, dtype=torch.float64) - 0.5
+    x0 = start.unsqueeze(-2) + 0.3 * (torch.rand(2, 6, 5, generator=g, dtype=torch.float64) - 0.5)
+    log_rho0 = torch.randn(2, 6, generator=g, dtype=torch.float64)
+    for arch in ("trajectory", "pointwise"):
+        pred = LearnedDensity(tiny_net(arch, dtype=torch.float64))
+        outs, grads = [], []
+        for method in (pred.predict, pred.predict_states):
+            p = params.clone().requires_grad_(True)
+            out = method(x0, log_rho0, make_reference(car, start, p, par))
+            (grad,) = torch.autograd.grad(out.x.square().sum(), p)
+            outs.append(out)
+            grads.append(grad)
+        full, states = outs
+        # the same up to the rounding of a matrix product with fewer output rows
+        torch.testing.assert_close(states.x, full.x, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(grads[1], grads[0], rtol=1e-10, atol=1e-10)
+        assert float(grads[0].abs().max()) > 0
+        assert torch.equal(states.log_rho[..., 0], full.log_rho[..., 0]) and torch.equal(states.log_rho0, log_rho0)
+        if arch == "trajectory":
+            assert bool(torch.isnan(states.log_rho[..., 1:]).all())
+        else:
+            assert torch.equal(states.log_rho, full.log_rho)

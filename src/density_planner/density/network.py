@@ -330,8 +330,10 @@ class DensityNetwork(nn.Module):
         h = F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:nf], b) + self._t_feature(t).unsqueeze(-1) * w[:, nf]
         return self._trunk(h)
 
-    def grid_outputs(self, s: Tensor, r: Tensor) -> Tensor:
-        """Outputs ``y (..., T - 1, O)`` (reference frame) at ``t_1 .. t_{T-1}`` from standardised features.
+    def grid_outputs(self, s: Tensor, r: Tensor, states_only: bool = False) -> Tensor:
+        """Outputs ``y (..., T - 1, O)`` (reference frame) at ``t_1 .. t_{T-1}`` from standardised features;
+        ``states_only``: the trajectory head leaves out its last output, the log-density ratio (``(..., T - 1, O -
+        1)``: a fifth of its last layer's work for the car).
 
         The trajectory head folds the baseline and the output scale into one affine map of the last hidden layer
         and the features (three matrix products, no per-time element-wise work)."""
@@ -341,22 +343,26 @@ class DensityNetwork(nn.Module):
             ns = a.n_sample_features
             w, b = self.first.weight, self.first.bias
             h = self.body(F.linear(s, w[:, :ns]) + F.linear(r, w[:, ns:], b))
-            scale = self.out_scale[1:].reshape(-1)
-            base = self.base_weight[1:].permute(0, 2, 1).reshape(t1 * n_out, -1)  # (T-1 * O, F)
-            bias = scale * self.last.bias + self.base_bias[1:].reshape(-1)
-            y = F.linear(h, scale.unsqueeze(-1) * self.last.weight, bias) + F.linear(s, base[:, :ns]) + F.linear(
-                r, base[:, ns:])
-            return y.reshape(*y.shape[:-1], t1, n_out)
+            k = n_out - 1 if states_only else n_out  # outputs kept per time
+            scale = self.out_scale[1:, :k]  # (T-1, k)
+            weight = (scale.unsqueeze(-1) * self.last.weight.reshape(t1, n_out, -1)[:, :k]).reshape(t1 * k, -1)
+            bias = (scale * self.last.bias.reshape(t1, n_out)[:, :k] + self.base_bias[1:, :k]).reshape(-1)
+            base = self.base_weight[1:, :, :k].permute(0, 2, 1).reshape(t1 * k, -1)  # (T-1 * k, F)
+            y = F.linear(h, weight, bias) + F.linear(s, base[:, :ns]) + F.linear(r, base[:, ns:])
+            return y.reshape(*y.shape[:-1], t1, k)
         t = torch.arange(1, a.n_times, dtype=s.dtype, device=s.device) * a.dt
         net = self.raw_pointwise(s.unsqueeze(-2), r.unsqueeze(-2), t)  # (..., T-1, O)
         return self.baseline(s, r, self.base_weight[1:], self.base_bias[1:]) + self.out_scale[1:] * net
 
-    def forward(self, xe0: Tensor, ref_start: Tensor, params: Tensor, ref_heading: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(self, xe0: Tensor, ref_start: Tensor, params: Tensor, ref_heading: Tensor,
+                states_only: bool = False) -> tuple[Tensor, Tensor]:
         """Predictions on the full grid for samples ``xe0 (*b, N, nx)`` of references ``ref_start (*b, nx)``,
         ``params (*b, nu, S)`` with headings ``ref_heading (*b, T)`` on the grid (zeros for a system without
-        heading): world-frame error ``xe (*b, N, T, nx)`` and log-density ratio ``L (*b, N, T)``."""
+        heading): world-frame error ``xe (*b, N, T, nx)`` and log-density ratio ``L (*b, N, T)`` (NaN after
+        ``t = 0`` with ``states_only`` for the trajectory head, which then skips that output)."""
         s, r = self._sample_axis_features(xe0, ref_start, params)
-        y = self.grid_outputs(s, r)
+        skip = states_only and self.architecture.arch == "trajectory"
+        y = self.grid_outputs(s, r, states_only=skip)
         xe_rest, lr_rest = outputs_to_errors(y, xe0, ref_heading[..., 1:].unsqueeze(-2), self.layout)
         xe = torch.cat([xe0.unsqueeze(-2), xe_rest], dim=-2)
         log_ratio = torch.cat([lr_rest.new_zeros(*lr_rest.shape[:-1], 1), lr_rest], dim=-1)
@@ -451,7 +457,8 @@ def errors_to_outputs(xe: Tensor, log_ratio: Tensor, ref_heading: Tensor, layout
 def outputs_to_errors(y: Tensor, xe0: Tensor, ref_heading: Tensor,
                       layout: DensityLayout) -> tuple[Tensor, Tensor]:
     """World-frame errors ``(..., K, nx)`` (hidden components copied from ``xe0``) and log-density ratios
-    ``(..., K)`` from outputs ``y (..., K, O)``; ``ref_heading`` broadcasts to ``y.shape[:-1]``."""
+    ``(..., K)`` from outputs ``y (..., K, O)`` (NaN from outputs without the last, ``(..., K, O - 1)``);
+    ``ref_heading`` broadcasts to ``y.shape[:-1]``."""
     dx, dy = from_reference_frame(y[..., 0], y[..., 1], ref_heading)
     cols: list[Tensor | None] = [None] * layout.nx
     cols[layout.position[0]], cols[layout.position[1]] = dx, dy
@@ -460,6 +467,8 @@ def outputs_to_errors(y: Tensor, xe0: Tensor, ref_heading: Tensor,
     for k in layout.hidden:
         cols[k] = xe0[..., k].unsqueeze(-1).expand_as(dx)
     xe = torch.stack(cols, dim=-1)  # type: ignore[arg-type]
+    if y.shape[-1] == layout.n_learned:  # the states only (DensityNetwork.grid_outputs): no log-density
+        return xe, torch.full_like(dx, math.nan)
     return xe, y[..., layout.n_learned]
 
 
@@ -583,12 +592,13 @@ class LearnedDensity(DensityPredictor):
         return self._predict(x0, log_rho0, reference)
 
     def predict_states(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
-        """The network's prediction (the log-densities come at no extra cost), or the fallback's
-        :meth:`~DensityPredictor.predict_states` outside the training domain."""
+        """The network's prediction without the log-densities along the trajectories (NaN after ``t = 0``: the
+        trajectory head skips that output, a fifth of its last layer's work for the car; the pointwise net computes
+        them anyway), or the fallback's :meth:`~DensityPredictor.predict_states` outside the training domain."""
         fallback = self._fallback_for(reference)
         if fallback is not None:
             return fallback.predict_states(x0, log_rho0, reference)
-        return self._predict(x0, log_rho0, reference)
+        return self._predict(x0, log_rho0, reference, states_only=True)
 
     def _fallback_for(self, reference: Reference) -> DensityPredictor | None:
         """``None`` when the network serves ``reference``; the fallback (warned once) outside its training domain;
@@ -605,7 +615,8 @@ class LearnedDensity(DensityPredictor):
             self._warned = True
         return self.fallback
 
-    def _predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference) -> DensityTrajectory:
+    def _predict(self, x0: Tensor, log_rho0: Tensor, reference: Reference,
+                 states_only: bool = False) -> DensityTrajectory:
         dtype, device = reference.x.dtype, reference.x.device
         x0 = expand_samples(x0, reference, self.layout.nx)
         log_rho0 = expand_log_rho0(log_rho0, x0)
@@ -617,7 +628,7 @@ class LearnedDensity(DensityPredictor):
         par, size = reference.parameterization, self.architecture.n_segments
         per_seg = par.steps_per_segment // par.plan_stride  # planning points per segment
         if par.n_segments < size:  # a shorter reference: one window, padded (see _padded_window)
-            xe, lr = self._padded_window(x0, reference, size, per_seg)
+            xe, lr = self._padded_window(x0, reference, size, per_seg, states_only)
             return DensityTrajectory(t=reference.t_plan, x=reference.x_plan.unsqueeze(-3) + xe,
                                      log_rho=log_rho0.unsqueeze(-1) + lr, log_rho0=log_rho0)
         x_start, log_start = x0, torch.zeros_like(x0[..., 0])
@@ -630,7 +641,7 @@ class LearnedDensity(DensityPredictor):
                 x_start, log_start = px[..., k0 - pk0, :], plog[..., k0 - pk0]
             ref_x = reference.x_plan[..., k0:k0 + size * per_seg + 1, :]
             ref_start = reference.start if prev is None else ref_x[..., 0, :]  # the first: no roll-out graph
-            xe, lr = self._window(x_start, ref_start, inputs[..., first:first + size], ref_x)
+            xe, lr = self._window(x_start, ref_start, inputs[..., first:first + size], ref_x, states_only)
             wx, wlog = ref_x.unsqueeze(-3) + xe, log_start.unsqueeze(-1) + lr
             keep = 0 if prev is None else (covered - first) * per_seg + 1  # points not yet predicted
             xs.append(wx[..., keep:, :])
@@ -641,7 +652,8 @@ class LearnedDensity(DensityPredictor):
         return DensityTrajectory(t=reference.t_plan, x=x, log_rho=log_rho0.unsqueeze(-1) + log_ratio,
                                  log_rho0=log_rho0)
 
-    def _padded_window(self, x0: Tensor, reference: Reference, size: int, per_seg: int) -> tuple[Tensor, Tensor]:
+    def _padded_window(self, x0: Tensor, reference: Reference, size: int, per_seg: int,
+                       states_only: bool = False) -> tuple[Tensor, Tensor]:
         """Errors and log-density ratios over a reference of fewer segments than the trained ``size``: the window
         reads the reference's parameters followed by zero inputs (the mode of the training references' inputs,
         which are clamped normal draws) and predicts its whole horizon, of which the reference's own points are
@@ -656,14 +668,16 @@ class LearnedDensity(DensityPredictor):
         pad = params.new_zeros(*params.shape[:-1], size - par.n_segments)
         x_plan = reference.x_plan
         tail = x_plan[..., -1:, :].expand(*x_plan.shape[:-2], size * per_seg + 1 - n, x_plan.shape[-1])
-        xe, lr = self._window(x0, reference.start, torch.cat([params, pad], dim=-1), torch.cat([x_plan, tail], -2))
+        xe, lr = self._window(x0, reference.start, torch.cat([params, pad], dim=-1), torch.cat([x_plan, tail], -2),
+                              states_only)
         return xe[..., :n, :], lr[..., :n]
 
-    def _window(self, x0: Tensor, start: Tensor, params: Tensor, x_plan: Tensor) -> tuple[Tensor, Tensor]:
+    def _window(self, x0: Tensor, start: Tensor, params: Tensor, x_plan: Tensor,
+                states_only: bool = False) -> tuple[Tensor, Tensor]:
         """Errors ``(*batch, N, T, nx)`` and log-density ratios ``(*batch, N, T)`` over one trained horizon from
         states ``x0 (*batch, N, nx)``, along the reference that starts at ``start`` with ``params`` (planning-grid
-        states ``x_plan``)."""
-        return self.model(x0 - start.unsqueeze(-2), start, params, _heading(x_plan, self.layout))
+        states ``x_plan``; ``states_only``: see :meth:`predict_states`)."""
+        return self.model(x0 - start.unsqueeze(-2), start, params, _heading(x_plan, self.layout), states_only)
 
     _warned = False
 
