@@ -161,6 +161,31 @@ def test_bad_planner_config(kwargs):
         DensityPlannerConfig(**kwargs)
 
 
+def test_the_paper_estimator_keeps_the_log_densities_in_stage_2():
+    """The paper's risk estimator reads the log-densities along the trajectories (online replans report the risk of
+    stage 2's best iterate): with it stage 2 asks for full predictions even under "mass" weights; with the "is"
+    estimator, for the states only."""
+    from density_planner.risk import RiskConfig
+
+    scene = block_scene()
+    cfg = DensityPlannerConfig(n_candidates=6, epochs_init=5, epochs_density=3, n_samples=20, evaluation_samples=20,
+                               seed=3, fresh_evaluation_samples=False)
+    for estimator, states_calls in (("paper", 0), ("is", 3)):
+        planner = _planner(cfg)
+        calls: list[int] = []
+        states = planner.predictor.predict_states
+
+        def counted(*args, _states=states, _calls=calls):
+            _calls.append(1)
+            return _states(*args)
+
+        planner.predictor.predict_states = counted  # type: ignore[method-assign]
+        problem = PlanningProblem.from_scene(scene, seed=0, risk=RiskConfig(estimator=estimator))
+        (_, _, _, traj), *_ = planner.refine(problem, 0.1 * torch.ones(2, 10), torch.Generator().manual_seed(0))
+        assert len(calls) == states_calls
+        assert bool(torch.isfinite(traj.log_rho).all()) == (estimator == "paper")
+
+
 def test_mass_weighted_iterations_read_states_only_with_the_same_plan():
     """With "mass" weights stage 2 asks exact Liouville for the trajectories alone (no divergence): the same
     states as the full propagation, so the same plan; the reported log-densities are the full ones."""

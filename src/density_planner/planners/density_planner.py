@@ -428,9 +428,10 @@ class DensityPlanner(Planner):
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
                 # "mass" weights are constant in time: the cost reads the trajectories, not the log-densities
-                # along them (exact Liouville then skips the divergence)
+                # along them (exact Liouville then skips the divergence, the trajectory head that output), nor does
+                # the "is" estimator of the best iterate's risk (online replans report it)
                 ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0,
-                                          states_only=cfg.weighting == "mass")
+                                          states_only=cfg.weighting == "mass" and problem.risk.estimator == "is")
                 cost = self._with_reference(problem, objective, ref, slices,
                                             on_samples(self._inputs(ref, traj, log_q0, slices)))
                 self._record(history, cost.select(0))
