@@ -123,7 +123,8 @@ class BoundsCost(CostTerm):
     def violation(self, x: Tensor) -> Tensor:
         """Squared violation per sample and time, ``(*batch, N, T)``: the squared distance of ``x`` to the box,
         component by component (``x`` minus its clamp into the box; infinite bounds clamp nothing)."""
-        return self._excess(x, self._bounds(x)).square().sum(-1)
+        low, high = self._bounds(x)
+        return _box_excess(self._leading(x, low), low, high).square().sum(-1)
 
     def _bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
         key = (x.dtype, x.device)
@@ -133,24 +134,20 @@ class BoundsCost(CostTerm):
         return bounds
 
     @staticmethod
-    def _leading(x: Tensor, bounds: tuple[Tensor, Tensor]) -> Tensor:
-        n = bounds[0].shape[0]  # bounds shorter than the state bound its leading components
+    def _leading(x: Tensor, low: Tensor) -> Tensor:
+        n = low.shape[0]  # bounds shorter than the state bound its leading components
         return x if x.shape[-1] == n else x[..., :n]
 
-    @classmethod
-    def _excess(cls, x: Tensor, bounds: tuple[Tensor, Tensor]) -> Tensor:
-        """``x`` minus its clamp into the box (the bounded leading components)."""
-        x = cls._leading(x, bounds)
-        return x - torch.clamp(x, *bounds)
-
     def __call__(self, inputs: CostInputs) -> Tensor:
-        x, w = inputs.x, inputs.weights
-        bounds = self._bounds(x)
-        if torch.is_grad_enabled() and (x.requires_grad or w.requires_grad):
-            # the gradient in closed form (2 w (x - clamp(x))): autograd's clamp backward costs ~5 passes more over
-            # the sample cloud (500 x 101 x 5 values per stage-2 iteration)
-            return _BoundsPenalty.apply(self._leading(x, bounds), w, *bounds)
-        return (w * self._excess(x, bounds).square().sum(-1)).sum(dim=(-1, -2))
+        # the gradient in closed form (2 w (x - clamp(x))): autograd's clamp backward costs ~5 passes more over the
+        # sample cloud (500 x 101 x 5 values per stage-2 iteration)
+        low, high = self._bounds(inputs.x)
+        return _BoundsPenalty.apply(self._leading(inputs.x, low), inputs.weights, low, high)
+
+
+def _box_excess(x: Tensor, low: Tensor, high: Tensor) -> Tensor:
+    """``x`` minus its clamp into the box ``[low, high]``."""
+    return x - torch.clamp(x, low, high)
 
 
 class _BoundsPenalty(torch.autograd.Function):
@@ -159,7 +156,7 @@ class _BoundsPenalty(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, w: Tensor, low: Tensor, high: Tensor):
-        d = x - torch.clamp(x, low, high)
+        d = _box_excess(x, low, high)
         v = d.square().sum(-1)
         ctx.save_for_backward(d, w, v)
         ctx.shapes = (x.shape, x.dtype, w.shape)

@@ -361,8 +361,7 @@ class DensityNetwork(nn.Module):
         heading): world-frame error ``xe (*b, N, T, nx)`` and log-density ratio ``L (*b, N, T)`` (NaN after
         ``t = 0`` with ``states_only`` for the trajectory head, which then skips that output)."""
         s, r = self._sample_axis_features(xe0, ref_start, params)
-        skip = states_only and self.architecture.arch == "trajectory"
-        y = self.grid_outputs(s, r, states_only=skip)
+        y = self.grid_outputs(s, r, states_only=states_only)
         xe_rest, lr_rest = outputs_to_errors(y, xe0, ref_heading[..., 1:].unsqueeze(-2), self.layout)
         xe = torch.cat([xe0.unsqueeze(-2), xe_rest], dim=-2)
         log_ratio = torch.cat([lr_rest.new_zeros(*lr_rest.shape[:-1], 1), lr_rest], dim=-1)

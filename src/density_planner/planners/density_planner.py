@@ -427,11 +427,9 @@ class DensityPlanner(Planner):
         with self._bar(cfg.epochs_density, "stage 2 (density)") as bar:
             for it in range(cfg.epochs_density):
                 pv = p.detach()[0].requires_grad_(True)
-                # "mass" weights are constant in time: the cost reads the trajectories, not the log-densities
-                # along them (exact Liouville then skips the divergence, the trajectory head that output), nor does
-                # the "is" estimator of the best iterate's risk (online replans report it)
+                # exact Liouville then skips the divergence, the trajectory head its log-density output
                 ref, traj = self._predict(self.predictor, problem, pv, x0, log_rho0,
-                                          states_only=cfg.weighting == "mass" and problem.risk.estimator == "is")
+                                          states_only=self._states_suffice(problem))
                 cost = self._with_reference(problem, objective, ref, slices,
                                             on_samples(self._inputs(ref, traj, log_q0, slices)))
                 self._record(history, cost.select(0))
@@ -453,6 +451,12 @@ class DensityPlanner(Planner):
         history["backtracks"] = [float(backtracker.count)]
         history["iterations"] = [float(it + 1)]
         return best, history, (x0, log_rho0, log_q0), slices
+
+    def _states_suffice(self, problem: PlanningProblem) -> bool:
+        """Whether costs and risk read the samples' trajectories only, not the log-densities along them: "mass"
+        weights are constant in time, and the "is" estimator weighs each sample by its initial mass (the paper's
+        estimator reads the log-densities; online replans report the risk of stage 2's best iterate)."""
+        return self.config.weighting == "mass" and problem.risk.estimator == "is"
 
     def _sample_objective(self, objective: WeightedCost) -> WeightedCost:
         """``objective`` with the road barrier's weight on sample clouds (``cost.road.sample_weight``)."""
@@ -525,8 +529,7 @@ class DensityPlanner(Planner):
         if self.exact_check is not None and self.exact_check is not self.predictor:
             t3 = time.perf_counter()
             # the states alone where the reported figures read no log-density along the trajectories
-            states_only = not self.config.exact_log_density and self.config.weighting == "mass" and \
-                problem.risk.estimator == "is"
+            states_only = not self.config.exact_log_density and self._states_suffice(problem)
             with torch.no_grad():  # an execution setting: the command line's plan splits it over 2 cores
                 ref_e, traj_e = self._predict(self.exact_check, problem, params, x0, log_rho0,
                                               processes=prediction_processes(), states_only=states_only)
